@@ -1,0 +1,3 @@
+from geodepth_lite.cli import main
+
+raise SystemExit(main())
