@@ -1,0 +1,289 @@
+"""Evaluation of a trained model with the seven depth metrics (paper Section 4.3).
+
+Protocol (monodepth2 / AF-SfMLearner, shared by every table of the workbook):
+the prediction is resized to the ground truth's size, pixels with
+``min_depth < gt < max_depth`` (and the dataset's ``valid`` mask, if any) are kept,
+the prediction is median-scaled per frame (the paper's Eq. in Section 4.3),
+clamped, and the seven metrics (Abs Rel, Sq Rel, RMSE, RMSE log, a1, a2, a3) are
+computed per frame by ``metrics.compute_depth_metrics`` and averaged over frames,
+overall and per group (organ; texture x lighting group).
+
+``evaluate_model`` is what the notebooks call: it returns plain dicts (no pandas)
+and, given ``out_dir``, writes ``metrics.json``, ``frames.csv`` (one row per
+frame), ``tables.md`` and error-map PNGs laid out like the paper's Fig. 7.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import os
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+import torch
+
+from geodepth_lite import utils
+
+METRIC_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+METRIC_LABELS = {"abs_rel": "Abs Rel", "sq_rel": "Sq Rel", "rmse": "RMSE", "rmse_log": "RMSE log",
+                 "a1": "a1", "a2": "a2", "a3": "a3"}
+PUBLIC_DATASETS = ("endoslam", "colondepth", "simcol3d", "c3vd")
+
+
+# --------------------------------------------------------------------------- datasets
+
+
+def open_eval_dataset(name: str, *, split: str = "test", root: str | os.PathLike | None = None,
+                      progress: bool = False, **kw: Any):
+    """A dataset to evaluate on, at its native resolution.
+
+    name: a synthetic manifest name (built on demand with ``synth.ensure_dataset``), a
+    synthetic dataset directory, or one of the public datasets (``PUBLIC_DATASETS``; needs
+    ``root``, read by ``loaders.open_dataset``, extra keywords such as ``group``/``organ``/
+    ``limit`` passed on). ``split`` applies to synthetic datasets.
+    """
+    if name in PUBLIC_DATASETS:
+        if root is None:
+            raise ValueError(f"--root is required for the public dataset {name!r} (the folder you downloaded)")
+        from geodepth_lite import loaders
+
+        return loaders.open_dataset(name, root, **kw)
+    from geodepth_lite.dataset import SyntheticDepthDataset
+
+    path = Path(name).expanduser()
+    if path.is_dir() and (path / "manifest.json").exists():
+        ds_root = path
+    else:
+        from geodepth_lite import synth
+
+        ds_root = Path(synth.ensure_dataset(name, overrides=kw.pop("overrides", None), progress=progress))
+    if not (ds_root / split).is_dir():
+        have = sorted(p.name for p in ds_root.iterdir() if (p / "frames.jsonl").exists())
+        raise ValueError(f"split {split!r} not in {ds_root}; available: {', '.join(have) or 'none'}")
+    return SyntheticDepthDataset(ds_root, split)
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def _frame_metrics(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None, min_depth: float,
+                   max_depth: float) -> dict:
+    from geodepth_lite.metrics import compute_depth_metrics
+
+    if valid is not None:
+        gt = np.where(valid, gt, 0.0)  # outside the metric's (min_depth, max_depth) mask
+    m = compute_depth_metrics(pred[None], gt[None], min_depth=min_depth, max_depth=max_depth)
+    out = {k: float(m[k]) for k in METRIC_KEYS}
+    ratios = np.asarray(m.get("ratios", [np.nan]), dtype=np.float64).ravel()
+    out["ratio"] = float(ratios[0]) if ratios.size else float("nan")
+    return out
+
+
+def summarize(rows: list[dict], by: str | None = None) -> dict:
+    """Mean of the per-frame metrics (the protocol's average over frames), overall or per ``by``."""
+    if by is None:
+        if not rows:
+            return {"n": 0, **{k: float("nan") for k in METRIC_KEYS}}
+        return {"n": len(rows), **{k: float(np.mean([r[k] for r in rows])) for k in METRIC_KEYS}}
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(str(r.get(by, "")), []).append(r)
+    return {g: summarize(rs) for g, rs in sorted(groups.items())}
+
+
+def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size: int = 8,
+                   out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = 1e-3,
+                   max_depth: float = 100.0, progress: bool = False, name: str = "") -> dict:
+    """Evaluate ``model`` on ``dataset`` (items as ``SyntheticDepthDataset``'s; optional "valid").
+
+    Returns {"name", "n", "overall": {metric: mean}, "by_group": {group: {...}},
+    "by_organ": {organ: {...}}, "frames": [one dict per frame: index, organ, group,
+    seven metrics, median-scaling ratio]}. With ``out_dir`` also writes metrics.json,
+    frames.csv, tables.md and ``error_maps`` PNGs (input | GT | prediction | Abs Rel map).
+    """
+    from geodepth_lite.train import predict_depth
+    from tqdm.auto import tqdm
+
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
+                                         collate_fn=_collate_eval)
+    rows: list[dict] = []
+    examples: list[dict] = []
+    for batch in tqdm(loader, desc=f"evaluate {name}".strip(), disable=not progress, leave=False):
+        pred = predict_depth(model, batch["image"], image_size).cpu().numpy()[:, 0]
+        gt = batch["depth"].numpy()[:, 0]
+        valid = batch["valid"].numpy()[:, 0].astype(bool) if "valid" in batch else None
+        for j in range(pred.shape[0]):
+            m = _frame_metrics(pred[j], gt[j], None if valid is None else valid[j], min_depth, max_depth)
+            rows.append({"index": int(batch["index"][j]), "organ": str(batch["organ"][j]),
+                         "group": str(batch["group"][j]), **m})
+            if len(examples) < error_maps:
+                examples.append({"image": batch["image"][j].permute(1, 2, 0).numpy(), "gt": gt[j],
+                                 "pred": pred[j] * m["ratio"], "index": rows[-1]["index"],
+                                 "valid": None if valid is None else valid[j]})
+    result = {"name": name, "n": len(rows), "overall": summarize(rows), "by_group": summarize(rows, "group"),
+              "by_organ": summarize(rows, "organ"), "frames": rows}
+    if out_dir is not None:
+        write_results(result, out_dir, examples, min_depth=min_depth, max_depth=max_depth)
+    return result
+
+
+def _collate_eval(batch: list[dict]) -> dict:
+    from geodepth_lite.train import _collate
+
+    return _collate(batch)
+
+
+def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_teach", *, split: str = "test",
+                        root: str | os.PathLike | None = None, out_dir: str | os.PathLike | None = None,
+                        device: str | None = None, batch_size: int = 8, error_maps: int = 4,
+                        progress: bool = False, **kw: Any) -> dict:
+    """``evaluate_model`` for a checkpoint file on a dataset named as in ``open_eval_dataset``."""
+    from geodepth_lite.train import load_model, pick_device
+
+    model, cfg = load_model(checkpoint, pick_device(device))
+    ds = open_eval_dataset(dataset, split=split, root=root, progress=progress, **kw)
+    return evaluate_model(model, ds, image_size=cfg["image_size"], batch_size=batch_size, out_dir=out_dir,
+                          error_maps=error_maps, progress=progress, name=f"{dataset}/{split}")
+
+
+# --------------------------------------------------------------------------- tables and files
+
+
+def fmt(x: Any, digits: int = 3) -> str:
+    """A table cell: floats rounded to ``digits`` decimals, the rest as text."""
+    if isinstance(x, (float, np.floating)):
+        return "nan" if not np.isfinite(x) else f"{x:.{digits}f}"
+    return str(x)
+
+
+def markdown_table(columns: list[str], rows: Iterable[Iterable[Any]], digits: int = 3) -> str:
+    """A GitHub-flavoured markdown table (floats rounded to ``digits``)."""
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    lines += ["| " + " | ".join(fmt(c, digits) for c in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def metrics_table(result: dict, by: str | None = None) -> dict:
+    """{"columns", "rows"} of the seven metrics: one row overall, or one per group/organ."""
+    columns = [by or "set", "frames"] + [METRIC_LABELS[k] for k in METRIC_KEYS]
+    if by is None:
+        parts = {result.get("name") or "all": result["overall"]}
+    else:
+        parts = result[f"by_{by}"]
+    rows = [[g, s["n"]] + [s[k] for k in METRIC_KEYS] for g, s in parts.items()]
+    return {"columns": columns, "rows": rows}
+
+
+def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict] = (), *,
+                  min_depth: float = 1e-3, max_depth: float = 100.0) -> None:
+    """metrics.json, frames.csv, tables.md and error_maps/*.png in ``out_dir`` (each atomic)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    utils.write_json_atomic(out / "metrics.json", {k: v for k, v in result.items() if k != "frames"})
+    fields = ["index", "organ", "group", *METRIC_KEYS, "ratio"]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    for r in result["frames"]:
+        w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]) for k in fields})
+    utils.write_bytes_atomic(out / "frames.csv", buf.getvalue().encode())
+    md = [f"# Evaluation {result.get('name', '')}".rstrip(), "", f"{result['n']} frames; median scaling per frame.", ""]
+    for by in (None, "organ", "group"):
+        t = metrics_table(result, by)
+        md += [f"## {'Overall' if by is None else 'By ' + by}", "", markdown_table(t["columns"], t["rows"]), ""]
+    utils.write_bytes_atomic(out / "tables.md", "\n".join(md).encode())
+    if examples:
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        for ex in examples:
+            fig = error_map_figure([ex], min_depth=min_depth, max_depth=max_depth)
+            with utils.atomic_path(out / "error_maps" / f"{ex['index']:06d}.png") as tmp:
+                fig.savefig(tmp, format="png", dpi=80, bbox_inches="tight")
+            plt.close(fig)
+
+
+def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, min_depth: float = 1e-3,
+                max_depth: float = 100.0) -> np.ndarray:
+    """Per-pixel |gt - pred| / gt (NaN outside the valid mask) of a median-scaled prediction."""
+    mask = (gt > min_depth) & (gt < max_depth)
+    if valid is not None:
+        mask &= valid
+    err = np.abs(gt - np.clip(pred, min_depth, max_depth)) / np.where(mask, gt, 1.0)
+    return np.where(mask, err, np.nan)
+
+
+def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", "ground truth", "prediction", "error"),
+                     min_depth: float = 1e-3, max_depth: float = 100.0, err_max: float = 0.5,
+                     row_labels: list[str] | None = None):
+    """The paper's Fig. 7 layout: one row per frame, input | GT | (median-scaled) prediction | Abs Rel map.
+
+    Each example: {"image": HxWx3 in [0,1], "gt": HxW, "pred": HxW already median-scaled,
+    optional "preds": {label: HxW} for extra prediction columns (ablation), "valid"}.
+    """
+    import matplotlib.pyplot as plt
+
+    extra = list(examples[0].get("preds", {}))
+    cols = ["input", "ground truth"] + (extra if extra else ["prediction"]) + (["error"] if "error" in columns else [])
+    fig, axes = plt.subplots(len(examples), len(cols), figsize=(2.2 * len(cols), 2.2 * len(examples)), squeeze=False)
+    for i, ex in enumerate(examples):
+        gt = ex["gt"]
+        finite = gt[np.isfinite(gt) & (gt > min_depth)]
+        vmin, vmax = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (0, 1)
+        preds = ex.get("preds") or {"prediction": ex["pred"]}
+        panels = [("input", ex["image"], {}), ("ground truth", gt, dict(cmap="magma_r", vmin=vmin, vmax=vmax))]
+        panels += [(k, v, dict(cmap="magma_r", vmin=vmin, vmax=vmax)) for k, v in preds.items()]
+        if "error" in cols:
+            last = list(preds.values())[-1]
+            panels.append(("Abs Rel error", abs_rel_map(last, gt, ex.get("valid"), min_depth, max_depth),
+                           dict(cmap="inferno", vmin=0, vmax=err_max)))
+        for j, (title, img, kw) in enumerate(panels):
+            ax = axes[i, j]
+            ax.imshow(np.clip(img, 0, 1) if title == "input" else img, **kw)
+            ax.set_xticks([]), ax.set_yticks([])
+            if i == 0:
+                ax.set_title(title, fontsize=9)
+        if row_labels:
+            axes[i, 0].set_ylabel(row_labels[i], fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", required=True, help="checkpoint.pt written by `train`")
+    parser.add_argument("--dataset", default="scenario_teach",
+                        help="synthetic manifest name or dataset folder, or one of " + ", ".join(PUBLIC_DATASETS))
+    parser.add_argument("--root", default=None, help="folder of a public dataset (its own layout)")
+    parser.add_argument("--split", default="test", help="split of a synthetic dataset (default test)")
+    parser.add_argument("--group", default=None, help="public datasets: keep one group (e.g. T1-L1)")
+    parser.add_argument("--organ", default=None, help="public datasets: keep one organ (e.g. colon)")
+    parser.add_argument("--limit", type=int, default=None, help="public datasets: first N frames only")
+    parser.add_argument("--out", default=None, help="output folder (default runs/eval/<dataset>-<split>)")
+    parser.add_argument("--error-maps", type=int, default=4, help="number of error-map PNGs (default 4)")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--device", default=None, help="cpu | cuda (default: CUDA when available)")
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    kw = {k: getattr(args, k) for k in ("group", "organ", "limit") if getattr(args, k) is not None}
+    if kw and args.dataset not in PUBLIC_DATASETS:
+        raise ValueError(f"--{', --'.join(kw)} apply to the public datasets only, not {args.dataset!r}")
+    if args.error_maps < 0:
+        raise ValueError(f"--error-maps must be >= 0, got {args.error_maps}")
+    out = Path(args.out) if args.out else utils.runs_dir() / "eval" / f"{Path(args.dataset).name}-{args.split}"
+    result = evaluate_checkpoint(args.checkpoint, args.dataset, split=args.split, root=args.root, out_dir=out,
+                                 device=args.device, batch_size=args.batch_size, error_maps=args.error_maps,
+                                 progress=not args.no_progress, **kw)
+    t = metrics_table(result)
+    print(markdown_table(t["columns"], t["rows"]))
+    print(f"wrote {out / 'metrics.json'}, {out / 'frames.csv'}, {out / 'tables.md'}")
+    return 0

@@ -1,0 +1,319 @@
+"""``python -m geodepth_lite reproduce``: run the numbered notebooks, then write the report.
+
+Each ``notebooks/NN_*.ipynb`` runs in order with papermill (parameters ``profile`` and
+``run_dir``, plus any ``-p NAME VALUE`` the notebooks declare) into ``runs/<profile>/``.
+Everything the user asked for is checked before the first notebook starts: the
+profile, the notebook selection, and that every extra parameter is declared in the
+``parameters`` cell of at least one selected notebook (with a value of the same type).
+
+Output contract (what the notebooks write and the report reads), all under run_dir:
+- ``notebooks/NN_topic.ipynb``: the executed notebooks;
+- ``tables/<name>.json``: one table each, written by ``save_table``:
+  {"name", "title", "columns": [...], "rows": [[...], ...], "notes": str};
+  ``<name>`` starts with the notebook's number (``05_ablation``) so the report can
+  order them; a markdown copy ``tables/<name>.md`` sits beside it;
+- ``figures/<name>.png``: figures, written by ``save_figure`` (same naming);
+- ``.reproduce/NN_topic.json``: written after a notebook finished; a rerun skips
+  notebooks whose marker matches the notebook's source and parameters, so an
+  interrupted ``reproduce`` continues where it stopped (``--force`` reruns all);
+- ``report.md`` and ``report.json``: every table and figure, grouped by notebook.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from geodepth_lite import config, utils
+
+MARKER_DIR = ".reproduce"
+
+
+class NotebookFailed(RuntimeError):
+    """A notebook raised while running; the message names it and its executed copy."""
+
+
+# --------------------------------------------------------------------------- the contract (used by notebooks)
+
+
+def resolve_run_dir(profile: str, run_dir: str | os.PathLike = "") -> Path:
+    """The notebooks' ``run_dir`` parameter: "" means ``runs/<profile>/`` in the workspace."""
+    config.get_profile(profile)
+    path = Path(run_dir).expanduser() if str(run_dir) else utils.runs_dir() / profile
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: list[list[Any]], *,
+               title: str = "", notes: str = "", digits: int = 3) -> Path:
+    """Write ``tables/<name>.json`` (+ ``.md``) under ``run_dir``; return the JSON path."""
+    from geodepth_lite.evaluate import markdown_table
+
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"table name must be a plain file name, got {name!r}")
+    if any(len(r) != len(columns) for r in rows):
+        raise ValueError(f"table {name!r}: every row needs {len(columns)} cells")
+    table = {"name": name, "title": title, "columns": list(columns), "rows": [list(map(_plain, r)) for r in rows],
+             "notes": notes}
+    path = Path(run_dir) / "tables" / f"{name}.json"
+    utils.write_json_atomic(path, table)
+    md = (f"**{title}**\n\n" if title else "") + markdown_table(columns, rows, digits) + (f"\n\n{notes}" if notes else "")
+    utils.write_bytes_atomic(path.with_suffix(".md"), (md + "\n").encode())
+    return path
+
+
+def save_figure(fig, run_dir: str | os.PathLike, name: str, dpi: int = 100) -> Path:
+    """Write a matplotlib figure to ``figures/<name>.png`` under ``run_dir`` (atomically)."""
+    path = Path(run_dir) / "figures" / f"{name}.png"
+    with utils.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+    return path
+
+
+def _plain(x: Any) -> Any:
+    """JSON-friendly cell: numpy scalars to python numbers."""
+    if hasattr(x, "item") and callable(x.item):
+        return x.item()
+    return x
+
+
+# --------------------------------------------------------------------------- notebooks and parameters
+
+
+def notebooks_dir() -> Path:
+    root = utils.project_root()
+    if root is None:
+        raise FileNotFoundError("notebooks/ not found: run reproduce from a checkout of geodepth-lite")
+    return root / "notebooks"
+
+
+def list_notebooks(directory: Path | None = None) -> list[Path]:
+    """The numbered notebooks ``NN_*.ipynb`` in order."""
+    directory = directory or notebooks_dir()
+    return sorted(p for p in directory.glob("[0-9][0-9]_*.ipynb") if p.is_file())
+
+
+def notebook_parameters(path: Path) -> dict[str, Any]:
+    """Names and default values of the ``parameters``-tagged cell (flat literal assignments)."""
+    import nbformat
+
+    nb = nbformat.read(str(path), as_version=4)
+    cells = [c for c in nb.cells if c.cell_type == "code" and "parameters" in c.get("metadata", {}).get("tags", [])]
+    if len(cells) != 1:
+        raise ValueError(f"{path.name}: expected exactly one cell tagged 'parameters', found {len(cells)}")
+    params = {}
+    for node in ast.parse(cells[0].source).body:
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+            try:
+                params[node.targets[0].id] = ast.literal_eval(node.value)
+            except ValueError:
+                params[node.targets[0].id] = None
+    return params
+
+
+def select_notebooks(only: list[str] | None, available: list[Path]) -> list[Path]:
+    """``only`` entries are numbers ("05", "5") or names ("05_ablation", "05_ablation.ipynb")."""
+    if not only:
+        return list(available)
+    chosen = []
+    for item in only:
+        key = item.removesuffix(".ipynb")
+        match = [p for p in available if p.stem == key or p.stem.split("_")[0] == key.zfill(2)]
+        if not match:
+            raise ValueError(f"--notebooks: no notebook {item!r}; available: {', '.join(p.stem for p in available)}")
+        chosen += [p for p in match if p not in chosen]
+    return sorted(chosen)
+
+
+def parse_value(text: str) -> Any:
+    """A ``-p`` value: a Python literal (3, 0.5, True, [0, 1], "x") or else the text itself."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def check_parameters(notebooks: list[Path], extra: dict[str, Any]) -> dict[Path, dict[str, Any]]:
+    """Per notebook, the extra parameters it declares; a clear error for an undeclared name or wrong type."""
+    declared = {nb: notebook_parameters(nb) for nb in notebooks}
+    for name in ("profile", "run_dir"):
+        lacking = [nb.name for nb, ps in declared.items() if name not in ps]
+        if lacking:
+            raise ValueError(f"notebook(s) {', '.join(lacking)} do not declare the parameter {name!r}")
+    for name in ("profile", "run_dir"):
+        if name in extra:
+            raise ValueError(f"-p {name}: use --profile / --out instead")
+    per_nb: dict[Path, dict[str, Any]] = {nb: {} for nb in notebooks}
+    for name, value in extra.items():
+        owners = [nb for nb, ps in declared.items() if name in ps]
+        if not owners:
+            known = sorted({k for ps in declared.values() for k in ps} - {"profile", "run_dir"})
+            raise ValueError(f"unknown notebook parameter {name!r}: the selected notebooks declare "
+                             f"{', '.join(known) or 'only profile and run_dir'}")
+        for nb in owners:
+            default = declared[nb][name]
+            if default is not None and not _same_kind(default, value):
+                raise ValueError(f"parameter {name!r} of {nb.name} expects {type(default).__name__} "
+                                 f"(default {default!r}), got {value!r}")
+            per_nb[nb][name] = value
+    return per_nb
+
+
+def _same_kind(default: Any, value: Any) -> bool:
+    if isinstance(default, bool) or isinstance(value, bool):
+        return isinstance(default, bool) and isinstance(value, bool)
+    if isinstance(default, (int, float)):
+        return isinstance(value, (int, float)) and (isinstance(default, float) or isinstance(value, int))
+    return isinstance(value, type(default))
+
+
+def _marker(nb: Path, params: dict) -> dict:
+    return {"source_sha256": hashlib.sha256(nb.read_bytes()).hexdigest(),
+            "parameters": json.loads(json.dumps(params, default=str))}
+
+
+def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
+    mpath = run_dir / MARKER_DIR / f"{nb.stem}.json"
+    if not mpath.exists() or not (run_dir / "notebooks" / nb.name).exists():
+        return False
+    try:
+        m = json.loads(mpath.read_text())
+    except ValueError:
+        return False
+    want = _marker(nb, params)
+    return all(m.get(k) == v for k, v in want.items())
+
+
+# --------------------------------------------------------------------------- running and the report
+
+
+def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, params: dict[str, Any] | None = None,
+              run_dir: str | os.PathLike | None = None, force: bool = False, progress: bool = True,
+              dry_run: bool = False) -> Path:
+    """Run the selected numbered notebooks into ``run_dir`` (default runs/<profile>/) and write
+    report.md / report.json there; returns the report.md path. Checks everything first."""
+    config.get_profile(profile)
+    selected = select_notebooks(notebooks, list_notebooks())
+    if not selected:
+        raise FileNotFoundError(f"no numbered notebooks (NN_*.ipynb) in {notebooks_dir()}")
+    per_nb = check_parameters(selected, dict(params or {}))
+    out = resolve_run_dir(profile, run_dir or "")
+    plan = []
+    for nb in selected:
+        p = {"profile": profile, "run_dir": str(out), **per_nb[nb]}
+        plan.append((nb, p, (not force) and _is_done(out, nb, p)))
+    if dry_run:
+        for nb, p, done in plan:
+            print(f"{'skip' if done else 'run '} {nb.name} {p}")
+        return out / "report.md"
+
+    import papermill
+
+    log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
+    for nb, p, done in plan:
+        if done:
+            print(f"[reproduce] {nb.name}: complete, skipped (--force reruns it)", flush=True)
+            continue
+        print(f"[reproduce] {nb.name} ...", flush=True)
+        t0 = time.perf_counter()
+        target = out / "notebooks" / nb.name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        (out / MARKER_DIR / f"{nb.stem}.json").unlink(missing_ok=True)
+        try:
+            papermill.execute_notebook(str(nb), str(target), parameters=p, kernel_name="python3",
+                                       cwd=str(nb.parent), progress_bar=progress)
+        except papermill.PapermillExecutionError as exc:
+            raise NotebookFailed(f"{nb.name} failed ({exc.ename}: {exc.evalue}); the executed copy with the "
+                                 f"traceback is {target}. Fix it and run the same command again: completed "
+                                 "notebooks are skipped.") from None
+        seconds = time.perf_counter() - t0
+        utils.write_json_atomic(out / MARKER_DIR / f"{nb.stem}.json", {**_marker(nb, p), "seconds": seconds})
+        log[nb.stem] = {"seconds": round(seconds, 1)}
+        print(f"[reproduce] {nb.name} done in {seconds:.0f} s", flush=True)
+    for nb, _, _ in plan:
+        m = out / MARKER_DIR / f"{nb.stem}.json"
+        if m.exists() and nb.stem not in log:
+            log[nb.stem] = {"seconds": round(_read_json(m).get("seconds", float("nan")), 1)}
+    return write_report(out, profile, log)
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def write_report(run_dir: Path, profile: str, notebook_log: dict | None = None) -> Path:
+    """Collect ``tables/*.json`` and ``figures/*.png`` under ``run_dir`` into report.md and report.json."""
+    from geodepth_lite.evaluate import markdown_table
+
+    run_dir = Path(run_dir)
+    tables = {p.stem: _read_json(p) for p in sorted((run_dir / "tables").glob("*.json"))}
+    figures = sorted(p.relative_to(run_dir).as_posix() for p in (run_dir / "figures").glob("*.png"))
+    notebook_log = notebook_log or {}
+    prefixes = sorted({n.split("_")[0] for n in list(tables) + [Path(f).stem for f in figures]})
+    names = {nb.split("_")[0]: nb for nb in notebook_log}
+    md = [f"# geodepth-lite report: profile `{profile}`", "",
+          "Tables and figures written by the notebooks of this run (executed copies in `notebooks/`).", ""]
+    if notebook_log:
+        md += ["| notebook | minutes |", "|---|---|"]
+        md += [f"| {k} | {v.get('seconds', float('nan')) / 60:.1f} |" for k, v in sorted(notebook_log.items())]
+        md.append("")
+    for prefix in prefixes:
+        md += [f"## {names.get(prefix, prefix)}", ""]
+        for name, t in tables.items():
+            if name.split("_")[0] != prefix or "columns" not in t:
+                continue
+            md += [f"### {t.get('title') or name}", "", markdown_table(t["columns"], t["rows"]), ""]
+            if t.get("notes"):
+                md += [t["notes"], ""]
+        for f in figures:
+            if Path(f).stem.split("_")[0] == prefix:
+                md += [f"![{Path(f).stem}]({f})", ""]
+    report = {"profile": profile, "notebooks": notebook_log, "tables": tables, "figures": figures,
+              "written": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    utils.write_json_atomic(run_dir / "report.json", report)
+    utils.write_bytes_atomic(run_dir / "report.md", "\n".join(md).encode())
+    return run_dir / "report.md"
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def add_arguments_reproduce(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--profile", default="teach", help="smoke | teach | paper (default teach)")
+    parser.add_argument("--notebooks", nargs="+", default=None, metavar="NN",
+                        help="run only these notebooks (numbers like 04 05, or names); default all")
+    parser.add_argument("-p", "--parameter", nargs=2, action="append", default=[], metavar=("NAME", "VALUE"),
+                        help="extra notebook parameter (must be declared in a selected notebook's parameters cell)")
+    parser.add_argument("--out", default=None, help="run folder (default runs/<profile>/)")
+    parser.add_argument("--force", action="store_true", help="rerun notebooks that already completed")
+    parser.add_argument("--dry-run", action="store_true", help="check everything and show the plan; run nothing")
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def run_reproduce(args: argparse.Namespace) -> int:
+    params: dict[str, Any] = {}
+    for name, value in args.parameter:
+        if name in params:
+            raise ValueError(f"-p {name} given twice")
+        params[name] = parse_value(value)
+    t0 = time.perf_counter()
+    try:
+        report = reproduce(args.profile, notebooks=args.notebooks, params=params, run_dir=args.out,
+                           force=args.force, progress=not args.no_progress, dry_run=args.dry_run)
+    except NotebookFailed as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if not args.dry_run:
+        print(f"report: {report} ({(time.perf_counter() - t0) / 60:.1f} min)")
+    sys.stdout.flush()
+    return 0
