@@ -1,0 +1,84 @@
+"""The synthetic RGB-depth dataset as a torch ``Dataset`` (layout: see ``synth.py``).
+
+Each item is a dict::
+
+    image  float32 3 x H x W in [0, 1]
+    depth  float32 1 x H x W z-depth (scene units; 0 = invalid)
+    K      float32 3 x 3 intrinsics (pixels) of the returned size
+    organ  str   ("colon", "small_intestine", "stomach", ...)
+    group  str   texture x lighting group, e.g. "pink-warm_single"
+    index  int   frame index within the split
+
+``image_size`` (an int or (H, W)) resizes on the fly: the image by bilinear
+interpolation with antialiasing (area-like when shrinking); the depth by
+pixel-centre nearest neighbour ("nearest-exact"), so every returned depth is a
+depth that was rendered (no blending across fold edges into depths that exist
+nowhere) and invalid zeros stay zeros; K by ``camera.scale_intrinsics``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import camera as cam
+
+
+def read_frames(root: str | Path, split: str) -> list[dict]:
+    """The frames.jsonl records of a split (clear errors for a missing directory or split)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset directory {root} does not exist (generate it with synth.ensure_dataset or `python -m geodepth_lite synth`)")
+    path = root / split / "frames.jsonl"
+    if not path.is_file():
+        have = sorted(p.name for p in root.iterdir() if (p / "frames.jsonl").is_file())
+        raise FileNotFoundError(f"dataset {root} has no split {split!r} (splits present: {', '.join(have) or 'none'}); "
+                                "an unfinished dataset is completed by running synth again")
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _size(image_size) -> tuple[int, int] | None:
+    if image_size is None:
+        return None
+    if isinstance(image_size, int):
+        h = w = image_size
+    else:
+        h, w = (int(v) for v in image_size)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"image_size must be positive, got {image_size!r}")
+    return h, w
+
+
+class SyntheticDepthDataset(torch.utils.data.Dataset):
+    """Frames of one split of a generated dataset; see the module docstring for the item dict."""
+
+    def __init__(self, root: str | Path, split: str, image_size=None):
+        self.root = Path(root)
+        self.split = split
+        self.frames = read_frames(self.root, split)
+        self.size = _size(image_size)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> dict:
+        from PIL import Image
+
+        rec = self.frames[i]
+        rgb = np.asarray(Image.open(self.root / rec["rgb"]).convert("RGB"))
+        depth = np.load(self.root / rec["depth"])
+        image = torch.from_numpy(rgb.copy()).permute(2, 0, 1).float() / 255.0
+        depth_t = torch.from_numpy(depth.astype(np.float32, copy=False))[None]
+        K = np.asarray(rec["K"], dtype=np.float64)
+        if self.size is not None and self.size != tuple(depth.shape):
+            h0, w0 = depth.shape
+            h, w = self.size
+            image = F.interpolate(image[None], size=(h, w), mode="bilinear", align_corners=False, antialias=True)[0].clamp_(0, 1)
+            depth_t = F.interpolate(depth_t[None], size=(h, w), mode="nearest-exact")[0]
+            K = cam.scale_intrinsics(K, w / w0, h / h0)
+        return {"image": image, "depth": depth_t, "K": torch.from_numpy(K.astype(np.float32)),
+                "organ": rec["organ"], "group": rec["group"], "index": int(rec["index"])}

@@ -1,0 +1,349 @@
+"""Headless rendering of an endoscope's view: RGB uint8 and z-depth float32, pixel-aligned.
+
+Stands in for the paper's Blender set-up (Section 3.A): "a virtual camera with
+additional point lights ... follow[s] the desired path", with texture, colour and
+intensity varied per sample. Here VTK (off-screen, EGL/OSMesa, CPU) draws the
+procedural tube of ``tube.py``:
+
+- camera: pinhole ``K`` honoured exactly under ``camera.py``'s convention (pixel
+  centres at integer coordinates) through an explicit OpenGL projection matrix;
+- depth: the z-buffer linearized with the near/far planes, i.e. z-depth along the
+  optical axis in scene units; pixels outside [near, far] are 0 (invalid);
+- lights: one or two positional point lights rigidly beside the camera (the
+  endoscope's light guides), inverse-square falloff (VTK attenuation (0, 0, 1));
+- appearance: procedural mucosa texture with vessels (``make_texture``), wet
+  specular highlights (Phong), per-sample tint, light colour and intensity.
+
+One ``Renderer`` keeps one scene (one tube) and moves camera and lights per frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import camera as cam
+
+NEAR, FAR = 0.01, 100.0  # valid depth range (scene units), as in the paper's set
+
+
+# ----------------------------------------------------------------------------- appearance
+
+# Texture families: base mucosa colour, mottling, vessel colour/density/width (all 0..1 RGB).
+TEXTURES: dict[str, dict] = {
+    "pink":   {"base_color": [0.86, 0.45, 0.40], "mottle": 0.18, "mottle_scale": 0.08, "vessel_color": [0.55, 0.08, 0.10], "vessel_density": 6.0, "vessel_width": 0.05, "vessel_strength": 0.7, "size": 256},
+    "red":    {"base_color": [0.80, 0.30, 0.25], "mottle": 0.22, "mottle_scale": 0.05, "vessel_color": [0.45, 0.05, 0.08], "vessel_density": 9.0, "vessel_width": 0.04, "vessel_strength": 0.6, "size": 256},
+    "pale":   {"base_color": [0.90, 0.62, 0.55], "mottle": 0.12, "mottle_scale": 0.12, "vessel_color": [0.65, 0.20, 0.22], "vessel_density": 4.0, "vessel_width": 0.06, "vessel_strength": 0.8, "size": 256},
+    "orange": {"base_color": [0.88, 0.52, 0.33], "mottle": 0.20, "mottle_scale": 0.06, "vessel_color": [0.60, 0.15, 0.10], "vessel_density": 7.0, "vessel_width": 0.035, "vessel_strength": 0.5, "size": 256},
+    # held-out families (never in the training recipes), cf. ColonDepth's T1-T3 x L1-L3
+    "T1":     {"base_color": [0.93, 0.70, 0.52], "mottle": 0.10, "mottle_scale": 0.15, "vessel_color": [0.70, 0.25, 0.20], "vessel_density": 3.0, "vessel_width": 0.07, "vessel_strength": 0.6, "size": 256},
+    "T2":     {"base_color": [0.70, 0.22, 0.22], "mottle": 0.30, "mottle_scale": 0.04, "vessel_color": [0.35, 0.03, 0.06], "vessel_density": 12.0, "vessel_width": 0.03, "vessel_strength": 0.7, "size": 256},
+    "T3":     {"base_color": [0.82, 0.50, 0.55], "mottle": 0.25, "mottle_scale": 0.10, "vessel_color": [0.40, 0.10, 0.30], "vessel_density": 5.0, "vessel_width": 0.05, "vessel_strength": 0.9, "size": 256},
+}
+# Lighting families: light guides, intensity range (x radius^2), colour, material.
+LIGHTINGS: dict[str, dict] = {
+    "warm_single": {"n_lights": 1, "offset": 0.08, "intensity": [2.0, 3.5], "color": [1.0, 0.93, 0.82], "color_jitter": 0.05, "tint_jitter": 0.08, "ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0},
+    "white_dual":  {"n_lights": 2, "offset": 0.10, "intensity": [1.5, 2.8], "color": [1.0, 1.0, 1.0], "color_jitter": 0.04, "tint_jitter": 0.08, "ambient": 0.03, "diffuse": 0.85, "specular": 0.6, "specular_power": 50.0},
+    "dim_dual":    {"n_lights": 2, "offset": 0.06, "intensity": [0.8, 1.5], "color": [1.0, 0.96, 0.9], "color_jitter": 0.06, "tint_jitter": 0.1, "ambient": 0.05, "diffuse": 0.9, "specular": 0.35, "specular_power": 25.0},
+    # held-out families
+    "L1": {"n_lights": 1, "offset": 0.12, "intensity": [3.0, 4.5], "color": [1.0, 0.88, 0.70], "color_jitter": 0.05, "tint_jitter": 0.06, "ambient": 0.02, "diffuse": 0.95, "specular": 0.7, "specular_power": 60.0},
+    "L2": {"n_lights": 2, "offset": 0.15, "intensity": [1.2, 2.0], "color": [0.85, 0.92, 1.0], "color_jitter": 0.05, "tint_jitter": 0.1, "ambient": 0.06, "diffuse": 0.8, "specular": 0.25, "specular_power": 15.0},
+    "L3": {"n_lights": 1, "offset": 0.05, "intensity": [0.9, 1.6], "color": [1.0, 0.80, 0.60], "color_jitter": 0.08, "tint_jitter": 0.12, "ambient": 0.08, "diffuse": 0.85, "specular": 0.5, "specular_power": 40.0},
+}
+
+
+def _periodic_noise(rng: np.random.Generator, size: int, scale: float) -> np.ndarray:
+    """Smooth periodic noise (size x size, zero mean, unit std): white noise low-passed in Fourier space.
+
+    scale: correlation length as a fraction of the tile. Periodic in both axes, so the
+    texture wraps seamlessly around the tube (theta) and along it (s).
+    """
+    f = np.fft.fftfreq(size)
+    fx, fy = np.meshgrid(f, f, indexing="ij")
+    spectrum = np.fft.fft2(rng.standard_normal((size, size))) * np.exp(-((fx**2 + fy**2) * (np.pi * scale * size) ** 2 / size**2) * size**2 / 4)
+    out = np.real(np.fft.ifft2(spectrum))
+    out -= out.mean()
+    return out / (out.std() + 1e-12)
+
+
+def make_texture(params: dict, rng: np.random.Generator) -> np.ndarray:
+    """Procedural mucosa texture (size x size x 3 uint8): mottled base colour and vessel network.
+
+    Vessels are the zero level sets of band-limited noise (thin, branching, curvy lines),
+    at two scales (large vessels and capillaries).
+    """
+    size = int(params["size"])
+    base = np.asarray(params["base_color"], dtype=np.float64)
+    mottle = _periodic_noise(rng, size, float(params["mottle_scale"]))
+    img = base[None, None, :] * (1.0 + float(params["mottle"]) * mottle[..., None])
+    density, width = float(params["vessel_density"]), float(params["vessel_width"])
+    vessels = np.zeros((size, size))
+    for level, (dens, wid, weight) in enumerate(((density, width, 1.0), (2.5 * density, 0.6 * width, 0.5))):
+        n = _periodic_noise(rng, size, 1.0 / dens)
+        vessels = np.maximum(vessels, weight * np.exp(-((n / (wid * 2.0)) ** 2)))
+    vessels *= float(params["vessel_strength"])
+    img = img * (1.0 - vessels[..., None]) + np.asarray(params["vessel_color"])[None, None, :] * vessels[..., None]
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+@dataclass
+class Light:
+    """A point light rigidly attached to the camera: position in camera coordinates (OpenCV frame)."""
+
+    offset: tuple[float, float, float]
+    color: tuple[float, float, float]
+    intensity: float
+
+
+def sample_lighting(params: dict, rng: np.random.Generator, radius: float) -> tuple[list[Light], tuple[float, float, float]]:
+    """Per-sample lights (1 or 2 beside the lens) and a per-sample mucosa tint from a lighting family."""
+    n = int(params["n_lights"])
+    off = float(params["offset"]) * radius
+    lo, hi = params["intensity"]
+    intensity = float(rng.uniform(lo, hi)) * radius**2  # inverse-square: scale with the lumen size
+    base = np.asarray(params["color"], dtype=np.float64)
+    lights = []
+    angle = rng.uniform(0, 2 * np.pi)
+    for k in range(n):
+        a = angle + np.pi * k
+        color = np.clip(base * (1.0 + float(params["color_jitter"]) * rng.uniform(-1, 1, 3)), 0.0, 1.0)
+        lights.append(Light((off * math.cos(a), off * math.sin(a), 0.0), tuple(float(c) for c in color), intensity / n))
+    tint = np.clip(0.9 * (1.0 + float(params["tint_jitter"]) * rng.uniform(-1, 1, 3)), 0.0, 1.0)
+    return lights, tuple(float(t) for t in tint)
+
+
+# ----------------------------------------------------------------------------- camera path
+
+
+def look_pose(position, forward, up_hint) -> np.ndarray:
+    """T_world_cam (4x4) for a camera at ``position`` looking along ``forward`` (OpenCV: y down)."""
+    z = np.asarray(forward, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    x = np.cross(-np.asarray(up_hint, dtype=np.float64), z)  # y down = -up
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0]), z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, position
+    return T
+
+
+def _min_radius(tube, s: float, half_window: float) -> float:
+    ss = np.linspace(max(s - half_window, 0.0), min(s + half_window, tube.length), 9)
+    th = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    return float(tube.radius(ss[:, None], th[None, :]).min())
+
+
+def sample_pose(tube, rng: np.random.Generator, path: dict) -> tuple[np.ndarray, dict]:
+    """One endoscope pose: along the centerline with jitter, mostly down the lumen, sometimes at the wall.
+
+    path: {"mode": "random" | "axis", "s_range": [lo, hi] (fractions of the length),
+    "jitter_pos": max offset from the centerline (fraction of the local minimum radius),
+    "jitter_angle_deg": std of the view direction's tilt, "p_wall": chance of a close,
+    wall-facing view, "wall_angle_deg": [lo, hi] tilt of wall-facing views}.
+    Returns (T_world_cam, info) where info records s, the view kind and tilt.
+    """
+    L, R = tube.length, float(tube.preset["radius"])
+    lo, hi = path["s_range"]
+    s = float(rng.uniform(lo, hi) * L)
+    t, n, b = tube.frame(s)
+    c = tube.centerline(s)
+    if path["mode"] == "axis":
+        return _axis_pose(c, t, n, b), {"s": s, "view": "axis", "tilt_deg": 0.0}
+    r_min = _min_radius(tube, s, R)
+    roll = rng.uniform(0, 2 * np.pi)
+    if rng.uniform() < float(path["p_wall"]):
+        phi = rng.uniform(0, 2 * np.pi)
+        radial = math.cos(phi) * n + math.sin(phi) * b
+        rho = rng.uniform(0.3, 0.6) * r_min
+        tilt = math.radians(rng.uniform(*path["wall_angle_deg"]))
+        forward = math.cos(tilt) * t + math.sin(tilt) * radial
+        position = c + rho * radial
+        view = "wall"
+    else:
+        phi = rng.uniform(0, 2 * np.pi)
+        rho = math.sqrt(rng.uniform()) * float(path["jitter_pos"]) * r_min
+        position = c + rho * (math.cos(phi) * n + math.sin(phi) * b)
+        tilt = abs(rng.normal(0.0, math.radians(float(path["jitter_angle_deg"]))))
+        az = rng.uniform(0, 2 * np.pi)
+        forward = math.cos(tilt) * t + math.sin(tilt) * (math.cos(az) * n + math.sin(az) * b)
+        view = "lumen"
+    up = math.cos(roll) * n + math.sin(roll) * b
+    up = up - (up @ forward) * forward
+    return look_pose(position, forward, up), {"s": s, "view": view, "tilt_deg": math.degrees(tilt)}
+
+
+def _axis_pose(c, t, n, b) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = n, b, t, c
+    return T
+
+
+def sequence_poses(tube, n_frames: int, s_start: float, step: float, offset=(0.0, 0.0)) -> list[np.ndarray]:
+    """Consecutive poses down the lumen: s = s_start + k * step, on a line parallel to the centerline.
+
+    offset: (along N, along B) in scene units. Frames follow the parallel-transport frame
+    (x = N, y = B, z = T), so there is no roll between frames; for visual odometry tests.
+    """
+    poses = []
+    for k in range(int(n_frames)):
+        s = s_start + k * step
+        t, nn, bb = tube.frame(s)
+        poses.append(_axis_pose(tube.centerline(s) + offset[0] * nn + offset[1] * bb, t, nn, bb))
+    return poses
+
+
+# ----------------------------------------------------------------------------- the renderer
+
+
+def projection_matrix(K, width: int, height: int, near: float = NEAR, far: float = FAR) -> np.ndarray:
+    """OpenGL projection for pinhole K with pixel centres at integer (u, v) (camera.py's convention).
+
+    Eye coordinates are VTK's (x right, y up, looking down -z). Column u of the image
+    covers NDC x in [2u/W - 1, 2(u+1)/W - 1]; OpenGL rows count from the bottom, so
+    image row v is OpenGL row H - 1 - v (``Renderer`` flips the read-back).
+    """
+    fx, fy, cx, cy = float(K[0][0]), float(K[1][1]), float(K[0][2]), float(K[1][2])
+    W, H = float(width), float(height)
+    P = np.zeros((4, 4))
+    P[0, 0] = 2.0 * fx / W
+    P[0, 2] = -(2.0 * cx + 1.0 - W) / W
+    P[1, 1] = 2.0 * fy / H
+    P[1, 2] = -(H - 2.0 * cy - 1.0) / H
+    P[2, 2] = -(far + near) / (far - near)
+    P[2, 3] = -2.0 * far * near / (far - near)
+    P[3, 2] = -1.0
+    return P
+
+
+class Renderer:
+    """Off-screen VTK renderer for one tube at a time; ``render(T_world_cam, lights)`` per frame.
+
+    width, height: image size; K: 3x3 intrinsics in pixels (any principal point);
+    fxaa: anti-alias the RGB image (a post-process: the depth buffer is untouched).
+    """
+
+    def __init__(self, width: int, height: int, K=None, near: float = NEAR, far: float = FAR, fxaa: bool = False):
+        import vtk
+        import pyvista as pv
+
+        vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
+        self.width, self.height = int(width), int(height)
+        self.K = np.asarray(cam.intrinsics(self.width, self.height) if K is None else K, dtype=np.float64)
+        self.near, self.far = float(near), float(far)
+        self.plotter = pv.Plotter(off_screen=True, window_size=(self.width, self.height), lighting="none")
+        self.ren_win = self.plotter.ren_win
+        self.ren_win.SetMultiSamples(0)
+        self.renderer = self.plotter.renderer
+        self.renderer.SetBackground(0.0, 0.0, 0.0)
+        if fxaa:
+            self.renderer.UseFXAAOn()
+        self.camera = self.renderer.GetActiveCamera()
+        m = vtk.vtkMatrix4x4()
+        P = projection_matrix(self.K, self.width, self.height, self.near, self.far)
+        for i in range(4):
+            for j in range(4):
+                m.SetElement(i, j, P[i, j])
+        self.camera.SetExplicitProjectionTransformMatrix(m)
+        self.camera.UseExplicitProjectionTransformMatrixOn()
+        self.camera.SetClippingRange(self.near, self.far)
+        self._lights: list = []
+        self.actor = None
+        self._rgb = vtk.vtkUnsignedCharArray()
+        self._z = vtk.vtkFloatArray()
+        self.tube = None
+
+    # scene -------------------------------------------------------------------
+    def set_tube(self, tube, texture: np.ndarray | None = None, material: dict | None = None) -> None:
+        """Show ``tube`` (a tube.TubeMesh) with an RGB texture (h x w x 3 uint8, periodic) and Phong material."""
+        import pyvista as pv
+
+        if self.actor is not None:
+            self.plotter.remove_actor(self.actor, render=False)
+        mat = {"ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0}
+        mat.update(material or {})
+        kwargs = dict(smooth_shading=True, ambient=mat["ambient"], diffuse=mat["diffuse"], specular=mat["specular"],
+                      specular_power=mat["specular_power"], scalars=None, render=False, reset_camera=False)
+        if texture is not None:
+            tex = pv.Texture(np.ascontiguousarray(texture))
+            tex.repeat = True
+            tex.interpolate = True
+            kwargs["texture"] = tex
+        else:
+            kwargs["color"] = (0.85, 0.45, 0.4)
+        self.actor = self.plotter.add_mesh(tube.mesh, **kwargs)
+        self.actor.GetProperty().SetSpecularColor(1.0, 1.0, 1.0)
+        self.tube = tube
+
+    def set_tint(self, tint) -> None:
+        """Per-sample colour/intensity variation of the mucosa (multiplies the texture)."""
+        self.actor.GetProperty().SetColor(*[float(min(max(t, 0.0), 1.0)) for t in tint])
+
+    def _set_lights(self, T_world_cam: np.ndarray, lights: list[Light]) -> None:
+        import vtk
+
+        while len(self._lights) < len(lights):
+            light = vtk.vtkLight()
+            light.SetLightTypeToSceneLight()
+            light.SetPositional(True)
+            light.SetConeAngle(180.0)  # >= 90 degrees: a point light, not a spot
+            light.SetAttenuationValues(0.0, 0.0, 1.0)  # inverse-square falloff
+            self.renderer.AddLight(light)
+            self._lights.append(light)
+        forward = T_world_cam[:3, 2]
+        for k, light in enumerate(self._lights):
+            if k >= len(lights):
+                light.SwitchOff()
+                continue
+            spec = lights[k]
+            pos = T_world_cam[:3, :3] @ np.asarray(spec.offset, dtype=np.float64) + T_world_cam[:3, 3]
+            light.SwitchOn()
+            light.SetPosition(*pos)
+            light.SetFocalPoint(*(pos + forward))
+            light.SetColor(*spec.color)
+            light.SetIntensity(float(spec.intensity))
+
+    def _set_camera(self, T_world_cam: np.ndarray) -> None:
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        pos, z, y = T[:3, 3], T[:3, 2], T[:3, 1]
+        self.camera.SetPosition(*pos)
+        self.camera.SetFocalPoint(*(pos + z))
+        self.camera.SetViewUp(*(-y))
+        self.camera.SetClippingRange(self.near, self.far)
+
+    # frame -------------------------------------------------------------------
+    def render(self, T_world_cam: np.ndarray, lights: list[Light] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Render one frame: (rgb H x W x 3 uint8, depth H x W float32 z-depth; 0 = no surface in [near, far])."""
+        from vtkmodules.util.numpy_support import vtk_to_numpy
+
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        if lights is None:
+            lights = [Light((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0)]
+        self._set_camera(T)
+        self._set_lights(T, lights)
+        self.ren_win.Render()
+        W, H = self.width, self.height
+        self.ren_win.GetPixelData(0, 0, W - 1, H - 1, 0, self._rgb, 0)
+        rgb = vtk_to_numpy(self._rgb).reshape(H, W, -1)[::-1, :, :3].copy()
+        self.ren_win.GetZbufferData(0, 0, W - 1, H - 1, self._z)
+        zb = vtk_to_numpy(self._z).reshape(H, W)[::-1].astype(np.float64)
+        return rgb, self.depth_from_zbuffer(zb)
+
+    def depth_from_zbuffer(self, zb: np.ndarray) -> np.ndarray:
+        """Linearize window-space depth (0..1) to z-depth: z = 2 n f / ((f + n) - (2 zb - 1)(f - n))."""
+        n, f = self.near, self.far
+        z = 2.0 * n * f / ((f + n) - (2.0 * zb - 1.0) * (f - n))
+        valid = (zb < 1.0) & (z >= n) & (z <= f)
+        return np.where(valid, z, 0.0).astype(np.float32)
+
+    def close(self) -> None:
+        self.plotter.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

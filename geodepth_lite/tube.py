@@ -1,0 +1,419 @@
+"""Procedural digestive-tract tube: centerline, radius field, local structures, mesh.
+
+The paper (Section 3.A) renders its "Scenario dataset" from CT meshes of the
+digestive tract, which were never released. This module stands in for them: a
+tube swept along a smooth 3D centerline with rotation-minimizing
+(parallel-transport) frames, whose wall radius ``r(s, theta)`` carries the
+organ's folds (colon: semilunar haustral folds between three teniae; small
+intestine: dense circular folds; stomach: longitudinal rugae) and the local
+structures of the paper's shape-index discussion (Section 3.C, Fig. 5): polyps
+(caps), diverticula (cups) and ridges.
+
+Coordinates: ``s`` is arc length along the centerline (scene units), ``theta``
+the angle around it measured from the frame's normal ``N`` towards ``B``. A wall
+point is ``c(s) + r(s, theta) (cos(theta) N(s) + sin(theta) B(s))``.
+
+Public API: ``build_tube(preset, seed, resolution) -> TubeMesh`` with ``.mesh``
+(pyvista PolyData, inward normals, texture coordinates), ``.centerline(s)``,
+``.frame(s)``, ``.radius(s, theta)`` and ``.wall_point(s, theta)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# Organ presets (scene units). Every key is a manifest parameter (synth.py validates them).
+# fold_kind: "haustral" (colon), "circular" (small intestine), "longitudinal" (stomach), "none".
+PRESETS: dict[str, dict] = {
+    "colon": {
+        "radius": 2.0,             # mean lumen radius
+        "length": 40.0,            # centerline length
+        "radius_var": 0.12,        # slow relative variation of the radius along s
+        "bend": 3.0,               # amplitude of the centerline's sideways bends
+        "bend_wavelength": 30.0,   # wavelength of those bends
+        "fold_kind": "haustral",   # semilunar folds between three teniae
+        "fold_spacing": 2.2,       # distance between folds along s
+        "fold_depth": 0.28,        # fold height, fraction of the radius
+        "fold_width": 0.22,        # fold half-width along s, fraction of the radius
+        "teniae": 3,               # longitudinal muscle bands (colon)
+        "polyps": [0, 3],          # [min, max] count of polyps (caps)
+        "polyp_size": [0.25, 0.6], # [min, max] polyp radius, fraction of the lumen radius
+        "diverticula": [0, 2],     # [min, max] count of diverticula (cups)
+        "diverticulum_size": [0.25, 0.5],
+        "ridges": [0, 3],          # [min, max] count of extra ridge-shaped folds
+        "ridge_size": [0.8, 2.0],  # [min, max] ridge length, fraction of the lumen radius
+    },
+    "small_intestine": {
+        "radius": 1.0,
+        "length": 30.0,
+        "radius_var": 0.08,
+        "bend": 2.5,
+        "bend_wavelength": 15.0,
+        "fold_kind": "circular",
+        "fold_spacing": 0.55,
+        "fold_depth": 0.22,
+        "fold_width": 0.12,
+        "teniae": 0,
+        "polyps": [0, 2],
+        "polyp_size": [0.2, 0.4],
+        "diverticula": [0, 1],
+        "diverticulum_size": [0.2, 0.4],
+        "ridges": [0, 2],
+        "ridge_size": [0.6, 1.5],
+    },
+    "stomach": {
+        "radius": 4.0,
+        "length": 40.0,
+        "radius_var": 0.2,
+        "bend": 6.0,
+        "bend_wavelength": 50.0,
+        "fold_kind": "longitudinal",
+        "fold_spacing": 0.55,      # for rugae: angular spacing as arc length / radius
+        "fold_depth": 0.08,
+        "fold_width": 0.06,
+        "teniae": 0,
+        "polyps": [0, 3],
+        "polyp_size": [0.1, 0.25],
+        "diverticula": [0, 1],
+        "diverticulum_size": [0.1, 0.2],
+        "ridges": [1, 4],
+        "ridge_size": [0.5, 1.5],
+    },
+    "cylinder": {  # the analytic check: straight, constant radius, nothing on the wall
+        "radius": 1.0,
+        "length": 60.0,
+        "radius_var": 0.0,
+        "bend": 0.0,
+        "bend_wavelength": 30.0,
+        "fold_kind": "none",
+        "fold_spacing": 1.0,
+        "fold_depth": 0.0,
+        "fold_width": 0.1,
+        "teniae": 0,
+        "polyps": [0, 0],
+        "polyp_size": [0.2, 0.3],
+        "diverticula": [0, 0],
+        "diverticulum_size": [0.2, 0.3],
+        "ridges": [0, 0],
+        "ridge_size": [0.5, 1.0],
+    },
+}
+FOLD_KINDS = ("haustral", "circular", "longitudinal", "none")
+
+# Mesh resolution: rings along s per unit radius, and points around each ring.
+DEFAULT_RESOLUTION = {"n_theta": 128, "ring_step": 0.06}  # ring_step: ring spacing, fraction of radius
+
+
+# ----------------------------------------------------------------------------- centerline
+
+
+def parallel_transport_frames(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rotation-minimizing frames (T, N, B) along a polyline (n x 3), double-reflection method.
+
+    Wang et al. (2008), "Computation of rotation minimizing frames": N is carried
+    from point to point by two reflections, so the frame never spins about the
+    tangent (no twist). Returns three n x 3 arrays of unit vectors.
+    """
+    tangents = np.gradient(points, axis=0)
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    t0 = tangents[0]
+    helper = np.array([1.0, 0.0, 0.0]) if abs(t0[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    n = np.cross(t0, helper)
+    n /= np.linalg.norm(n)
+    normals = np.empty_like(points)
+    normals[0] = n
+    for i in range(len(points) - 1):
+        v1 = points[i + 1] - points[i]
+        c1 = v1 @ v1
+        r_l = n - (2.0 / c1) * (v1 @ n) * v1
+        t_l = tangents[i] - (2.0 / c1) * (v1 @ tangents[i]) * v1
+        v2 = tangents[i + 1] - t_l
+        c2 = v2 @ v2
+        n = r_l - (2.0 / c2) * (v2 @ r_l) * v2 if c2 > 1e-30 else r_l
+        n -= (n @ tangents[i + 1]) * tangents[i + 1]
+        n /= np.linalg.norm(n)
+        normals[i + 1] = n
+    binormals = np.cross(tangents, normals)
+    return tangents, normals, binormals
+
+
+def _centerline_points(t: np.ndarray, preset: dict, rng: np.random.Generator) -> np.ndarray:
+    """A smooth 3D curve: the z axis plus two bending sinusoids per side axis (t in scene units)."""
+    pts = np.zeros((len(t), 3))
+    pts[:, 2] = t
+    bend, lam = float(preset["bend"]), float(preset["bend_wavelength"])
+    for axis in (0, 1):
+        for harmonic, weight in ((1.0, 1.0), (1.7, 0.35)):
+            phase = rng.uniform(0, 2 * np.pi)
+            amp = bend * weight * rng.uniform(0.5, 1.0)
+            pts[:, axis] += amp * (np.sin(2 * np.pi * harmonic * t / lam + phase) - np.sin(phase))
+    return pts
+
+
+# ----------------------------------------------------------------------------- radius field
+
+
+def _sech2(x):
+    return 1.0 / np.cosh(np.clip(x, -30, 30)) ** 2
+
+
+def _wrap(a):
+    """Angle difference wrapped to (-pi, pi]."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass
+class WallFeatures:
+    """Everything random about one tube's wall, drawn once from the seed (all in scene units / radians)."""
+
+    base_phases: np.ndarray
+    folds: list = field(default_factory=list)        # haustral/circular: (s, theta_centre, sector, strength)
+    rugae: list = field(default_factory=list)        # longitudinal: (theta0, wander_amp, wander_phase, strength)
+    tenia_offset: float = 0.0
+    polyps: list = field(default_factory=list)       # (s, theta, size)
+    diverticula: list = field(default_factory=list)  # (s, theta, size)
+    ridges: list = field(default_factory=list)       # (s, theta, length, angle, height)
+
+
+def _draw_features(preset: dict, rng: np.random.Generator) -> WallFeatures:
+    R, L = float(preset["radius"]), float(preset["length"])
+    feats = WallFeatures(base_phases=rng.uniform(0, 2 * np.pi, size=3))
+    kind, spacing = preset["fold_kind"], float(preset["fold_spacing"])
+    feats.tenia_offset = float(rng.uniform(0, 2 * np.pi))
+    if kind == "haustral":
+        n_sectors = max(int(preset["teniae"]), 1)
+        for sector in range(n_sectors):
+            s = rng.uniform(0, spacing)  # folds of neighbouring sectors are staggered
+            while s < L:
+                feats.folds.append((s, 0.0, sector, rng.uniform(0.7, 1.15)))
+                s += spacing * rng.uniform(0.8, 1.2)
+    elif kind == "circular":
+        s = rng.uniform(0, spacing)
+        while s < L:
+            feats.folds.append((s, rng.uniform(0, 2 * np.pi), -1, rng.uniform(0.6, 1.2)))
+            s += spacing * rng.uniform(0.75, 1.25)
+    elif kind == "longitudinal":
+        n_rugae = max(3, int(round(2 * np.pi / spacing)))
+        for j in range(n_rugae):
+            theta0 = 2 * np.pi * (j + rng.uniform(-0.25, 0.25)) / n_rugae
+            feats.rugae.append((theta0, rng.uniform(0.1, 0.35), rng.uniform(0, 2 * np.pi), rng.uniform(0.6, 1.3)))
+    margin = 0.05 * L
+
+    def place(count_range, size_range):
+        lo, hi = (int(v) for v in count_range)
+        out = []
+        for _ in range(int(rng.integers(lo, hi + 1))):
+            out.append((rng.uniform(margin, L - margin), rng.uniform(0, 2 * np.pi), R * rng.uniform(*size_range)))
+        return out
+
+    feats.polyps = place(preset["polyps"], preset["polyp_size"])
+    feats.diverticula = place(preset["diverticula"], preset["diverticulum_size"])
+    for s, theta, length in place(preset["ridges"], preset["ridge_size"]):
+        feats.ridges.append((s, theta, length, rng.uniform(0, np.pi), rng.uniform(0.1, 0.2) * R))
+    return feats
+
+
+def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeatures) -> np.ndarray:
+    """Wall radius r(s, theta) (broadcasting arrays, scene units): base, organ folds, local structures.
+
+    Folds and ridges are ridge-shaped (sech^2 profiles, pointing into the lumen);
+    polyps are caps (inward bumps, positive shape index seen from the lumen);
+    diverticula are cups (outward pockets). Clamped to at least 0.3 x radius.
+    """
+    s, theta = np.broadcast_arrays(np.asarray(s, dtype=np.float64), np.asarray(theta, dtype=np.float64))
+    R, L = float(preset["radius"]), float(preset["length"])
+    p = feats.base_phases
+    var = float(preset["radius_var"])
+    r = R * (1.0 + var * (0.6 * np.sin(2 * np.pi * s / (0.45 * L) + p[0]) + 0.4 * np.sin(2 * np.pi * s / (0.17 * L) + p[1])))
+    depth, width = float(preset["fold_depth"]) * R, float(preset["fold_width"]) * R
+    kind = preset["fold_kind"]
+    if kind == "haustral" and depth > 0:
+        n_sec = max(int(preset["teniae"]), 1)
+        sector_w = 2 * np.pi / n_sec
+        local = (theta - feats.tenia_offset) % (2 * np.pi)
+        sector = np.minimum((local // sector_w).astype(int), n_sec - 1)
+        u = (local - sector * sector_w) / sector_w  # 0..1 across the sector between two teniae
+        crescent = np.sin(np.pi * u) ** 0.7  # semilunar: highest mid-sector, vanishing at the teniae
+        fold = np.zeros_like(r)
+        for k in range(n_sec):  # per sector only the two nearest folds matter (spacing >> width)
+            fk = sorted((fs, st) for fs, _, fsec, st in feats.folds if fsec == k)
+            if not fk:
+                continue
+            pos, strength = np.array([f[0] for f in fk]), np.array([f[1] for f in fk])
+            j = np.clip(np.searchsorted(pos, s), 1, len(pos)) - 1
+            near = np.maximum(strength[j] * _sech2((s - pos[j]) / width),
+                              strength[np.minimum(j + 1, len(pos) - 1)] * _sech2((s - pos[np.minimum(j + 1, len(pos) - 1)]) / width))
+            fold = np.where(sector == k, near, fold)
+        # haustra bulge outwards between folds; teniae are flat bands slightly inside
+        r = r - depth * crescent * fold + 0.35 * depth * crescent * (1.0 - fold)
+        tenia = np.exp(-((u * sector_w) ** 2) / (0.08**2)) + np.exp(-(((1 - u) * sector_w) ** 2) / (0.08**2))
+        r = r - 0.08 * depth * tenia
+    elif kind == "circular" and depth > 0:
+        fold = np.zeros_like(r)
+        for fs, ftheta, _, strength in feats.folds:
+            around = 0.55 + 0.45 * np.cos(theta - ftheta)  # plicae are often not full circles
+            fold = np.maximum(fold, strength * around * _sech2((s - fs) / width))
+        r = r - depth * fold
+    elif kind == "longitudinal" and depth > 0:
+        fold = np.zeros_like(r)
+        for theta0, wander, phase, strength in feats.rugae:
+            centre = theta0 + wander * np.sin(2 * np.pi * s / (0.3 * L) + phase)
+            along = 0.6 + 0.4 * np.sin(2 * np.pi * s / (0.21 * L) + phase * 1.3)
+            fold = np.maximum(fold, strength * along * _sech2(R * _wrap(theta - centre) / width))
+        r = r - depth * fold
+    for ps, pth, size in feats.polyps:  # caps: inward, smooth dome
+        d2 = ((s - ps) ** 2 + (R * _wrap(theta - pth)) ** 2) / size**2
+        r = r - 0.8 * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+    for ds_, dth, size in feats.diverticula:  # cups: outward pockets
+        d2 = ((s - ds_) ** 2 + (R * _wrap(theta - dth)) ** 2) / size**2
+        r = r + 0.9 * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+    for rs, rth, length, angle, height in feats.ridges:  # ridges: a short fold at any orientation
+        ds_, dt = s - rs, R * _wrap(theta - rth)
+        along = ds_ * np.cos(angle) + dt * np.sin(angle)
+        across = -ds_ * np.sin(angle) + dt * np.cos(angle)
+        envelope = np.clip(1.0 - (along / (0.5 * length)) ** 2, 0.0, None)
+        r = r - height * envelope * _sech2(across / (0.12 * R))
+    return np.maximum(r, 0.3 * R)
+
+
+# ----------------------------------------------------------------------------- the mesh
+
+
+@dataclass
+class TubeMesh:
+    """A procedural tube: mesh plus the geometry it came from.
+
+    mesh: pyvista PolyData of triangles, closed (both ends capped), point normals
+    pointing into the lumen, texture coordinates ``(s / tile, theta / 2 pi)``
+    (``Texture Coordinates``) and point arrays ``s`` and ``theta``.
+    The seam theta = 0 = 2 pi has duplicated points (same coordinates) so the
+    texture does not wrap backwards; ``mesh.clean()`` merges them.
+    """
+
+    preset: dict
+    seed: int
+    mesh: object
+    s_grid: np.ndarray
+    points: np.ndarray
+    T: np.ndarray
+    N: np.ndarray
+    B: np.ndarray
+    features: WallFeatures
+    texture_tile: float
+
+    @property
+    def length(self) -> float:
+        return float(self.s_grid[-1])
+
+    def _interp(self, arr, s):
+        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
+        return np.stack([np.interp(s, self.s_grid, arr[:, k]) for k in range(3)], axis=-1)
+
+    def centerline(self, s) -> np.ndarray:
+        """Centerline point(s) at arc length s (scalar -> 3, array (n,) -> n x 3)."""
+        return self._interp(self.points, s)
+
+    def frame(self, s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Parallel-transport frame (T, N, B) at arc length s, re-orthonormalized after interpolation."""
+        t = self._interp(self.T, s)
+        t /= np.linalg.norm(t, axis=-1, keepdims=True)
+        n = self._interp(self.N, s)
+        n -= np.sum(n * t, axis=-1, keepdims=True) * t
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        return t, n, np.cross(t, n)
+
+    def radius(self, s, theta) -> np.ndarray:
+        """Wall radius r(s, theta) (scene units)."""
+        return radius_field(s, theta, self.preset, self.features)
+
+    def wall_point(self, s, theta) -> np.ndarray:
+        """World point of the wall at (s, theta) (... x 3)."""
+        s = np.asarray(s, dtype=np.float64)
+        theta = np.asarray(theta, dtype=np.float64)
+        _, n, b = self.frame(s)
+        r = self.radius(s, theta)[..., None]
+        return self.centerline(s) + r * (np.cos(theta)[..., None] * n + np.sin(theta)[..., None] * b)
+
+
+def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) -> TubeMesh:
+    """Build the tube of an organ preset (a name in PRESETS or a dict with the same keys).
+
+    resolution: {"n_theta": points per ring, "ring_step": ring spacing as a fraction of the
+    radius}. Deterministic in (preset, seed, resolution).
+    """
+    import pyvista as pv
+
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise ValueError(f"unknown organ preset {preset!r}: choose one of {', '.join(PRESETS)}")
+        preset = PRESETS[preset]
+    preset = dict(preset)
+    res = dict(DEFAULT_RESOLUTION, **(resolution or {}))
+    n_theta = int(res["n_theta"])
+    R, L = float(preset["radius"]), float(preset["length"])
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7B]))
+
+    # centerline: sample densely, re-parametrize by arc length
+    t_dense = np.linspace(0.0, L * 1.3, 4000)
+    dense = _centerline_points(t_dense, preset, rng)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
+    n_rings = max(int(math.ceil(L / (float(res["ring_step"]) * R))) + 1, 2)
+    s_grid = np.linspace(0.0, L, n_rings)
+    pts = np.stack([np.interp(s_grid, arc, dense[:, k]) for k in range(3)], axis=1)
+    T, N, B = parallel_transport_frames(pts)
+    feats = _draw_features(preset, rng)
+
+    theta = np.linspace(0.0, 2 * np.pi, n_theta + 1)  # last column = seam duplicate of the first
+    S, TH = np.meshgrid(s_grid, theta, indexing="ij")  # n_rings x (n_theta+1)
+    r = radius_field(S, TH, preset, feats)
+    r[:, -1] = r[:, 0]
+    cos_t, sin_t = np.cos(TH), np.sin(TH)
+    cos_t[:, -1], sin_t[:, -1] = 1.0, 0.0
+    wall = pts[:, None, :] + r[..., None] * (cos_t[..., None] * N[:, None, :] + sin_t[..., None] * B[:, None, :])
+
+    # analytic-grid normals (periodic in theta): dP/ds x dP/dtheta points outwards -> negate
+    core = wall[:, :-1]
+    d_s = np.gradient(core, s_grid, axis=0)
+    d_t = (np.roll(core, -1, axis=1) - np.roll(core, 1, axis=1))
+    normals = -np.cross(d_s, d_t)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.concatenate([normals, normals[:, :1]], axis=1)
+
+    n_cols = n_theta + 1
+    idx = np.arange(n_rings * n_cols).reshape(n_rings, n_cols)
+    a, b_, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
+    # winding chosen so right-hand-rule face normals point into the lumen
+    tris = np.concatenate([np.stack([a, b_, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+
+    # end caps: a fan to the centre point of each end ring
+    verts = [wall.reshape(-1, 3)]
+    nrm = [normals.reshape(-1, 3)]
+    tile = 2 * np.pi * R
+    tex = [np.stack([S.ravel() / tile, TH.ravel() / (2 * np.pi)], axis=1)]
+    s_arr, th_arr = [S.ravel()], [TH.ravel()]
+    base = n_rings * n_cols
+    for k, (ring, sign) in enumerate(((0, 1.0), (n_rings - 1, -1.0))):
+        centre = base + k
+        verts.append(pts[ring][None])
+        nrm.append((sign * T[ring])[None])
+        tex.append(np.array([[s_grid[ring] / tile, 0.5]]))
+        s_arr.append([s_grid[ring]])
+        th_arr.append([0.0])
+        ring_idx = idx[ring]
+        j0, j1 = ring_idx[:-1], ring_idx[1:]
+        fan = np.stack([np.full_like(j0, centre), j0, j1], -1) if ring == 0 else np.stack([np.full_like(j0, centre), j1, j0], -1)
+        tris = np.concatenate([tris, fan])
+
+    points = np.concatenate(verts).astype(np.float64)
+    faces = np.hstack([np.full((len(tris), 1), 3), tris]).astype(np.int64).ravel()
+    mesh = pv.PolyData(points, faces)
+    mesh.point_data["Normals"] = np.concatenate(nrm).astype(np.float32)
+    mesh.point_data.active_normals_name = "Normals"
+    mesh.active_texture_coordinates = np.concatenate(tex).astype(np.float32)
+    mesh.point_data["s"] = np.concatenate(s_arr).astype(np.float32)
+    mesh.point_data["theta"] = np.concatenate(th_arr).astype(np.float32)
+    return TubeMesh(preset=preset, seed=int(seed), mesh=mesh, s_grid=s_grid, points=pts, T=T, N=N, B=B,
+                    features=feats, texture_tile=tile)
