@@ -220,42 +220,53 @@ def load_ply(path):
 
 
 # --------------------------------------------------------------------------- views
-VIEW_NAMES = ("front", "side")
+# View directions (yaw about the camera's y axis, pitch about its x axis, degrees) of the
+# two 3D views of Fig. 9: "front" looks down the optical axis from behind and a little
+# above and left of the endoscope; "side" looks across it, the optical axis running left
+# to right, which shows the relief (lumen length, fold heights).
+VIEWS = {"front": (20.0, 25.0), "side": (-80.0, 15.0)}
+VIEW_NAMES = tuple(VIEWS)
 
 
 def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: float = 3.0,
-                 background="white") -> list[np.ndarray]:
-    """Headless renders (H x W x 3 uint8) of a camera-frame cloud or mesh, like Fig. 9.
+                 background="white", reference_pose=None, zoom: float = 1.0, color_by: str = "image") -> list[np.ndarray]:
+    """Headless renders (H x W x 3 uint8) of a cloud or mesh, one per view in ``views`` (Fig. 9).
 
-    "front": from behind and slightly above the endoscope, looking down the optical axis
-    (the lumen opens away from the viewer); "side": from the side, the optical axis
-    running left to right, which shows the depth relief (lumen length, fold heights).
+    Views are set in a camera frame: the points' own frame, or the frame of
+    ``reference_pose`` (a 4x4 T_world_cam) for world-frame clouds such as fused sequences.
+    color_by: "image" (the "rgb" point data, when present) or "depth" (magma colour map).
     """
+    if color_by not in ("image", "depth"):
+        raise ValueError(f"color_by must be 'image' or 'depth', got {color_by!r}")
     import pyvista as pv
 
     if poly.n_points == 0:
         raise ValueError("nothing to render: the cloud or mesh has no points")
+    if reference_pose is not None:
+        poly = poly.copy()
+        poly.points = camera.transform(np.linalg.inv(np.asarray(reference_pose, dtype=np.float64)),
+                                       np.asarray(poly.points, dtype=np.float64)).astype(np.float32)
     pts = np.asarray(poly.points, dtype=np.float64)
-    centre = np.median(pts, axis=0)
-    extent = float(np.linalg.norm(np.percentile(pts, 98, axis=0) - np.percentile(pts, 2, axis=0))) or 1.0
-    place = {
-        "front": (centre + extent * np.array([0.0, -0.35, -1.4]), (0.0, -1.0, 0.0)),
-        "side": (centre + extent * np.array([1.5, -0.25, 0.0]), (0.0, -1.0, 0.0)),
-    }
+    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
+    centre = 0.5 * (lo + hi)
+    extent = float(np.linalg.norm(hi - lo)) or 1.0
     images = []
     for view in views:
-        if view not in place:
-            raise ValueError(f"unknown view {view!r}: choose from {', '.join(place)}")
+        if view not in VIEWS:
+            raise ValueError(f"unknown view {view!r}: choose from {', '.join(VIEWS)}")
+        yaw, pitch = (math.radians(a) for a in VIEWS[view])
+        # viewing direction: +z turned by yaw about y, then tilted down by pitch (y is down)
+        direction = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)])
         pl = pv.Plotter(off_screen=True, window_size=list(window_size))
         pl.set_background(background)
-        kw = dict(rgb=True, scalars="rgb") if "rgb" in poly.point_data else dict(scalars="depth", cmap="magma",
+        kw = dict(rgb=True, scalars="rgb") if color_by == "image" and "rgb" in poly.point_data else dict(scalars="depth", cmap="magma",
                                                                                   show_scalar_bar=False)
         if poly.n_cells and poly.n_faces:
-            pl.add_mesh(poly, smooth_shading=True, **kw)
+            pl.add_mesh(poly, smooth_shading=True, ambient=0.45, diffuse=0.7, specular=0.0, **kw)
         else:
-            pl.add_points(poly, point_size=point_size, render_points_as_spheres=False, **kw)
-        pos, up = place[view]
-        pl.camera_position = [tuple(pos), tuple(centre), up]
+            pl.add_points(poly, point_size=point_size, render_points_as_spheres=False, lighting=False, **kw)
+        pos = centre - direction * extent * 1.8 / zoom
+        pl.camera_position = [tuple(pos), tuple(centre), (0.0, -1.0, 0.0)]
         pl.camera.view_angle = 40.0
         images.append(np.asarray(pl.screenshot(return_img=True))[..., :3].copy())
         pl.close()
@@ -273,6 +284,49 @@ def save_png(image: np.ndarray, path) -> Path:
 
 
 # --------------------------------------------------------------------------- sequences (Fig. 10)
+def synthetic_sequence(manifest: str = "heldout_T2L2", organ: str = "colon", n_frames: int = 12,
+                       step: float = 0.25, width: int = 128, height: int = 128, seed: int = 0,
+                       s_start: float = 0.25, offset=(0.3, 0.0)) -> dict:
+    """Consecutive frames down a procedural tube with known poses (a stand-in for a clinical video).
+
+    The tube, texture and lighting come from ``manifest`` (a data_manifests/ name): its
+    organ preset ``organ``, its first texture and lighting family. The camera advances
+    ``step`` scene units a frame from ``s_start`` (fraction of the tube length), ``offset``
+    (fraction of the radius) off the centerline, lights fixed to the endoscope.
+    Returns {"images": list of H x W x 3 uint8, "depths": list of H x W float32,
+    "K": 3x3, "poses": list of 4x4 T_world_cam, "tube": tube.TubeMesh}.
+    """
+    from . import render, synth, tube as tube_mod
+
+    if not isinstance(n_frames, int) or n_frames < 2:
+        raise ValueError(f"n_frames must be an integer >= 2, got {n_frames!r}")
+    if not step > 0:
+        raise ValueError(f"step must be positive, got {step!r}")
+    m = synth.load_manifest(manifest)
+    if organ not in m["organ_presets"]:
+        raise ValueError(f"organ {organ!r} is not in manifest {manifest} (has {', '.join(m['organ_presets'])})")
+    preset = m["organ_presets"][organ]
+    R = float(preset["radius"])
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E0]))
+    tb = tube_mod.build_tube(preset, int(rng.integers(2**31)), m["resolution"])
+    if not 0.0 <= s_start * tb.length + step * (n_frames - 1) <= tb.length:
+        raise ValueError(f"{n_frames} frames of step {step} from s_start={s_start} leave the tube (length {tb.length:.1f})")
+    texture = render.make_texture(m["texture_sets"][m["textures"][0]], rng)
+    lighting = m["lighting_sets"][m["lightings"][0]]
+    lights, tint = render.sample_lighting(lighting, rng, R)
+    poses = render.sequence_poses(tb, n_frames, s_start * tb.length, step, (offset[0] * R, offset[1] * R))
+    K = camera.intrinsics_from_fov(width, height, m["camera"]["fov_x_deg"])
+    images, depths = [], []
+    with render.Renderer(width, height, K, near=m["camera"]["near"], far=m["camera"]["far"]) as r:
+        r.set_tube(tb, texture, {k: lighting[k] for k in ("ambient", "diffuse", "specular", "specular_power")})
+        r.set_tint(tint)
+        for T in poses:
+            rgb, d = r.render(T, lights)
+            images.append(rgb)
+            depths.append(d)
+    return {"images": images, "depths": depths, "K": K, "poses": poses, "tube": tb}
+
+
 def fuse_point_clouds(depths, Ks, T_world_cams, images=None, valids=None, stride: int = 2):
     """One world-frame cloud from per-frame depth maps and camera-to-world poses.
 
