@@ -1,0 +1,290 @@
+"""The five losses of Section 3.C and their weighted sum (Eq. for L_total).
+
+Shapes and units (all losses):
+- ``pred``, ``gt``: z-depth maps ``B x 1 x H x W`` (float tensors, scene units);
+- ``image``: ``B x 3 x H x W`` in [0, 1];
+- ``K``: ``3 x 3`` or ``B x 3 x 3`` intrinsics in pixels (see :mod:`geodepth_lite.camera`);
+- ``mask``: optional ``B x 1 x H x W`` bool, True where the ground truth may be used.
+
+Ground truth that is NaN, infinite, zero or negative is always treated as invalid (in
+addition to ``mask``), and each loss returns a finite scalar tensor even when no pixel is
+valid (then 0, still connected to ``pred`` for autograd).
+
+Image gradients are forward differences in depth units per pixel:
+``grad_x D(v, u) = D(v, u+1) - D(v, u)`` and ``grad_y D(v, u) = D(v+1, u) - D(v, u)``;
+a difference is valid when both of its pixels are valid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import camera
+
+DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
+CHUNK_ELEMENTS = 2**24  # query x point pairs per block of the on-device exact search
+KDTREE_LEAFSIZE = 32  # points per cKDTree leaf (tuned on 320x320 depth maps)
+
+
+# ----------------------------------------------------------------------------- helpers
+def valid_mask(gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Pixels usable as ground truth: finite, > 0, and in ``mask`` when given (B x 1 x H x W bool)."""
+    valid = torch.isfinite(gt) & (gt > 0)
+    if mask is not None:
+        if mask.shape != gt.shape:
+            raise ValueError(f"mask must have the depth's shape {tuple(gt.shape)}, got {tuple(mask.shape)}")
+        valid = valid & mask.to(torch.bool)
+    return valid
+
+
+def _check_depths(pred: torch.Tensor, gt: torch.Tensor) -> None:
+    for name, t in (("pred", pred), ("gt", gt)):
+        if not isinstance(t, torch.Tensor) or t.dim() != 4 or t.shape[1] != 1:
+            shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+            raise ValueError(f"{name} must be a B x 1 x H x W tensor, got {shape}")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred and gt must have the same shape, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+
+
+def _prepare(pred, gt, mask):
+    """Check shapes; return (gt with invalid pixels replaced by 1, validity mask)."""
+    _check_depths(pred, gt)
+    valid = valid_mask(gt, mask)
+    gt_safe = torch.where(valid, gt, torch.ones_like(gt))  # no NaN/inf can reach autograd
+    return gt_safe, valid
+
+
+def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean of ``x`` over ``valid`` entries; 0 (connected to ``x``) when none is valid."""
+    x = torch.where(valid, x, torch.zeros_like(x))
+    return x.sum() / valid.sum().clamp(min=1).to(x.dtype)
+
+
+def grad_x(d: torch.Tensor) -> torch.Tensor:
+    """Forward difference along the columns: ... x H x (W-1)."""
+    return d[..., :, 1:] - d[..., :, :-1]
+
+
+def grad_y(d: torch.Tensor) -> torch.Tensor:
+    """Forward difference along the rows: ... x (H-1) x W."""
+    return d[..., 1:, :] - d[..., :-1, :]
+
+
+# ----------------------------------------------------------------------------- pixel losses
+def depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """L_depth = || D_pred - D_gt ||_1, as the mean absolute difference over valid pixels (Sec. 3.C, Eq. 1)."""
+    gt_safe, valid = _prepare(pred, gt, mask)
+    return masked_mean((pred - gt_safe).abs(), valid)
+
+
+def smoothness_loss(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
+    """L_smooth = (e^{-|grad I|} . grad D)^2, edge-aware (Sec. 3.C, Eq. 2; Godard et al. 2017).
+
+    |grad I| is the channel mean of the absolute image differences; the loss is the mean over
+    pixels of the squared, edge-weighted x differences plus that of the y differences.
+    """
+    if image.dim() != 4 or image.shape[0] != pred.shape[0] or image.shape[-2:] != pred.shape[-2:]:
+        raise ValueError(f"image must be B x 3 x H x W matching pred {tuple(pred.shape)}, got {tuple(image.shape)}")
+    wx = torch.exp(-grad_x(image).abs().mean(dim=1, keepdim=True))
+    wy = torch.exp(-grad_y(image).abs().mean(dim=1, keepdim=True))
+    return (wx * grad_x(pred)).pow(2).mean() + (wy * grad_y(pred)).pow(2).mean()
+
+
+def gradient_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """L_grad = ||grad_x D_pred - grad_x D_gt||_1 + ||grad_y D_pred - grad_y D_gt||_1 (Sec. 3.C, Eq. 3).
+
+    Each term is a mean over the valid differences (depth units per pixel).
+    """
+    gt_safe, valid = _prepare(pred, gt, mask)
+    vx = valid[..., :, 1:] & valid[..., :, :-1]
+    vy = valid[..., 1:, :] & valid[..., :-1, :]
+    lx = masked_mean((grad_x(pred) - grad_x(gt_safe)).abs(), vx)
+    ly = masked_mean((grad_y(pred) - grad_y(gt_safe)).abs(), vy)
+    return lx + ly
+
+
+def surface_normals(d: torch.Tensor) -> torch.Tensor:
+    """n = [-grad_x D, -grad_y D, 1] at pixel (v, u), u < W-1, v < H-1: B x 3 x (H-1) x (W-1) (Sec. 3.C)."""
+    gx = grad_x(d)[..., :-1, :]
+    gy = grad_y(d)[..., :, :-1]
+    return torch.cat((-gx, -gy, torch.ones_like(gx)), dim=1)
+
+
+def normal_map(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None):
+    """Per-pixel 1 - cos(n_pred, n_gt), B x 1 x (H-1) x (W-1), and its validity mask."""
+    gt_safe, valid = _prepare(pred, gt, mask)
+    v = valid[..., :-1, :-1] & valid[..., :-1, 1:] & valid[..., 1:, :-1]
+    n_p, n_g = surface_normals(pred), surface_normals(gt_safe)
+    cos = (n_p * n_g).sum(1, keepdim=True) / (n_p.norm(dim=1, keepdim=True) * n_g.norm(dim=1, keepdim=True))
+    return 1.0 - cos, v  # norms are >= 1 (third component is 1): no division by zero
+
+
+def normal_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """L_normal = 1 - <n_gt, n_pred> / (|n_gt| |n_pred|), mean over valid pixels (Sec. 3.C, Eq. 4)."""
+    per_pixel, v = normal_map(pred, gt, mask)
+    return masked_mean(per_pixel, v)
+
+
+# ----------------------------------------------------------------------------- nearest neighbours
+@torch.no_grad()
+def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers: int = -1) -> torch.Tensor:
+    """Exact nearest neighbour of each query among ``points`` with scipy's cKDTree (CPU).
+
+    points: N x 3, queries: M x 3 (any device; searched in float64 on the CPU) -> M indices (int64,
+    on the queries' device).
+    """
+    from scipy.spatial import cKDTree
+
+    p = points.detach().cpu().double().numpy()
+    q = queries.detach().cpu().double().numpy()
+    # an unbalanced, non-compact tree builds and searches about 2x faster on depth-map surfaces
+    tree = cKDTree(p, leafsize=KDTREE_LEAFSIZE, balanced_tree=False, compact_nodes=False)
+    _, idx = tree.query(q, k=1, workers=workers)
+    return torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(queries.device)
+
+
+@torch.no_grad()
+def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_elements: int = CHUNK_ELEMENTS) -> torch.Tensor:
+    """Exact nearest neighbour by brute force in blocks of queries, on the tensors' device (CUDA path).
+
+    Distances are computed as differences (not the matrix-product expansion, which loses
+    precision), so the result is the exact argmin up to floating-point ties.
+    points: N x 3, queries: M x 3 -> M indices (int64).
+    """
+    n = points.shape[0]
+    step = max(1, chunk_elements // max(n, 1))
+    out = []
+    for s in range(0, queries.shape[0], step):
+        d = torch.cdist(queries[s:s + step], points, compute_mode="donot_use_mm_for_euclid_dist")
+        out.append(d.argmin(dim=1))
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.int64, device=queries.device)
+
+
+def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "auto") -> torch.Tensor:
+    """Exact nearest-neighbour indices: "kdtree" (CPU), "chunked" (on device) or "auto" (by device)."""
+    if method == "auto":
+        method = "chunked" if points.is_cuda else "kdtree"
+    if method == "kdtree":
+        return nearest_indices_kdtree(points, queries)
+    if method == "chunked":
+        return nearest_indices_chunked(points, queries)
+    raise ValueError(f"unknown nearest-neighbour method {method!r}: use 'auto', 'kdtree' or 'chunked'")
+
+
+# ----------------------------------------------------------------------------- SDF loss
+def _grid_shape(grid) -> tuple[int, int, int]:
+    g = (grid,) * 3 if isinstance(grid, (int, np.integer)) else tuple(grid)
+    if len(g) != 3 or not all(isinstance(r, (int, np.integer)) and r >= 2 for r in g):
+        raise ValueError(f"sdf grid must be an int >= 2 or three of them (r_x, r_y, r_z), got {grid!r}")
+    return tuple(int(r) for r in g)
+
+
+def sample_grid(lower: torch.Tensor, upper: torch.Tensor, grid=DEFAULT_SDF_GRID) -> torch.Tensor:
+    """The paper's sample grid with the offset put back (Sec. 3.C, Eq. 8):
+
+    X_ijk = X_lb + (i/(r_x-1), j/(r_y-1), k/(r_z-1)) * (X_ub - X_lb),  i < r_x, j < r_y, k < r_z.
+    lower, upper: 3-vectors -> (r_x r_y r_z) x 3 points, i slowest (x), k fastest (z).
+    """
+    rx, ry, rz = _grid_shape(grid)
+    axes = [torch.linspace(0.0, 1.0, r, dtype=lower.dtype, device=lower.device) for r in (rx, ry, rz)]
+    t = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+    return lower + t * (upper - lower)
+
+
+def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "auto", signed: bool = True) -> torch.Tensor:
+    """Signed distance from each query q to the point set S = {X} (camera frame, Sec. 3.C, Eq. 5).
+
+    phi(q) = ||X_n - q||_2 with X_n the exact nearest point of S (index searched without
+    gradient, distance recomputed in torch so gradients reach ``points`` through X_n).
+
+    Sign (the paper: positive ahead of the surface as seen from the camera, negative behind):
+    sign((X_n - q) . X_n), i.e. positive when q lies before X_n along X_n's viewing ray from the
+    camera centre (q is between the camera and the surface, inside the lumen), negative when
+    it lies beyond, 0 on the surface. For a fronto-parallel plane z = d this is sign(d - q_z).
+    points: N x 3, queries: M x 3 -> M signed distances (unsigned when ``signed=False``).
+    """
+    idx = nearest_indices(points, queries, method)
+    diff = points[idx] - queries  # M x 3, differentiable in points
+    d2 = (diff * diff).sum(-1)
+    pos = d2 > 0
+    dist = torch.where(pos, torch.sqrt(torch.where(pos, d2, torch.ones_like(d2))), torch.zeros_like(d2))
+    if not signed:
+        return dist
+    with torch.no_grad():
+        sign = torch.sign((diff * points[idx]).sum(-1))
+    return sign * dist
+
+
+def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True):
+    """Per image: the sample grid and the signed fields of prediction and ground truth.
+
+    Returns a list (one entry per image; None when the image has no valid pixel) of dicts
+    {"grid": M x 3, "lower", "upper": 3-vectors, "pred": M, "gt": M}, M = r_x r_y r_z; fields are
+    ordered as :func:`sample_grid` (reshape to r_x x r_y x r_z).
+    """
+    gt_safe, valid = _prepare(pred, gt, mask)
+    if torch.as_tensor(K).dim() == 3 and torch.as_tensor(K).shape[0] != pred.shape[0]:
+        raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {pred.shape[0]}, got {tuple(torch.as_tensor(K).shape)}")
+    P_pred = camera.backproject(pred, K)  # B x HW x 3 (differentiable)
+    P_gt = camera.backproject(gt_safe, K).detach()
+    flat_valid = valid.reshape(valid.shape[0], -1)
+    out = []
+    for b in range(pred.shape[0]):
+        vb = flat_valid[b]
+        if not bool(vb.any()):
+            out.append(None)
+            continue
+        g_pts, p_pts = P_gt[b][vb], P_pred[b][vb]
+        lower, upper = g_pts.min(0).values, g_pts.max(0).values  # X_lb, X_ub of the ground truth
+        q = sample_grid(lower, upper, grid)
+        out.append({
+            "grid": q, "lower": lower, "upper": upper,
+            "pred": signed_distance(p_pts, q, method, signed),
+            "gt": signed_distance(g_pts, q, method, signed),
+        })
+    return out
+
+
+def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True) -> torch.Tensor:
+    """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 9).
+
+    Both depth maps are back-projected with K (valid pixels only); the grid spans the ground
+    truth's 3D bounding box [X_lb, X_ub] (:func:`sample_grid`); phi is the signed distance of
+    :func:`signed_distance`. The loss is the mean over images with at least one valid pixel
+    (0 if none). ``method``: exact nearest-neighbour search, "auto" = cKDTree on the CPU,
+    chunked brute force on CUDA. ``signed=False`` gives the unsigned variant (for comparison).
+    """
+    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed) if f is not None]
+    if not fields:
+        return pred.sum() * 0.0
+    return torch.stack([(f["pred"] - f["gt"]).abs().mean() for f in fields]).mean()
+
+
+# ----------------------------------------------------------------------------- total
+TERMS = ("depth", "smooth", "grad", "normal", "sdf", "total")
+
+
+def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID):
+    """L_total = l1 (L_depth + L_smooth) + l2 (L_grad + L_normal) + l3 L_sdf (Sec. 3.C, Eq. 10).
+
+    Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats
+    with keys depth, smooth, grad, normal, sdf, total (unweighted terms, weighted total).
+    A zero lambda skips computing its terms, which are then reported as 0.0. The ablation
+    cases of Sec. 4.3 are lambda settings (``config.ABLATION_CASES``).
+    """
+    if len(lambdas) != 3 or any(float(l) < 0 for l in lambdas):
+        raise ValueError(f"lambdas must be three non-negative weights (l1, l2, l3), got {lambdas!r}")
+    l1, l2, l3 = (float(l) for l in lambdas)
+    zero = pred.sum() * 0.0
+    t = {k: zero for k in TERMS[:-1]}
+    if l1:
+        t["depth"], t["smooth"] = depth_loss(pred, gt, mask), smoothness_loss(pred, image)
+    if l2:
+        t["grad"], t["normal"] = gradient_loss(pred, gt, mask), normal_loss(pred, gt, mask)
+    if l3:
+        t["sdf"] = sdf_loss(pred, gt, K, sdf_grid, mask)
+    loss = l1 * (t["depth"] + t["smooth"]) + l2 * (t["grad"] + t["normal"]) + l3 * t["sdf"]
+    terms = {k: float(v.detach()) for k, v in t.items()}
+    terms["total"] = float(loss.detach())
+    return loss, terms

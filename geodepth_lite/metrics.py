@@ -1,0 +1,100 @@
+"""Depth metrics with per-frame median scaling (Sec. 4.3; the monodepth2 / AF-SfMLearner protocol).
+
+For each frame: valid pixels are ``min_depth < gt < max_depth`` (and finite); with median
+scaling, ``pred *= median(gt[valid]) / median(pred[valid])``; then ``pred`` is clamped to
+``[min_depth, max_depth]``; then the seven metrics are computed over the valid pixels:
+
+- abs_rel  = mean(|gt - pred| / gt)
+- sq_rel   = mean((gt - pred)^2 / gt)
+- rmse     = sqrt(mean((gt - pred)^2))
+- rmse_log = sqrt(mean((ln gt - ln pred)^2))
+- a_k      = mean(max(gt / pred, pred / gt) < 1.25^k), k = 1, 2, 3
+
+and each metric is the mean of its per-frame values. This is the only implementation in the
+package: training validation, evaluation and the notebooks all call :func:`compute_depth_metrics`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+
+
+def _as_frames(x, name: str) -> np.ndarray:
+    """numpy array or torch tensor, N x H x W, N x 1 x H x W or H x W -> float64 N x H x W."""
+    if hasattr(x, "detach"):  # torch tensor
+        x = x.detach().cpu().numpy()
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim == 4 and x.shape[1] == 1:
+        x = x[:, 0]
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3:
+        raise ValueError(f"{name} must be N x H x W or H x W (or N x 1 x H x W), got shape {x.shape}")
+    return x
+
+
+def frame_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """The seven metrics of one frame, for 1-D arrays of valid, positive depths of equal length."""
+    thresh = np.maximum(gt / pred, pred / gt)
+    diff = gt - pred
+    return {
+        "abs_rel": float(np.mean(np.abs(diff) / gt)),
+        "sq_rel": float(np.mean(diff**2 / gt)),
+        "rmse": float(np.sqrt(np.mean(diff**2))),
+        "rmse_log": float(np.sqrt(np.mean((np.log(gt) - np.log(pred)) ** 2))),
+        "a1": float(np.mean(thresh < 1.25)),
+        "a2": float(np.mean(thresh < 1.25**2)),
+        "a3": float(np.mean(thresh < 1.25**3)),
+    }
+
+
+def compute_depth_metrics(pred, gt, *, min_depth: float = 1e-3, max_depth: float = 100.0, median_scaling: bool = True) -> dict:
+    """Metrics of predicted depth against ground truth (shapes N x H x W or H x W, numpy or torch).
+
+    ``pred`` must already be at the ground truth's resolution. Returns a dict with
+    - the seven metrics (floats, means over the frames that have at least one valid pixel),
+    - ``"ratios"``: N per-frame scale factors median(gt)/median(pred) (1.0 without median
+      scaling; NaN for frames without valid pixels),
+    - ``"per_frame"``: dict metric -> N array (NaN for frames without valid pixels),
+    - ``"n_frames"``: number of frames averaged.
+    Raises ValueError for mismatched shapes, a bad depth range, non-finite or non-positive
+    predictions on valid pixels, or when no frame has a valid pixel.
+    """
+    p, g = _as_frames(pred, "pred"), _as_frames(gt, "gt")
+    if p.shape != g.shape:
+        raise ValueError(f"pred and gt must have the same shape (resize pred first), got {p.shape} and {g.shape}")
+    if not 0 <= min_depth < max_depth:
+        raise ValueError(f"need 0 <= min_depth < max_depth, got min_depth={min_depth}, max_depth={max_depth}")
+    n = p.shape[0]
+    ratios = np.full(n, np.nan)
+    per_frame = {k: np.full(n, np.nan) for k in METRIC_NAMES}
+    with np.errstate(invalid="ignore"):
+        valid_all = np.isfinite(g) & (g > min_depth) & (g < max_depth)
+    for i in range(n):
+        valid = valid_all[i]
+        if not valid.any():
+            continue
+        gi, pi = g[i][valid], p[i][valid]
+        if not np.all(np.isfinite(pi)):
+            raise ValueError(f"pred frame {i} has non-finite values on valid pixels")
+        ratio = 1.0
+        if median_scaling:
+            med = np.median(pi)
+            if not med > 0:
+                raise ValueError(f"pred frame {i}: median depth on valid pixels is {med}, must be positive")
+            ratio = float(np.median(gi) / med)
+            pi = pi * ratio
+        pi = np.clip(pi, min_depth, max_depth)
+        if not np.all(pi > 0):
+            raise ValueError(f"pred frame {i} has non-positive depths and min_depth=0: cannot take logs")
+        ratios[i] = ratio
+        for k, v in frame_metrics(pi, gi).items():
+            per_frame[k][i] = v
+    used = np.isfinite(ratios)
+    if not used.any():
+        raise ValueError(f"no valid ground-truth pixel in any frame (valid: {min_depth} < gt < {max_depth})")
+    out = {k: float(np.mean(per_frame[k][used])) for k in METRIC_NAMES}
+    out.update(ratios=ratios, per_frame=per_frame, n_frames=int(used.sum()))
+    return out

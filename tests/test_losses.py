@@ -1,0 +1,236 @@
+"""Known-answer tests of the five losses (Sec. 3.C) and of the exact nearest-neighbour search."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from geodepth_lite import camera, losses as L
+
+K32 = camera.intrinsics(32)
+
+
+def smooth_depth(B=2, H=16, W=16, seed=0, dtype=torch.float64):
+    """A smooth positive depth map with some structure (a bump on a tilted plane)."""
+    g = torch.Generator().manual_seed(seed)
+    v, u = torch.meshgrid(torch.linspace(-1, 1, H, dtype=dtype), torch.linspace(-1, 1, W, dtype=dtype), indexing="ij")
+    c = torch.rand(B, 3, generator=g, dtype=dtype)
+    d = 2.0 + c[:, :1, None] * u + 0.5 * c[:, 1:2, None] * v + torch.exp(-4 * (u**2 + v**2)) * c[:, 2:3, None]
+    return d[:, None] if d.dim() == 3 else d.unsqueeze(1)
+
+
+def plane(z, B=1, H=32, W=32, dtype=torch.float64):
+    return torch.full((B, 1, H, W), float(z), dtype=dtype)
+
+
+# ----------------------------------------------------------------------------- zero for identical inputs
+def test_every_loss_is_zero_for_identical_inputs():
+    d = smooth_depth(2, 16, 16).reshape(2, 1, 16, 16)
+    img = torch.rand(2, 3, 16, 16, dtype=torch.float64)
+    K = camera.intrinsics(16)
+    assert L.depth_loss(d, d.clone()) == 0
+    assert L.gradient_loss(d, d.clone()) == 0
+    assert L.normal_loss(d, d.clone()) < 1e-15  # 1 - cos(0) up to rounding
+    assert L.sdf_loss(d, d.clone(), K, grid=8) == 0
+    assert L.smoothness_loss(plane(3.0, 2, 16, 16), img) == 0  # a constant depth has no gradient
+    loss, terms = L.total_loss(d, d.clone(), img, K, sdf_grid=8)
+    assert terms["depth"] == terms["grad"] == terms["sdf"] == 0 and terms["normal"] < 1e-15
+    assert math.isclose(terms["total"], terms["smooth"]) and math.isclose(float(loss), terms["total"])
+
+
+def test_gradient_loss_ignores_a_constant_offset():
+    d = smooth_depth(2, 16, 16).reshape(2, 1, 16, 16)
+    assert L.gradient_loss(d + 0.37, d) < 1e-12
+    assert L.normal_loss(d + 0.37, d) < 1e-12
+    assert abs(float(L.depth_loss(d + 0.37, d)) - 0.37) < 1e-12
+
+
+@pytest.mark.parametrize("a", [0.1, 0.5, 2.0])
+def test_normal_loss_of_a_slope_against_a_flat_plane(a):
+    H = W = 12
+    u = torch.arange(W, dtype=torch.float64).expand(H, W)
+    tilted = (3.0 + a * u)[None, None]
+    flat = plane(3.0, 1, H, W)
+    per_pixel, valid = L.normal_map(tilted, flat)
+    assert valid.all()
+    expected = 1 - 1 / math.sqrt(1 + a * a)
+    assert torch.allclose(per_pixel, torch.full_like(per_pixel, expected), atol=1e-12)
+    assert math.isclose(float(L.normal_loss(tilted, flat)), expected, rel_tol=1e-12)
+    # the gradient loss of the same pair: |a| per pixel along x, nothing along y
+    assert math.isclose(float(L.gradient_loss(tilted, flat)), a, rel_tol=1e-12)
+
+
+def test_smoothness_loss_known_value_and_edge_weighting():
+    H = W = 8
+    u = torch.arange(W, dtype=torch.float64).expand(H, W)
+    ramp = (2.0 + 0.1 * u)[None, None]
+    flat_img = torch.zeros(1, 3, H, W, dtype=torch.float64)
+    # x differences all 0.1, weight e^0 = 1: mean 0.01; y differences 0
+    assert math.isclose(float(L.smoothness_loss(ramp, flat_img)), 0.01, rel_tol=1e-12)
+    edgy = flat_img.clone()
+    edgy[..., :, 1::2] = 1.0  # every x step of the image has |grad I| = 1
+    assert math.isclose(float(L.smoothness_loss(ramp, edgy)), 0.01 * math.exp(-2), rel_tol=1e-12)
+
+
+# ----------------------------------------------------------------------------- SDF
+def test_sdf_of_fronto_parallel_planes_grows_one_for_one_with_offset():
+    gt = plane(2.0)
+    losses_at = {dz: float(L.sdf_loss(plane(2.0 + dz), gt, K32, grid=8)) for dz in (0.5, 1.0, 1.5)}
+    # each loss is the offset plus a small pixel-sampling constant
+    assert abs(losses_at[1.0] - losses_at[0.5] - 0.5) < 0.01
+    assert abs(losses_at[1.5] - losses_at[1.0] - 0.5) < 0.01
+    assert abs(losses_at[1.0] - 1.0) < 0.05
+
+
+def test_signed_distance_sign_convention():
+    # a fronto-parallel plane z = 2 sampled on a grid of points
+    xs = torch.linspace(-1, 1, 21, dtype=torch.float64)
+    X, Y = torch.meshgrid(xs, xs, indexing="ij")
+    pts = torch.stack((X.flatten(), Y.flatten(), torch.full((441,), 2.0, dtype=torch.float64)), -1)
+    q = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 3.5], [0.5, -0.5, 2.0], [0.3, 0.2, 1.75]], dtype=torch.float64)
+    sd = L.signed_distance(pts, q)
+    # in front of the surface (camera side) positive, behind negative, on it zero
+    assert torch.allclose(sd, torch.tensor([1.0, -1.5, 0.0, 0.25], dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(L.signed_distance(pts, q, signed=False), sd.abs())
+
+
+def reference_sdf_loss(pred, gt, K, r, signed=True):
+    """Independent numpy brute force of Eq. 9 with the +X_lb grid and the viewing-ray sign."""
+    out = []
+    for b in range(pred.shape[0]):
+        P = camera.backproject(pred[b, 0].numpy(), K).reshape(-1, 3)
+        G = camera.backproject(gt[b, 0].numpy(), K).reshape(-1, 3)
+        lo, hi = G.min(0), G.max(0)
+        t = np.linspace(0, 1, r)
+        grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo) + lo
+
+        def field(S):
+            d = np.linalg.norm(S[None] - grid[:, None], axis=-1)
+            n = d.argmin(1)
+            s = np.sign(np.einsum("ij,ij->i", S[n] - grid, S[n])) if signed else 1.0
+            return s * d.min(1)
+
+        out.append(np.abs(field(P) - field(G)).mean())
+    return float(np.mean(out))
+
+
+def step_depth(H=16, W=16, near=1.03, far=2.97):
+    d = torch.full((1, 1, H, W), far, dtype=torch.float64)
+    d[..., : W // 2] = near
+    return d
+
+
+def test_signed_and_unsigned_fields_give_different_losses():
+    K = camera.intrinsics(16)
+    K[0, 2], K[1, 2] = 7.3, 6.6  # off-centre: no exact distance ties
+    gt = step_depth()  # a step: the grid spans both sides of each half of the surface
+    pred = plane(2.01, 1, 16, 16)  # a flat wall halfway between
+    signed = float(L.sdf_loss(pred, gt, K, grid=6))
+    unsigned = float(L.sdf_loss(pred, gt, K, grid=6, signed=False))
+    assert math.isclose(signed, reference_sdf_loss(pred, gt, K, 6), rel_tol=1e-9)
+    assert math.isclose(unsigned, reference_sdf_loss(pred, gt, K, 6, signed=False), rel_tol=1e-9)
+    assert signed > unsigned + 0.1  # points between the surfaces: the signs disagree
+
+
+def test_sdf_loss_matches_reference_on_random_smooth_surfaces():
+    K = camera.intrinsics(12)
+    gt = smooth_depth(2, 12, 12, seed=1).reshape(2, 1, 12, 12)
+    pred = smooth_depth(2, 12, 12, seed=2).reshape(2, 1, 12, 12) * 1.1
+    for method in ("kdtree", "chunked"):
+        got = float(L.sdf_loss(pred, gt, K, grid=5, method=method))
+        assert math.isclose(got, reference_sdf_loss(pred, gt, K, 5), rel_tol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nearest_neighbour_search_equals_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    pts = torch.from_numpy(rng.normal(size=(3000, 3)))
+    q = torch.from_numpy(rng.uniform(-3, 3, size=(700, 3)))
+    brute = torch.from_numpy(np.linalg.norm(pts.numpy()[None] - q.numpy()[:, None], axis=-1).argmin(1))
+    kd = L.nearest_indices(pts, q, "kdtree")
+    ch = L.nearest_indices_chunked(pts, q, chunk_elements=50_000)  # many chunks
+    assert torch.equal(kd, brute) and torch.equal(ch, brute)
+    # float32 on the device path: distances agree with brute force to rounding
+    ch32 = L.nearest_indices(pts.float(), q.float(), "chunked")
+    d = (pts[ch32] - q).norm(dim=1) - (pts[brute] - q).norm(dim=1)
+    assert d.abs().max() < 1e-5
+
+
+def test_sdf_gradients_reach_pred_through_nearest_points():
+    K = camera.intrinsics(16)
+    gt = plane(2.0, 1, 16, 16)
+    pred = plane(2.5, 1, 16, 16).requires_grad_()
+    L.sdf_loss(pred, gt, K, grid=6).backward()
+    # moving the whole prediction towards the ground truth lowers the loss
+    assert pred.grad.sum() > 0 and torch.isfinite(pred.grad).all()
+
+
+# ----------------------------------------------------------------------------- gradcheck
+@pytest.mark.parametrize("name", ["depth", "smooth", "grad", "normal", "sdf", "total"])
+def test_gradcheck_every_loss(name):
+    g = torch.Generator().manual_seed(3)
+    H = W = 6
+    gt = 1.0 + torch.rand(2, 1, H, W, generator=g, dtype=torch.float64)
+    pred = (1.0 + torch.rand(2, 1, H, W, generator=g, dtype=torch.float64)).requires_grad_()
+    img = torch.rand(2, 3, H, W, generator=g, dtype=torch.float64)
+    K = camera.intrinsics(W)
+    fns = {
+        "depth": lambda p: L.depth_loss(p, gt),
+        "smooth": lambda p: L.smoothness_loss(p, img),
+        "grad": lambda p: L.gradient_loss(p, gt),
+        "normal": lambda p: L.normal_loss(p, gt),
+        "sdf": lambda p: L.sdf_loss(p, gt, K, grid=3),
+        "total": lambda p: L.total_loss(p, gt, img, K, lambdas=(1.0, 0.5, 2.0), sdf_grid=3)[0],
+    }
+    assert torch.autograd.gradcheck(fns[name], (pred,), eps=1e-6, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- invalid ground truth
+def test_invalid_ground_truth_is_masked_and_never_nan():
+    gt = smooth_depth(2, 16, 16).reshape(2, 1, 16, 16)
+    bad = gt.clone()
+    bad[0, 0, 2, 3] = float("nan")
+    bad[0, 0, 5, 5] = float("inf")
+    bad[1, 0, 7, 1] = 0.0
+    bad[1, 0, 9, 9] = -1.0
+    good = torch.isfinite(bad) & (bad > 0)
+    pred = (gt * 1.05).requires_grad_()
+    img = torch.rand(2, 3, 16, 16, dtype=torch.float64)
+    K = camera.intrinsics(16)
+    loss, terms = L.total_loss(pred, bad, img, K, sdf_grid=6)
+    loss.backward()
+    assert all(math.isfinite(v) for v in terms.values())
+    assert torch.isfinite(pred.grad).all()
+    pred = pred.detach()
+    # masking the bad pixels by hand gives the same values
+    for fn in (L.depth_loss, L.gradient_loss, L.normal_loss):
+        assert math.isclose(float(fn(pred, bad)), float(fn(pred, gt, good)), rel_tol=1e-12)
+    assert math.isclose(float(L.sdf_loss(pred, bad, K, 6)), float(L.sdf_loss(pred, gt, K, 6, mask=good)), rel_tol=1e-12)
+    # nothing valid at all: zero, finite, differentiable
+    empty = torch.full_like(gt, float("nan"))
+    pred2 = gt.clone().requires_grad_()
+    loss, terms = L.total_loss(pred2, empty, img, K, lambdas=(1, 1, 1), sdf_grid=6)
+    loss.backward()
+    assert terms["depth"] == terms["grad"] == terms["normal"] == terms["sdf"] == 0.0
+    assert torch.isfinite(pred2.grad).all()
+
+
+def test_total_loss_weights_and_skips():
+    gt = smooth_depth(1, 16, 16, seed=4).reshape(1, 1, 16, 16)
+    pred = smooth_depth(1, 16, 16, seed=5).reshape(1, 1, 16, 16)
+    img = torch.rand(1, 3, 16, 16, dtype=torch.float64)
+    K = camera.intrinsics(16)
+    _, t = L.total_loss(pred, gt, img, K, lambdas=(1, 1, 1), sdf_grid=6)
+    loss, t2 = L.total_loss(pred, gt, img, K, lambdas=(2.0, 0.0, 0.5), sdf_grid=6)
+    assert t2["grad"] == t2["normal"] == 0.0  # skipped
+    expected = 2.0 * (t["depth"] + t["smooth"]) + 0.5 * t["sdf"]
+    assert math.isclose(t2["total"], expected, rel_tol=1e-12) and math.isclose(float(loss), expected, rel_tol=1e-12)
+    with pytest.raises(ValueError, match="lambdas"):
+        L.total_loss(pred, gt, img, K, lambdas=(1, 1))
+    with pytest.raises(ValueError, match="sdf grid"):
+        L.sdf_loss(pred, gt, K, grid=1)
+    with pytest.raises(ValueError, match="same shape"):
+        L.depth_loss(pred, gt[..., :8])
+    with pytest.raises(ValueError, match="mask"):
+        L.depth_loss(pred, gt, mask=torch.ones(1, 16, 16, dtype=torch.bool))
