@@ -198,7 +198,7 @@ def test_bad_options_are_named(tmp_path):
         loaders.open_dataset("colondepth", tmp_path)[0]
 
 
-def test_check_subset_counts_and_reports_mismatches(tmp_path):
+def test_check_subset_counts_and_reports_mismatches(tmp_path, capsys):
     _write_colondepth(tmp_path, groups=((1, 1), (2, 2)), n=2)
     manifest = loaders.load_subset_manifest("colondepth")
     assert [s["frames"] for s in manifest["subsets"]] == [364, 364, 364]
@@ -213,6 +213,49 @@ def test_check_subset_counts_and_reports_mismatches(tmp_path):
     out = subprocess.run([sys.executable, "-m", "geodepth_lite.loaders", "--check", str(path), "--root", str(tmp_path)],
                          capture_output=True, text=True)
     assert out.returncode == 0 and "T1-L1" in out.stdout
-    out = subprocess.run([sys.executable, "-m", "geodepth_lite.loaders", "--check", "colondepth", "--root", str(tmp_path)],
-                         capture_output=True, text=True)
-    assert out.returncode == 1 and "fewer" in out.stdout and "missing" in out.stdout
+    assert loaders.main(["--check", "colondepth", "--root", str(tmp_path)]) == 1
+    report = capsys.readouterr().out
+    assert "fewer" in report and "missing" in report
+
+
+@pytest.fixture(scope="module")
+def untrained_checkpoint(tmp_path_factory):
+    """A small untrained DepthNet in train's checkpoint format: evaluation runs end to end without training."""
+    from geodepth_lite.model import DepthNet
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("ckpt") / "checkpoint.pt"
+    torch.save({"model": DepthNet().state_dict(), "cfg": {"image_size": 32}, "epoch": 0}, path)
+    return path
+
+
+WRITERS = {"endoslam": _write_endoslam, "colondepth": _write_colondepth, "simcol3d": _write_simcol3d, "c3vd": _write_c3vd}
+
+
+@pytest.mark.parametrize("name", loaders.DATASETS)
+def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untrained_checkpoint, capsys):
+    from geodepth_lite import cli
+
+    root = tmp_path / "data"
+    WRITERS[name](root)
+    n = len(loaders.open_dataset(name, root))
+    out = tmp_path / "eval"
+    code = cli.main(["evaluate", "--checkpoint", str(untrained_checkpoint), "--dataset", name, "--root", str(root),
+                     "--out", str(out), "--error-maps", "1", "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    result = json.loads((out / "metrics.json").read_text())
+    assert result["n"] == n
+    assert 0.0 < result["overall"]["a3"] <= 1.0 and np.isfinite(result["overall"]["rmse"])
+
+
+def test_evaluate_as_a_process_and_a_wrong_root_is_named(tmp_path, untrained_checkpoint, capsys):
+    from geodepth_lite import cli
+
+    _write_colondepth(tmp_path / "data", groups=((1, 1),), n=1)
+    base = ["evaluate", "--checkpoint", str(untrained_checkpoint), "--out", str(tmp_path / "eval"), "--no-progress"]
+    ok = subprocess.run([sys.executable, "-m", "geodepth_lite", *base, "--dataset", "colondepth",
+                         "--root", str(tmp_path / "data"), "--group", "T1-L1"], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    assert cli.main(base + ["--dataset", "endoslam", "--root", str(tmp_path / "data")]) == 2
+    err = capsys.readouterr().err
+    assert "holds no endoslam frame/depth pairs" in err and "UnityCam" in err
