@@ -370,6 +370,8 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
     _check_out_dir(out, m, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     (out / "checksums.sha256").unlink(missing_ok=True)  # re-written last: its presence marks completion
+    for stale in out.rglob(".*.tmp"):  # half-written files of a killed run (never under a final name)
+        stale.unlink()
     write_json_atomic(out / "manifest.json", m)
     c = m["camera"]
     W, H = c["width"], c["height"]

@@ -374,11 +374,11 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     cos_t[:, -1], sin_t[:, -1] = 1.0, 0.0
     wall = pts[:, None, :] + r[..., None] * (cos_t[..., None] * N[:, None, :] + sin_t[..., None] * B[:, None, :])
 
-    # analytic-grid normals (periodic in theta): dP/ds x dP/dtheta points outwards -> negate
+    # analytic-grid normals (periodic in theta): dP/ds x dP/dtheta points into the lumen
     core = wall[:, :-1]
     d_s = np.gradient(core, s_grid, axis=0)
     d_t = (np.roll(core, -1, axis=1) - np.roll(core, 1, axis=1))
-    normals = -np.cross(d_s, d_t)
+    normals = np.cross(d_s, d_t)
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
     normals = np.concatenate([normals, normals[:, :1]], axis=1)
 
@@ -386,7 +386,7 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     idx = np.arange(n_rings * n_cols).reshape(n_rings, n_cols)
     a, b_, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
     # winding chosen so right-hand-rule face normals point into the lumen
-    tris = np.concatenate([np.stack([a, b_, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    tris = np.concatenate([np.stack([a, c, b_], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
 
     # end caps: a fan to the centre point of each end ring
     verts = [wall.reshape(-1, 3)]
