@@ -33,24 +33,25 @@ NEAR, FAR = 0.01, 100.0  # valid depth range (scene units), as in the paper's se
 
 # Texture families: base mucosa colour, mottling, vessel colour/density/width (all 0..1 RGB).
 TEXTURES: dict[str, dict] = {
-    "pink":   {"base_color": [0.86, 0.45, 0.40], "mottle": 0.18, "mottle_scale": 0.08, "vessel_color": [0.55, 0.08, 0.10], "vessel_density": 6.0, "vessel_width": 0.05, "vessel_strength": 0.7, "size": 256},
-    "red":    {"base_color": [0.80, 0.30, 0.25], "mottle": 0.22, "mottle_scale": 0.05, "vessel_color": [0.45, 0.05, 0.08], "vessel_density": 9.0, "vessel_width": 0.04, "vessel_strength": 0.6, "size": 256},
-    "pale":   {"base_color": [0.90, 0.62, 0.55], "mottle": 0.12, "mottle_scale": 0.12, "vessel_color": [0.65, 0.20, 0.22], "vessel_density": 4.0, "vessel_width": 0.06, "vessel_strength": 0.8, "size": 256},
-    "orange": {"base_color": [0.88, 0.52, 0.33], "mottle": 0.20, "mottle_scale": 0.06, "vessel_color": [0.60, 0.15, 0.10], "vessel_density": 7.0, "vessel_width": 0.035, "vessel_strength": 0.5, "size": 256},
+    "pink":   {"base_color": [0.86, 0.45, 0.40], "mottle": 0.18, "mottle_scale": 0.08, "vessel_color": [0.55, 0.08, 0.10], "vessel_density": 6.0, "vessel_width": 0.05, "vessel_strength": 0.7, "size": 512},
+    "red":    {"base_color": [0.80, 0.30, 0.25], "mottle": 0.22, "mottle_scale": 0.05, "vessel_color": [0.45, 0.05, 0.08], "vessel_density": 9.0, "vessel_width": 0.04, "vessel_strength": 0.6, "size": 512},
+    "pale":   {"base_color": [0.90, 0.62, 0.55], "mottle": 0.12, "mottle_scale": 0.12, "vessel_color": [0.65, 0.20, 0.22], "vessel_density": 4.0, "vessel_width": 0.06, "vessel_strength": 0.8, "size": 512},
+    "orange": {"base_color": [0.88, 0.52, 0.33], "mottle": 0.20, "mottle_scale": 0.06, "vessel_color": [0.60, 0.15, 0.10], "vessel_density": 7.0, "vessel_width": 0.035, "vessel_strength": 0.5, "size": 512},
     # held-out families (never in the training recipes), cf. ColonDepth's T1-T3 x L1-L3
-    "T1":     {"base_color": [0.93, 0.70, 0.52], "mottle": 0.10, "mottle_scale": 0.15, "vessel_color": [0.70, 0.25, 0.20], "vessel_density": 3.0, "vessel_width": 0.07, "vessel_strength": 0.6, "size": 256},
-    "T2":     {"base_color": [0.70, 0.22, 0.22], "mottle": 0.30, "mottle_scale": 0.04, "vessel_color": [0.35, 0.03, 0.06], "vessel_density": 12.0, "vessel_width": 0.03, "vessel_strength": 0.7, "size": 256},
-    "T3":     {"base_color": [0.82, 0.50, 0.55], "mottle": 0.25, "mottle_scale": 0.10, "vessel_color": [0.40, 0.10, 0.30], "vessel_density": 5.0, "vessel_width": 0.05, "vessel_strength": 0.9, "size": 256},
+    "T1":     {"base_color": [0.93, 0.70, 0.52], "mottle": 0.10, "mottle_scale": 0.15, "vessel_color": [0.70, 0.25, 0.20], "vessel_density": 3.0, "vessel_width": 0.07, "vessel_strength": 0.6, "size": 512},
+    "T2":     {"base_color": [0.70, 0.22, 0.22], "mottle": 0.30, "mottle_scale": 0.04, "vessel_color": [0.35, 0.03, 0.06], "vessel_density": 12.0, "vessel_width": 0.03, "vessel_strength": 0.7, "size": 512},
+    "T3":     {"base_color": [0.82, 0.50, 0.55], "mottle": 0.25, "mottle_scale": 0.10, "vessel_color": [0.40, 0.10, 0.30], "vessel_density": 5.0, "vessel_width": 0.05, "vessel_strength": 0.9, "size": 512},
 }
-# Lighting families: light guides, intensity range (x radius^2), colour, material.
+# Lighting families: light guides (offset: fraction of the lumen radius), exposure range (intensity
+# = exposure x d_ref^2, see ``exposure_distance``), light colour and jitter, mucosa tint jitter, material.
 LIGHTINGS: dict[str, dict] = {
-    "warm_single": {"n_lights": 1, "offset": 0.08, "intensity": [2.0, 3.5], "color": [1.0, 0.93, 0.82], "color_jitter": 0.05, "tint_jitter": 0.08, "ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0},
-    "white_dual":  {"n_lights": 2, "offset": 0.10, "intensity": [1.5, 2.8], "color": [1.0, 1.0, 1.0], "color_jitter": 0.04, "tint_jitter": 0.08, "ambient": 0.03, "diffuse": 0.85, "specular": 0.6, "specular_power": 50.0},
-    "dim_dual":    {"n_lights": 2, "offset": 0.06, "intensity": [0.8, 1.5], "color": [1.0, 0.96, 0.9], "color_jitter": 0.06, "tint_jitter": 0.1, "ambient": 0.05, "diffuse": 0.9, "specular": 0.35, "specular_power": 25.0},
+    "warm_single": {"n_lights": 1, "offset": 0.08, "intensity": [1.1, 1.9], "color": [1.0, 0.93, 0.82], "color_jitter": 0.05, "tint_jitter": 0.08, "ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0},
+    "white_dual":  {"n_lights": 2, "offset": 0.10, "intensity": [1.0, 1.6], "color": [1.0, 1.0, 1.0], "color_jitter": 0.04, "tint_jitter": 0.08, "ambient": 0.03, "diffuse": 0.85, "specular": 0.6, "specular_power": 50.0},
+    "dim_dual":    {"n_lights": 2, "offset": 0.06, "intensity": [0.6, 1.0], "color": [1.0, 0.96, 0.9], "color_jitter": 0.06, "tint_jitter": 0.1, "ambient": 0.05, "diffuse": 0.9, "specular": 0.35, "specular_power": 25.0},
     # held-out families
-    "L1": {"n_lights": 1, "offset": 0.12, "intensity": [3.0, 4.5], "color": [1.0, 0.88, 0.70], "color_jitter": 0.05, "tint_jitter": 0.06, "ambient": 0.02, "diffuse": 0.95, "specular": 0.7, "specular_power": 60.0},
-    "L2": {"n_lights": 2, "offset": 0.15, "intensity": [1.2, 2.0], "color": [0.85, 0.92, 1.0], "color_jitter": 0.05, "tint_jitter": 0.1, "ambient": 0.06, "diffuse": 0.8, "specular": 0.25, "specular_power": 15.0},
-    "L3": {"n_lights": 1, "offset": 0.05, "intensity": [0.9, 1.6], "color": [1.0, 0.80, 0.60], "color_jitter": 0.08, "tint_jitter": 0.12, "ambient": 0.08, "diffuse": 0.85, "specular": 0.5, "specular_power": 40.0},
+    "L1": {"n_lights": 1, "offset": 0.12, "intensity": [1.4, 2.2], "color": [1.0, 0.88, 0.70], "color_jitter": 0.05, "tint_jitter": 0.06, "ambient": 0.02, "diffuse": 0.95, "specular": 0.7, "specular_power": 60.0},
+    "L2": {"n_lights": 2, "offset": 0.15, "intensity": [0.8, 1.3], "color": [0.85, 0.92, 1.0], "color_jitter": 0.05, "tint_jitter": 0.1, "ambient": 0.06, "diffuse": 0.8, "specular": 0.25, "specular_power": 15.0},
+    "L3": {"n_lights": 1, "offset": 0.05, "intensity": [0.7, 1.1], "color": [1.0, 0.80, 0.60], "color_jitter": 0.08, "tint_jitter": 0.12, "ambient": 0.08, "diffuse": 0.85, "specular": 0.5, "specular_power": 40.0},
 }
 
 
@@ -80,7 +81,7 @@ def make_texture(params: dict, rng: np.random.Generator) -> np.ndarray:
     img = base[None, None, :] * (1.0 + float(params["mottle"]) * mottle[..., None])
     density, width = float(params["vessel_density"]), float(params["vessel_width"])
     vessels = np.zeros((size, size))
-    for level, (dens, wid, weight) in enumerate(((density, width, 1.0), (2.5 * density, 0.6 * width, 0.5))):
+    for level, (dens, wid, weight) in enumerate(((density, width, 1.0), (2.5 * density, 0.8 * width, 0.45))):
         n = _periodic_noise(rng, size, 1.0 / dens)
         vessels = np.maximum(vessels, weight * np.exp(-((n / (wid * 2.0)) ** 2)))
     vessels *= float(params["vessel_strength"])
@@ -97,12 +98,36 @@ class Light:
     intensity: float
 
 
-def sample_lighting(params: dict, rng: np.random.Generator, radius: float) -> tuple[list[Light], tuple[float, float, float]]:
-    """Per-sample lights (1 or 2 beside the lens) and a per-sample mucosa tint from a lighting family."""
+def exposure_distance(tube, T_world_cam, K, width: int, height: int, percentile: float = 20.0) -> float:
+    """Auto-exposure reference distance: a low percentile of the wall distances along a 5 x 5 grid of rays.
+
+    An endoscope's processor adjusts gain to the scene; here the light intensity is
+    scaled by this distance squared, so near-wall views are not blown out and views
+    down the lumen are not black, while inverse-square falloff within a frame stays.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    u = np.linspace(0.1, 0.9, 5) * (width - 1)
+    v = np.linspace(0.1, 0.9, 5) * (height - 1)
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(uu)], -1).reshape(-1, 3)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    dist = tube.cast_rays(T[:3, 3], rays @ T[:3, :3].T)
+    dist = dist[np.isfinite(dist)]
+    return float(np.percentile(dist, percentile)) if len(dist) else float(tube.preset["radius"])
+
+
+def sample_lighting(params: dict, rng: np.random.Generator, radius: float, distance: float | None = None) -> tuple[list[Light], tuple[float, float, float]]:
+    """Per-sample lights (1 or 2 beside the lens) and a per-sample mucosa tint from a lighting family.
+
+    radius: lumen radius (scales the light-guide offset); distance: auto-exposure reference
+    (``exposure_distance``; default: the radius). Total intensity = exposure x distance^2.
+    """
     n = int(params["n_lights"])
     off = float(params["offset"]) * radius
     lo, hi = params["intensity"]
-    intensity = float(rng.uniform(lo, hi)) * radius**2  # inverse-square: scale with the lumen size
+    distance = radius if distance is None else distance
+    intensity = float(rng.uniform(lo, hi)) * distance**2  # inverse-square falloff: expose for the reference distance
     base = np.asarray(params["color"], dtype=np.float64)
     lights = []
     angle = rng.uniform(0, 2 * np.pi)

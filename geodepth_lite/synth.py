@@ -397,7 +397,8 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                 for i in scene["frames"]:
                     rng = _frame_rng(m, split, scene["scene"], i)
                     T, info = rd.sample_pose(tube, rng, m["camera_path"])
-                    lights, tint = rd.sample_lighting(lighting, rng, float(preset["radius"]))
+                    d_ref = rd.exposure_distance(tube, T, K, W, H)
+                    lights, tint = rd.sample_lighting(lighting, rng, float(preset["radius"]), d_ref)
                     if i in todo:
                         renderer.set_tint(tint)
                         rgb, depth = renderer.render(T, lights)
@@ -409,7 +410,7 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                         "organ": scene["organ"], "texture": scene["texture"], "lighting": scene["lighting"],
                         "group": f"{scene['texture']}-{scene['lighting']}", "scene": scene["scene"],
                         "tube_seed": scene["tube_seed"], "s": round(info["s"], 10), "view": info["view"],
-                        "tilt_deg": round(info["tilt_deg"], 10), "tint": _round(tint),
+                        "tilt_deg": round(info["tilt_deg"], 10), "tint": _round(tint), "exposure_distance": round(d_ref, 10),
                         "lights": [{"offset_cam": _round(l.offset), "color": _round(l.color), "intensity": round(l.intensity, 10),
                                     "attenuation": [0.0, 0.0, 1.0]} for l in lights],
                     })

@@ -329,6 +329,23 @@ class TubeMesh:
         """Wall radius r(s, theta) (scene units)."""
         return radius_field(s, theta, self.preset, self.features)
 
+    def cast_rays(self, origin, directions) -> np.ndarray:
+        """Distance from ``origin`` (3,) along each unit direction (n x 3) to the first wall hit (inf: none)."""
+        import vtk
+
+        if getattr(self, "_locator", None) is None:
+            self._locator = vtk.vtkStaticCellLocator()
+            self._locator.SetDataSet(self.mesh)
+            self._locator.BuildLocator()
+        origin = np.asarray(origin, dtype=np.float64)
+        reach = 4.0 * (self.length + float(self.preset["radius"]))
+        out = np.full(len(directions), np.inf)
+        t, x, pc, sub = vtk.reference(0.0), [0.0] * 3, [0.0] * 3, vtk.reference(0)
+        for k, d in enumerate(np.asarray(directions, dtype=np.float64)):
+            if self._locator.IntersectWithLine(origin, origin + reach * d, 1e-9, t, x, pc, sub):
+                out[k] = float(t) * reach * float(np.linalg.norm(d))
+        return out
+
     def wall_point(self, s, theta) -> np.ndarray:
         """World point of the wall at (s, theta) (... x 3)."""
         s = np.asarray(s, dtype=np.float64)
