@@ -494,7 +494,41 @@ def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path
         stem += "-" + hashlib.sha256(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:8]
     out = Path(root) / stem if root is not None else data_dir() / stem
     if not is_complete(out, m):
-        generate(m, out, progress=progress)
+        # the workspace's data/ is a cache this package owns: a dataset left there by an older
+        # recipe (e.g. an edited manifest) is replaced; a folder holding anything else is refused
+        generate(m, out, progress=progress, overwrite=(out / "manifest.json").is_file())
+    return out
+
+
+def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, seed: int = 0,
+            path: dict | None = None, tube=None) -> list[dict]:
+    """Render ``n`` frames of one organ x texture x lighting of manifest ``m`` without writing files.
+
+    Uses the manifest's camera, resolution and camera path (``path`` updates the latter).
+    Returns dicts {"rgb", "depth", "K", "T_world_cam", "view", "tube"} (the same tube for all).
+    """
+    for field, name, table in (("organs", organ, m["organ_presets"]), ("textures", texture, m["texture_sets"]),
+                               ("lightings", lighting, m["lighting_sets"])):
+        if name not in table:
+            raise ValueError(f"{field[:-1]} {name!r} is not in this manifest (has: {', '.join(table)})")
+    c = m["camera"]
+    W, H = c["width"], c["height"]
+    K = intrinsics_of(m)
+    preset = m["organ_presets"][organ]
+    light = m["lighting_sets"][lighting]
+    cam_path = dict(m["camera_path"], **(path or {}))
+    rng = np.random.default_rng(np.random.SeedSequence([m["seed"], seed, 99]))
+    tube = tube if tube is not None else tb.build_tube(preset, int(rng.integers(2**31)), m["resolution"])
+    out = []
+    with rd.Renderer(W, H, K, near=c["near"], far=c["far"]) as renderer:
+        renderer.set_tube(tube, rd.make_texture(m["texture_sets"][texture], rng),
+                          {k: light[k] for k in ("ambient", "diffuse", "specular", "specular_power")})
+        for _ in range(n):
+            T, info = rd.sample_pose(tube, rng, cam_path)
+            lights, tint = rd.sample_lighting(light, rng, float(preset["radius"]), rd.exposure_distance(tube, T, K, W, H))
+            renderer.set_tint(tint)
+            rgb, depth = renderer.render(T, lights)
+            out.append({"rgb": rgb, "depth": depth, "K": K, "T_world_cam": T, "view": info["view"], "tube": tube})
     return out
 
 

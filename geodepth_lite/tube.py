@@ -104,7 +104,7 @@ PRESETS: dict[str, dict] = {
 FOLD_KINDS = ("haustral", "circular", "longitudinal", "none")
 
 # Mesh resolution: rings along s per unit radius, and points around each ring.
-DEFAULT_RESOLUTION = {"n_theta": 128, "ring_step": 0.06}  # ring_step: ring spacing, fraction of radius
+DEFAULT_RESOLUTION = {"n_theta": 96, "ring_step": 0.07}  # ring_step: ring spacing, fraction of radius
 
 
 # ----------------------------------------------------------------------------- centerline

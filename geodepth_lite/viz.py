@@ -102,3 +102,142 @@ def shape_index(depth: np.ndarray, K: np.ndarray, smooth: float = 1.0) -> np.nda
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (2.0 / math.pi) * np.arctan((k2 + k1) / (k2 - k1))
     return s
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: list[str], *, cmap: str = "magma",
+                cell_inches: float = 1.6):
+    """Paper Fig. 3 style grid: for every (row, column) cell an RGB frame above its depth map.
+
+    cells[r][c] = (rgb H x W x 3 uint8, depth H x W). Returns the matplotlib figure.
+    """
+    import matplotlib.pyplot as plt
+
+    n_rows, n_cols = len(cells), len(cells[0])
+    fig, axes = plt.subplots(2 * n_rows, n_cols, figsize=(cell_inches * n_cols, 2 * cell_inches * n_rows), squeeze=False)
+    for r, row in enumerate(cells):
+        for c, (rgb, depth) in enumerate(row):
+            axes[2 * r, c].imshow(rgb)
+            axes[2 * r + 1, c].imshow(colorize_depth(depth, cmap=cmap))
+            if r == 0:
+                axes[0, c].set_title(col_labels[c], fontsize=8)
+        axes[2 * r, 0].set_ylabel(f"{row_labels[r]}\nRGB", fontsize=8)
+        axes[2 * r + 1, 0].set_ylabel("depth", fontsize=8)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    return fig
+
+
+def depth_histogram(depths: dict, bins: int = 50, ax=None, log: bool = True):
+    """Histograms of valid depth values (> 0), one per label: {label: array of depths}. Returns the axes."""
+    import matplotlib.pyplot as plt
+
+    if ax is None:
+        _, ax = plt.subplots(figsize=(5, 3))
+    values = {k: np.asarray(v, dtype=np.float64).ravel() for k, v in depths.items()}
+    values = {k: v[np.isfinite(v) & (v > 0)] for k, v in values.items()}
+    hi = max(float(v.max()) for v in values.values() if len(v))
+    edges = np.geomspace(0.05, hi * 1.05, bins + 1) if log else np.linspace(0.0, hi * 1.05, bins + 1)
+    for label, v in values.items():
+        ax.hist(v, bins=edges, histtype="step", density=True, label=label, linewidth=1.4)
+    if log:
+        ax.set_xscale("log")
+    ax.set_xlabel("z-depth (scene units)")
+    ax.set_ylabel("density")
+    ax.legend(fontsize=8)
+    return ax
+
+
+SHAPE_CLASSES = (  # Koenderink's scale as in the paper's Fig. 5 (upper bounds of each class)
+    (-5 / 8, "cup"), (-3 / 8, "rut"), (-1 / 8, "saddle rut"), (1 / 8, "saddle"),
+    (3 / 8, "saddle ridge"), (5 / 8, "ridge"), (1.0, "cap"),
+)
+
+
+def shape_index_classes(si: np.ndarray) -> dict:
+    """Fraction of defined pixels in each shape class of Fig. 5 (cup ... cap)."""
+    s = si[np.isfinite(si)]
+    out, lo = {}, -1.0 - 1e-9
+    for hi, name in SHAPE_CLASSES:
+        out[name] = float(np.mean((s > lo) & (s <= hi))) if len(s) else 0.0
+        lo = hi
+    return out
+
+
+def plot_shape_index(rgb, depth, si, axes=None):
+    """RGB, depth and its shape-index map side by side (cup = blue ... cap = red). Returns the figure."""
+    import matplotlib.pyplot as plt
+
+    if axes is None:
+        fig, axes = plt.subplots(1, 3, figsize=(10, 3.4))
+    else:
+        fig = axes[0].figure
+    axes[0].imshow(rgb)
+    axes[0].set_title("RGB")
+    axes[1].imshow(colorize_depth(depth))
+    axes[1].set_title("depth")
+    im = axes[2].imshow(np.ma.masked_invalid(si), cmap="RdBu_r", vmin=-1, vmax=1)
+    axes[2].set_title("shape index")
+    cb = fig.colorbar(im, ax=axes[2], ticks=[-1, -0.5, 0, 0.5, 1], fraction=0.046)
+    cb.ax.set_yticklabels(["cup", "rut", "saddle", "ridge", "cap"])
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    return fig
+
+
+def tube_view(tube, poses=(), size=(800, 320), frustum: float | None = None, camera_position=None, connect: bool = False) -> np.ndarray:
+    """Off-screen 3D view of a tube mesh (cut open) with the centerline and camera poses; H x W x 3 uint8.
+
+    poses: T_world_cam matrices (OpenCV frame); each is drawn as a small frustum
+    (length ``frustum``, default 0.3 x radius); ``connect`` joins their centres (a camera path).
+    The half of the wall facing the viewer is clipped away so the lumen is visible.
+    """
+    import pyvista as pv
+    import vtk
+
+    vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
+    R = float(tube.preset["radius"])
+    frustum = 0.3 * R if frustum is None else frustum
+    pts = tube.points
+    centre = pts.mean(axis=0)
+    # viewing direction: perpendicular to the tube's overall direction
+    axis = pts[-1] - pts[0]
+    axis /= np.linalg.norm(axis)
+    side = np.cross(axis, [0.0, 1.0, 0.0] if abs(axis[1]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    pl = pv.Plotter(off_screen=True, window_size=list(size))
+    try:
+        pl.set_background("white")
+        mesh = tube.mesh.copy()
+        radial = mesh.points - tube.centerline(mesh.point_data["s"].astype(np.float64))
+        mesh.point_data["facing"] = radial @ side  # > 0: the half of the wall between viewer and lumen
+        cut = mesh.clip_scalar(scalars="facing", value=0.0, invert=True)
+        pl.add_mesh(cut, color=(0.85, 0.55, 0.5), smooth_shading=True, specular=0.3)
+        pl.add_mesh(pv.lines_from_points(pts), color="black", line_width=2)
+        if len(poses):
+            centres = np.array([np.asarray(T)[:3, 3] for T in poses])
+            if connect and len(centres) > 1:
+                pl.add_mesh(pv.lines_from_points(centres), color="royalblue", line_width=3)
+            for T in poses:
+                T = np.asarray(T)
+                o = T[:3, 3]
+                corners = [o + frustum * (T[:3, 2] + a * 0.6 * T[:3, 0] + b * 0.6 * T[:3, 1]) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+                lines = [np.array([o, c]) for c in corners] + [np.array([corners[k], corners[(k + 1) % 4]]) for k in range(4)]
+                for seg in lines:
+                    pl.add_mesh(pv.lines_from_points(seg), color="navy", line_width=2)
+        length = float(np.linalg.norm(pts[-1] - pts[0]))
+        pos = centre + side * length if camera_position is None else np.asarray(camera_position)
+        up = np.cross(side, axis)
+        pl.camera_position = [tuple(pos), tuple(centre), tuple(up)]
+        if camera_position is None:
+            pl.reset_camera()
+            pl.camera.zoom(1.15)
+        img = pl.screenshot(return_img=True)
+    finally:
+        pl.close()
+    return np.asarray(img)[..., :3].copy()
