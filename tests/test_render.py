@@ -95,3 +95,30 @@ def test_point_light_at_the_lens_has_inverse_square_falloff():
     ratio = rgb[..., 0][lit] / predicted[lit]  # red channel, white albedo
     assert np.median(ratio) == pytest.approx(1.0, rel=0.05)
     assert np.percentile(np.abs(ratio / np.median(ratio) - 1), 90) < 0.05
+
+
+def _sphere_depth(K, size, centre, radius, inside=False):
+    xn, yn = camera.normalized_grid(K, size, size).numpy()
+    rays = np.stack([xn, yn, np.ones_like(xn)], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    b = rays @ centre
+    root = np.sqrt(np.clip(b * b - (centre @ centre - radius**2), 0.0, None))  # rays that miss: unused
+    return (b + root if inside else b - root) * rays[..., 2]
+
+
+def test_shape_index_of_analytic_surfaces():
+    from geodepth_lite import viz
+
+    K = camera.intrinsics(48)
+    cap = _sphere_depth(K, 48, np.array([0.0, 0.0, 5.0]), 3.0)          # dome towards the camera
+    cup = _sphere_depth(K, 48, np.array([0.0, 0.0, 0.5]), 8.0, True)    # inside a sphere: a pocket
+    xn, yn = camera.normalized_grid(K, 48, 48).numpy()
+    a = xn**2 + 1.0
+    ridge = (5.0 - np.sqrt(np.clip(25.0 - a * 16.0, 0.0, None))) / a  # cylinder x^2 + (z - 5)^2 = 9, z along each ray
+    centre = (slice(16, 32), slice(16, 32))
+    for depth, expected in ((cap, 1.0), (cup, -1.0), (ridge, 0.5)):
+        si = viz.shape_index(depth, K, smooth=0)
+        assert np.nanmedian(si[centre]) == pytest.approx(expected, abs=0.02)
+    assert viz.shape_index_classes(viz.shape_index(cap, K, smooth=0))["cap"] > 0.9
+    img = viz.colorize_depth(cap)
+    assert img.shape == (48, 48, 3) and img.dtype == np.uint8
