@@ -119,6 +119,6 @@ def test_shape_index_of_analytic_surfaces():
     for depth, expected in ((cap, 1.0), (cup, -1.0), (ridge, 0.5)):
         si = viz.shape_index(depth, K, smooth=0)
         assert np.nanmedian(si[centre]) == pytest.approx(expected, abs=0.02)
-    assert viz.shape_index_classes(viz.shape_index(cap, K, smooth=0))["cap"] > 0.9
+    assert viz.shape_index_classes(viz.shape_index(cap, K, smooth=0)[centre])["cap"] > 0.9
     img = viz.colorize_depth(cap)
     assert img.shape == (48, 48, 3) and img.dtype == np.uint8
