@@ -501,10 +501,11 @@ def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path
 
 
 def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, seed: int = 0,
-            path: dict | None = None, tube=None) -> list[dict]:
+            path: dict | None = None, tube=None, renderer=None) -> list[dict]:
     """Render ``n`` frames of one organ x texture x lighting of manifest ``m`` without writing files.
 
     Uses the manifest's camera, resolution and camera path (``path`` updates the latter).
+    ``tube`` and ``renderer`` (an ``render.Renderer`` of the manifest's size) may be reused.
     Returns dicts {"rgb", "depth", "K", "T_world_cam", "view", "tube"} (the same tube for all).
     """
     for field, name, table in (("organs", organ, m["organ_presets"]), ("textures", texture, m["texture_sets"]),
@@ -518,9 +519,12 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
     light = m["lighting_sets"][lighting]
     cam_path = dict(m["camera_path"], **(path or {}))
     rng = np.random.default_rng(np.random.SeedSequence([m["seed"], seed, 99]))
-    tube = tube if tube is not None else tb.build_tube(preset, int(rng.integers(2**31)), m["resolution"])
+    tube_seed = int(rng.integers(2**31))  # drawn either way, so a reused tube leaves the rest unchanged
+    tube = tube if tube is not None else tb.build_tube(preset, tube_seed, m["resolution"])
     out = []
-    with rd.Renderer(W, H, K, near=c["near"], far=c["far"]) as renderer:
+    own = renderer is None
+    renderer = rd.Renderer(W, H, K, near=c["near"], far=c["far"]) if own else renderer
+    try:
         renderer.set_tube(tube, rd.make_texture(m["texture_sets"][texture], rng),
                           {k: light[k] for k in ("ambient", "diffuse", "specular", "specular_power")})
         for _ in range(n):
@@ -529,6 +533,9 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
             renderer.set_tint(tint)
             rgb, depth = renderer.render(T, lights)
             out.append({"rgb": rgb, "depth": depth, "K": K, "T_world_cam": T, "view": info["view"], "tube": tube})
+    finally:
+        if own:
+            renderer.close()
     return out
 
 
