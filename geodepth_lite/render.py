@@ -61,10 +61,10 @@ def _periodic_noise(rng: np.random.Generator, size: int, scale: float) -> np.nda
     scale: correlation length as a fraction of the tile. Periodic in both axes, so the
     texture wraps seamlessly around the tube (theta) and along it (s).
     """
-    f = np.fft.fftfreq(size)
-    fx, fy = np.meshgrid(f, f, indexing="ij")
-    spectrum = np.fft.fft2(rng.standard_normal((size, size))) * np.exp(-((fx**2 + fy**2) * (np.pi * scale * size) ** 2 / size**2) * size**2 / 4)
-    out = np.real(np.fft.ifft2(spectrum))
+    fx = np.fft.fftfreq(size)[:, None]
+    fy = np.fft.rfftfreq(size)[None, :]
+    gain = np.exp(-(fx**2 + fy**2) * (np.pi * scale * size) ** 2 / 4)  # Gaussian low-pass, sigma ~ scale
+    out = np.fft.irfft2(np.fft.rfft2(rng.standard_normal((size, size))) * gain, s=(size, size))
     out -= out.mean()
     return out / (out.std() + 1e-12)
 
