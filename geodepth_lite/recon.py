@@ -273,6 +273,38 @@ def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: flo
     return images
 
 
+def jupyter_backend_available() -> bool:
+    """True when a pyvista Jupyter backend (trame) is installed, so 3D views can be interactive."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("trame", "trame_vtk"))
+
+
+def show(poly, interactive: bool = False, titles=None, **kw):
+    """Show a cloud or mesh in a notebook: interactive (pyvista's trame backend) when asked and
+    available, else the two static views of ``render_views`` side by side (matplotlib)."""
+    import matplotlib.pyplot as plt
+
+    if interactive:
+        if not jupyter_backend_available():
+            raise ValueError("interactive 3D needs a pyvista Jupyter backend: pip install 'pyvista[jupyter]' (trame)")
+        import pyvista as pv
+
+        pl = pv.Plotter(notebook=True)
+        scalars = dict(rgb=True, scalars="rgb") if "rgb" in poly.point_data else dict(scalars="depth", cmap="magma")
+        pl.add_mesh(poly, **scalars)
+        return pl.show(jupyter_backend="trame")
+    images = render_views(poly, **kw)
+    fig, axes = plt.subplots(1, len(images), figsize=(3.5 * len(images), 3.5), squeeze=False)
+    for ax, im, title in zip(axes[0], images, titles or kw.get("views", VIEW_NAMES)):
+        ax.imshow(im)
+        ax.set_title(title)
+        ax.axis("off")
+    plt.tight_layout()
+    plt.show()
+    return None
+
+
 def save_png(image: np.ndarray, path) -> Path:
     """Write an H x W x 3 uint8 array as PNG, atomically."""
     from PIL import Image

@@ -115,3 +115,16 @@ def test_render_views_are_two_nonblank_images():
         assert (im != 255).any(axis=-1).mean() > 0.02  # something drawn on the white background
     with pytest.raises(ValueError, match="unknown view 'top'"):
         recon.render_views(recon.point_cloud(depth, K), views=("top",))
+
+
+def test_show_static_views_and_a_clear_error_without_a_jupyter_backend(monkeypatch):
+    import matplotlib.pyplot as plt
+
+    depth, K, rgb = _step_scene()
+    mesh = recon.depth_mesh(depth, K, rgb)
+    assert recon.show(mesh, window_size=(64, 64)) is None
+    assert len(plt.gcf().axes) == 2
+    plt.close("all")
+    monkeypatch.setattr(recon, "jupyter_backend_available", lambda: False)
+    with pytest.raises(ValueError, match="pyvista Jupyter backend"):
+        recon.show(mesh, interactive=True)
