@@ -63,7 +63,9 @@ COLONDEPTH_FOCAL_RATIO = camera.DEFAULT_FOCAL_RATIO  # UNVERIFIED: fx / W of the
 
 # --------------------------------------------------------------------------- SimCol3D
 # Rau et al. 2023: SyntheticColon_X/Frames_<S|B|O><n>/FrameBuffer_%04d.png + Depth_%04d.png,
-# SyntheticColon_X/cam.txt; depth 16-bit PNG, value / 255 / 256 in [0, 1] -> 0..20 cm.
+# SyntheticColon_X/cam.txt; depth 16-bit PNG, value / 255 / 256 in [0, 1] -> 0..20 cm;
+# SyntheticColon_X/SavedPosition_<S1>.txt (cm) + SavedRotationQuaternion_<S1>.txt (qx qy qz qw,
+# left-handed), converted like EndoSLAM's Unity poses (UNITY_TO_OPENCV).
 SIMCOL3D_DEPTH_DIVISOR = 255.0 * 256.0
 SIMCOL3D_DEPTH_RANGE_CM = 20.0
 SIMCOL3D_FOCAL_RATIO = camera.DEFAULT_FOCAL_RATIO  # used only when cam.txt is missing (a warning says so)
@@ -375,6 +377,32 @@ def read_simcol3d_cam(path) -> np.ndarray:
     return K
 
 
+def _simcol3d_poses(colon: Path, seq: str, n: int) -> list[np.ndarray]:
+    """T_world_cam (cm) per frame from SavedPosition_<seq>.txt and SavedRotationQuaternion_<seq>.txt
+    (one "x y z" / "qx qy qz qw" line a frame, Unity's left-handed axes); [] when absent or
+    when the line count differs from the frame count."""
+    pos_f, rot_f = colon / f"SavedPosition_{seq}.txt", colon / f"SavedRotationQuaternion_{seq}.txt"
+    if not (pos_f.is_file() and rot_f.is_file()):
+        return []
+
+    def rows(path, k):
+        out = []
+        for lineno, line in enumerate(path.read_text().splitlines(), 1):
+            vals = [v for v in re.split(r"[,\s]+", line.strip()) if v]
+            if not vals:
+                continue
+            if len(vals) != k:
+                raise ValueError(f"{path}:{lineno}: expected {k} numbers, got {len(vals)}")
+            out.append([float(v) for v in vals])
+        return out
+
+    pos, rot = rows(pos_f, 3), rows(rot_f, 4)
+    if len(pos) != n or len(rot) != n:
+        warnings.warn(f"{pos_f.name}/{rot_f.name}: {len(pos)}/{len(rot)} poses for {n} frames; poses not used")
+        return []
+    return [unity_pose_to_T_world_cam(t, q) for t, q in zip(pos, rot)]
+
+
 def _simcol3d_frames(root: Path) -> list[dict]:
     colons = [root] if re.fullmatch(r"SyntheticColon_\w+", root.name) else \
         sorted(p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"SyntheticColon_\w+", p.name))
@@ -384,6 +412,9 @@ def _simcol3d_frames(root: Path) -> list[dict]:
         for d in sorted(p for p in c.iterdir() if p.is_dir() and re.fullmatch(r"Frames_[SBO]\d+", p.name)):
             recs = _pair(_numbered(d, r"FrameBuffer_(\d+)\.png"), _numbered(d, r"Depth_(\d+)\.png"),
                          {"organ": "colon", "group": c.name, "sequence": f"{c.name}/{d.name}", "T_world_cam": None})
+            poses = _simcol3d_poses(c, d.name.split("_", 1)[1], len(recs))
+            for r, T in zip(recs, poses):
+                r["T_world_cam"] = T
             if K is None and recs:
                 warnings.warn(f"{c / 'cam.txt'} missing: using fx = {SIMCOL3D_FOCAL_RATIO} W")
             for r in recs:

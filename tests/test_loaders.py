@@ -114,6 +114,9 @@ def _write_simcol3d(root):
             raw[2, 3] = 65535  # 65535 / 65280 * 20 cm, a little over 20
             iio.imwrite(c / seq / f"Depth_{i:04d}.png", raw)
     (c / "cam.txt").write_text("227.6 0 240.5\n0 227.6 237.0\n0 0 1\n")
+    (c / "SavedPosition_S1.txt").write_text("1.0 2.0 3.0\n4.0 5.0 6.0\n")
+    s = np.sqrt(0.5)  # 90 degrees about z
+    (c / "SavedRotationQuaternion_S1.txt").write_text(f"0 0 0 1\n0 0 {s} {s}\n")
     return c
 
 
@@ -128,6 +131,11 @@ def test_simcol3d_16bit_divide_by_255_256_and_cam_txt(tmp_path):
     assert d[2, 3] == pytest.approx(65535 / 65280 * 20.0, rel=1e-6)
     assert d[1, 2] == 0 and not item["valid"][0, 1, 2] and item["valid"].sum() == H * W - 1
     np.testing.assert_allclose(item["K"].numpy(), [[227.6, 0, 240.5], [0, 227.6, 237.0], [0, 0, 1]], rtol=1e-6)
+    s1 = [f for f in ds.frames if f["sequence"].endswith("Frames_S1")]
+    np.testing.assert_allclose(s1[1]["T_world_cam"][:3, 3], [4.0, -5.0, 6.0])  # y flipped to OpenCV's
+    # a Unity rotation of 90 degrees about z becomes -90 degrees about z once y is flipped
+    np.testing.assert_allclose(s1[1]["T_world_cam"][:3, :3], [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-12)
+    assert all(f["T_world_cam"] is None for f in ds.frames if f["sequence"].endswith("Frames_B4"))
 
 
 def _write_c3vd(root, pose_order="column"):
