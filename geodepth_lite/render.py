@@ -27,6 +27,7 @@ import numpy as np
 from . import camera as cam
 
 NEAR, FAR = 0.01, 100.0  # valid depth range (scene units), as in the paper's set
+MATERIAL_KEYS = ("ambient", "diffuse", "specular", "specular_power")  # Phong material, part of a lighting family
 
 
 # ----------------------------------------------------------------------------- appearance
@@ -207,6 +208,18 @@ def _axis_pose(c, t, n, b) -> np.ndarray:
     return T
 
 
+def wall_facing_pose(tube, s: float, theta: float, standoff: float = 0.3) -> np.ndarray:
+    """T_world_cam looking straight at the wall point (s, theta) from across the lumen.
+
+    The camera sits on the line from that wall point through the centerline, ``standoff``
+    x (wall-to-centre distance) beyond the centre; the image's up is the tube's direction.
+    """
+    target = tube.wall_point(s, theta)
+    centre = tube.centerline(s)
+    position = centre - standoff * (target - centre)
+    return look_pose(position, target - position, tube.frame(s)[0])
+
+
 def sequence_poses(tube, n_frames: int, s_start: float, step: float, offset=(0.0, 0.0)) -> list[np.ndarray]:
     """Consecutive poses down the lumen: s = s_start + k * step, on a line parallel to the centerline.
 
@@ -302,6 +315,14 @@ class Renderer:
         self.actor = self.plotter.add_mesh(tube.mesh, **kwargs)
         self.actor.GetProperty().SetSpecularColor(1.0, 1.0, 1.0)
         self.tube = tube
+
+    def set_material(self, material: dict) -> None:
+        """Phong coefficients {ambient, diffuse, specular, specular_power} of the mucosa (per frame)."""
+        prop = self.actor.GetProperty()
+        prop.SetAmbient(float(material["ambient"]))
+        prop.SetDiffuse(float(material["diffuse"]))
+        prop.SetSpecular(float(material["specular"]))
+        prop.SetSpecularPower(float(material["specular_power"]))
 
     def set_tint(self, tint) -> None:
         """Per-sample colour/intensity variation of the mucosa (multiplies the texture)."""

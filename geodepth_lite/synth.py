@@ -37,7 +37,7 @@ from . import render as rd
 from . import tube as tb
 from .utils import atomic_path, data_dir, manifests_dir, write_bytes_atomic, write_json_atomic
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # bump whenever the same manifest would render different files
 SPLITS = ("train", "val", "test")
 ORGANS = ("colon", "small_intestine", "stomach")
 DEFAULT_FOV_X_DEG = cam.fov_x_deg(cam.intrinsics(320), 320)  # fx = 0.5556 W (the authors' set), ~84 degrees
@@ -295,18 +295,23 @@ def intrinsics_of(m: dict) -> np.ndarray:
 
 
 def _scene_plan(m: dict, split: str) -> list[dict]:
-    """Scenes of a split: organ, texture x lighting group, tube seed, and the frame indices they cover."""
+    """Scenes of a split: organ, texture, tube seed, and per frame (index, lighting family).
+
+    Organs cycle over scenes and textures over each organ's scenes (so every organ meets
+    every texture); lighting families cycle over the frames of a scene, so even a small
+    split covers many texture x lighting groups.
+    """
     n, per = m["splits"][split], m["frames_per_scene"]
-    groups = [(t, l) for t in m["textures"] for l in m["lightings"]]
     split_id = SPLITS.index(split)
+    n_org, n_tex, n_lit = len(m["organs"]), len(m["textures"]), len(m["lightings"])
     plan = []
     for k in range(math.ceil(n / per)):
         ss = np.random.SeedSequence([m["seed"], split_id, k])
-        organ = m["organs"][k % len(m["organs"])]
-        texture, lighting = groups[(k // len(m["organs"])) % len(groups)]  # every organ meets every group
-        plan.append({"scene": k, "organ": organ, "texture": texture, "lighting": lighting,
+        frames = list(range(k * per, min((k + 1) * per, n)))
+        plan.append({"scene": k, "organ": m["organs"][k % n_org],
+                     "texture": m["textures"][(k // n_org + split_id) % n_tex],
                      "tube_seed": int(ss.generate_state(1, np.uint32)[0]),
-                     "frames": list(range(k * per, min((k + 1) * per, n)))})
+                     "frames": [(i, m["lightings"][(j + k) % n_lit]) for j, i in enumerate(frames)]})
     return plan
 
 
@@ -385,21 +390,21 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
             for scene in _scene_plan(m, split):
                 preset = m["organ_presets"][scene["organ"]]
                 tube = tb.build_tube(preset, scene["tube_seed"], m["resolution"])
-                todo = [i for i in scene["frames"]
+                todo = [i for i, _ in scene["frames"]
                         if not ((out / split / "rgb" / f"{i:06d}.png").exists() and (out / split / "depth" / f"{i:06d}.npy").exists())]
-                lighting = m["lighting_sets"][scene["lighting"]]
                 if todo:
                     if renderer is None:
                         renderer = rd.Renderer(W, H, K, near=c["near"], far=c["far"])
                     tex_rng = np.random.default_rng(np.random.SeedSequence([m["seed"], SPLITS.index(split), scene["scene"], 2]))
-                    texture = rd.make_texture(m["texture_sets"][scene["texture"]], tex_rng)
-                    renderer.set_tube(tube, texture, {k: lighting[k] for k in ("ambient", "diffuse", "specular", "specular_power")})
-                for i in scene["frames"]:
+                    renderer.set_tube(tube, rd.make_texture(m["texture_sets"][scene["texture"]], tex_rng))
+                for i, lighting_name in scene["frames"]:
+                    lighting = m["lighting_sets"][lighting_name]
                     rng = _frame_rng(m, split, scene["scene"], i)
                     T, info = rd.sample_pose(tube, rng, m["camera_path"])
                     d_ref = rd.exposure_distance(tube, T, K, W, H)
                     lights, tint = rd.sample_lighting(lighting, rng, float(preset["radius"]), d_ref)
                     if i in todo:
+                        renderer.set_material({k: lighting[k] for k in rd.MATERIAL_KEYS})
                         renderer.set_tint(tint)
                         rgb, depth = renderer.render(T, lights)
                         write_bytes_atomic(out / split / "depth" / f"{i:06d}.npy", _npy_bytes(depth))
@@ -407,8 +412,8 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                     records.append({
                         "index": i, "rgb": f"{split}/rgb/{i:06d}.png", "depth": f"{split}/depth/{i:06d}.npy",
                         "width": W, "height": H, "K": _round(K), "T_world_cam": _round(T),
-                        "organ": scene["organ"], "texture": scene["texture"], "lighting": scene["lighting"],
-                        "group": f"{scene['texture']}-{scene['lighting']}", "scene": scene["scene"],
+                        "organ": scene["organ"], "texture": scene["texture"], "lighting": lighting_name,
+                        "group": f"{scene['texture']}-{lighting_name}", "scene": scene["scene"],
                         "tube_seed": scene["tube_seed"], "s": round(info["s"], 10), "view": info["view"],
                         "tilt_deg": round(info["tilt_deg"], 10), "tint": _round(tint), "exposure_distance": round(d_ref, 10),
                         "lights": [{"offset_cam": _round(l.offset), "color": _round(l.color), "intensity": round(l.intensity, 10),

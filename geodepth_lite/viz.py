@@ -81,17 +81,27 @@ def principal_curvatures(points: np.ndarray, valid: np.ndarray | None = None) ->
     return k1, k2
 
 
-def shape_index(depth: np.ndarray, K: np.ndarray, smooth: float = 1.0) -> np.ndarray:
+def shape_index(depth: np.ndarray, K: np.ndarray, smooth: float = 1.0, max_step: float = 0.1) -> np.ndarray:
     """Koenderink's shape index S = (2/pi) arctan((k2 + k1) / (k2 - k1)) of a depth map (paper Fig. 5).
 
     The depth (H x W z-depth) is back-projected with ``camera.backproject`` and, if
     ``smooth`` > 0, Gaussian-smoothed (sigma in pixels) to suppress pixel noise.
     S lies in [-1, 1]: -1 cup (diverticulum), -0.5 rut, 0 saddle, +0.5 ridge (folds,
     rugae), +1 cap (polyp, papilla), with curvature signs seen from the camera.
-    Undefined (umbilic planes, invalid pixels) -> NaN.
+    Occlusion edges (a relative depth step above ``max_step`` between neighbours) are not
+    surfaces: they are excluded like invalid pixels, and smoothing does not cross them.
+    Undefined (umbilic planes, excluded pixels) -> NaN.
     """
     d = np.asarray(depth, dtype=np.float64)
     valid = np.isfinite(d) & (d > 0)
+    dd = np.where(valid, d, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for ax in (0, 1):
+            a, b = np.delete(dd, -1, axis=ax), np.delete(dd, 0, axis=ax)
+            edge = ~(np.abs(a - b) <= max_step * np.minimum(a, b))  # NaN neighbours count as edges
+            before, after = [(0, 0), (0, 0)], [(0, 0), (0, 0)]
+            before[ax], after[ax] = (0, 1), (1, 0)
+            valid &= ~np.pad(edge, before) & ~np.pad(edge, after)
     if smooth > 0:
         from scipy.ndimage import gaussian_filter
 
