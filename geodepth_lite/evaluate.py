@@ -287,3 +287,32 @@ def run_evaluate(args: argparse.Namespace) -> int:
     print(markdown_table(t["columns"], t["rows"]))
     print(f"wrote {out / 'metrics.json'}, {out / 'frames.csv'}, {out / 'tables.md'}")
     return 0
+
+
+def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth: float = 1e-3,
+                        max_depth: float = 100.0) -> list[dict]:
+    """Examples for ``error_map_figure``: frames ``indices`` of ``dataset`` predicted by each model.
+
+    models: {label: (model, image_size)}; each prediction is median-scaled to the frame's
+    ground truth (as the metrics see it). One label gives "pred"; several give "preds".
+    """
+    from geodepth_lite.train import predict_depth
+
+    out = []
+    for i in indices:
+        item = dataset[i]
+        gt = item["depth"][0].numpy()
+        valid = item["valid"][0].numpy().astype(bool) if "valid" in item else None
+        preds = {}
+        for label, (model, size) in models.items():
+            pred = predict_depth(model, item["image"][None], size)[0, 0].cpu().numpy()
+            ratio = _frame_metrics(pred, gt, valid, min_depth, max_depth)["ratio"]
+            preds[label] = pred * ratio
+        ex = {"image": item["image"].permute(1, 2, 0).numpy(), "gt": gt, "valid": valid, "index": int(item["index"])}
+        if len(preds) == 1:
+            ex["pred"] = next(iter(preds.values()))
+        else:
+            ex["preds"] = preds
+            ex["pred"] = list(preds.values())[-1]
+        out.append(ex)
+    return out

@@ -51,7 +51,8 @@ LOSS_KEYS = ("depth", "smooth", "grad", "normal", "sdf", "total")
 # when all of these match. Runtime-only options (progress bar, workers, device) do not.
 IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
-    "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "encoder_weights",
+    "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
+    "threads",
 )
 
 # Datasets decoded at the network size stay in memory below this many bytes (per process).
@@ -84,13 +85,15 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "sdf_grid": p["sdf_grid"],
         "lambdas": list(config.ABLATION_CASES[case]),
         "seed": int(seed),
-        "train_frames": p.get("train_frames"),
+        "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
+        "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
         "encoder_weights": None,
+        "threads": p.get("threads"),            # CPU threads (fixed: results depend on it); None = torch's
     }
     for key, value in overrides.items():
         if key not in cfg:
             raise ValueError(f"unknown training setting {key!r}: choose from {', '.join(cfg)}")
-        if value is not None or key in ("dataset_overrides", "train_frames", "encoder_weights"):
+        if value is not None or key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights", "threads"):
             cfg[key] = value
     return validate_config(cfg)
 
@@ -98,6 +101,9 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
 def validate_config(cfg: dict) -> dict:
     """Check a training configuration; a clear error naming the field. Returns a normalised copy."""
     cfg = dict(cfg)
+    for key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights", "threads"):
+        cfg.setdefault(key, None)
+    cfg.setdefault("betas", [0.9, 0.999])
     missing = [k for k in IDENTITY_KEYS if k not in cfg]
     if missing:
         raise ValueError(f"training config is missing {', '.join(missing)}")
@@ -113,8 +119,9 @@ def validate_config(cfg: dict) -> dict:
     positive_int("image_size")
     if cfg["image_size"] % 32:
         raise ValueError(f"image_size must be a multiple of 32 (the encoder downsamples 5 times), got {cfg['image_size']}")
-    if cfg["train_frames"] is not None:
-        positive_int("train_frames")
+    for key in ("train_frames", "val_frames", "threads"):
+        if cfg.get(key) is not None:
+            positive_int(key)
     for key in ("lr", "weight_decay"):
         v = cfg[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0 or (key == "lr" and v == 0):
@@ -195,12 +202,14 @@ _MEMORY_CACHE: dict[tuple, MemoryDataset] = {}
 
 def load_split(root: Path, split: str, image_size: int | None, *, cache: str | bool = "auto",
                limit: int | None = None):
-    """``SyntheticDepthDataset(root, split, image_size)``, in memory when small (kept per process)."""
+    """``SyntheticDepthDataset(root, split, image_size)`` (``limit``: that many evenly spaced
+    frames), decoded once and kept in memory when small (per process, reused across runs)."""
     from geodepth_lite.dataset import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(root, split, image_size=image_size)
     if limit is not None and limit < len(ds):
-        ds = torch.utils.data.Subset(ds, range(limit))
+        # evenly spaced frames, so a subset still covers every scene, organ and lighting
+        ds = torch.utils.data.Subset(ds, np.linspace(0, len(ds) - 1, limit).round().astype(int).tolist())
     if cache == "auto":
         n = len(ds)
         side = image_size or 320
@@ -386,10 +395,22 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
     The checkpoint dict holds "model", "optimizer", "scaler", "cfg", "epoch" (epochs done),
     "complete", "rng" and "history" (the per-epoch log rows).
     """
+    cfg = validate_config(cfg)
+    threads_before = torch.get_num_threads()
+    if cfg["threads"] and pick_device(device).type == "cpu":
+        # CPU results depend on the thread count (parallel reductions): fixing it makes a run
+        # repeatable on any machine with the same CPU instruction set.
+        torch.set_num_threads(cfg["threads"])
+    try:
+        return _fit(cfg, Path(run_dir), resume=resume, progress=progress, device=device,
+                    num_workers=num_workers, cache=cache, stop_after=stop_after)
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_after) -> Path:
     from geodepth_lite.model import DepthNet
 
-    cfg = validate_config(cfg)
-    run_dir = Path(run_dir)
     device = pick_device(device)
     distributed = _init_distributed(device)
     rank, world, _ = _dist_env()
@@ -415,7 +436,7 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
     if not is_main:
         root = resolve_dataset(cfg, progress=False)
     train_ds = load_split(root, "train", cfg["image_size"], cache=cache, limit=cfg["train_frames"])
-    val_ds = load_split(root, "val", cfg["image_size"], cache=cache) if is_main else None
+    val_ds = load_split(root, "val", cfg["image_size"], cache=cache, limit=cfg["val_frames"]) if is_main else None
     if len(train_ds) == 0:
         raise ValueError(f"dataset {root} has no training frames")
     in_memory = isinstance(train_ds, MemoryDataset)
@@ -532,6 +553,45 @@ def ensure_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: b
     return fit(cfg, run_dir, resume=True, progress=progress)
 
 
+def _complete(profile: str, case: int, seed: int, overrides: dict) -> bool:
+    path = checkpoint_dir(profile, case, seed, **overrides) / CHECKPOINT_NAME
+    if not path.exists():
+        return False
+    ckpt = read_checkpoint(path)
+    return bool(ckpt.get("complete")) and config_identity(ckpt["cfg"]) == config_identity(
+        make_config(profile, case, seed, **overrides))
+
+
+def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: int | None = None,
+                       **overrides: Any) -> dict[tuple[int, int], Path]:
+    """``ensure_checkpoint`` for several (case, seed) runs, trained side by side in processes.
+
+    With a fixed per-run thread count (``threads`` in the profile) each run gives the same
+    weights whether it trains alone or beside others; ``workers`` defaults to
+    cpu_count // threads. Returns {(case, seed): checkpoint path}.
+    """
+    runs = [(int(c), int(s)) for c, s in runs]
+    todo = [r for r in runs if not _complete(profile, *r, overrides)]
+    if todo:
+        resolve_dataset(make_config(profile, *todo[0], **overrides))  # build it once, before any worker
+        threads = make_config(profile, *todo[0], **overrides)["threads"]
+        if workers is None:
+            workers = max(1, (os.cpu_count() or 1) // threads) if threads else 1
+        workers = max(1, min(workers, len(todo)))
+        if workers == 1:
+            for case, seed in todo:
+                ensure_checkpoint(profile, case, seed, **overrides)
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                futures = [pool.submit(ensure_checkpoint, profile, case, seed, **overrides) for case, seed in todo]
+                for f in futures:
+                    f.result()
+    return {(c, s): checkpoint_dir(profile, c, s, **overrides) / CHECKPOINT_NAME for c, s in runs}
+
+
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
     """(DepthNet in eval mode on ``device``, its training cfg) from a checkpoint file."""
     from geodepth_lite.model import DepthNet
@@ -583,6 +643,7 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epochs", type=int, default=None, help="override the profile's epochs")
     parser.add_argument("--batch-size", type=int, default=None, help="override the profile's batch size")
     parser.add_argument("--lr", type=float, default=None, help="override the profile's learning rate")
+    parser.add_argument("--image-size", type=int, default=None, help="override the network input size (multiple of 32)")
     parser.add_argument("--dataset", default=None, help="manifest name or dataset directory (default: the profile's)")
     parser.add_argument("--encoder-weights", default=None,
                         help="torchvision-style resnet18 ImageNet state dict (.pth) for the encoder")
@@ -594,7 +655,8 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
 
 def run_train(args: argparse.Namespace) -> int:
     cfg = make_config(args.profile, args.case, args.seed, epochs=args.epochs, batch_size=args.batch_size,
-                      lr=args.lr, dataset=args.dataset, encoder_weights=args.encoder_weights)
+                      lr=args.lr, image_size=args.image_size, dataset=args.dataset,
+                      encoder_weights=args.encoder_weights)
     run_dir = Path(args.run_dir) if args.run_dir else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}"
     path = fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,
                num_workers=args.num_workers, cache=False if args.no_cache else "auto")

@@ -1,0 +1,127 @@
+"""Evaluation: the seven metrics on a smoke dataset, per-frame CSV, groups, error maps, the CLI."""
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from geodepth_lite import evaluate, train
+from geodepth_lite.metrics import compute_depth_metrics
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    """The smoke dataset and an untrained checkpoint in train's format (network size 32)."""
+    from geodepth_lite import synth
+    from geodepth_lite.model import DepthNet
+
+    home = tmp_path_factory.mktemp("eval_home")
+    old = os.environ.get("GEODEPTH_LITE_HOME")
+    os.environ["GEODEPTH_LITE_HOME"] = str(home)
+    try:
+        root = Path(synth.ensure_dataset("scenario_smoke", progress=False))
+    finally:
+        if old is None:
+            os.environ.pop("GEODEPTH_LITE_HOME", None)
+        else:
+            os.environ["GEODEPTH_LITE_HOME"] = old
+    torch.manual_seed(0)
+    ckpt = home / "checkpoint.pt"
+    cfg = train.make_config("smoke", 4, 0, dataset=str(root), image_size=32)
+    torch.save({"model": DepthNet().state_dict(), "cfg": cfg, "epoch": 0}, ckpt)
+    return root, ckpt
+
+
+def test_cli_writes_metrics_frames_and_error_maps(smoke, tmp_path, capsys):
+    from geodepth_lite import cli
+    from geodepth_lite.dataset import SyntheticDepthDataset
+
+    root, ckpt = smoke
+    out = tmp_path / "eval"
+    code = cli.main(["evaluate", "--checkpoint", str(ckpt), "--dataset", str(root), "--split", "test",
+                     "--out", str(out), "--error-maps", "2", "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    ds = SyntheticDepthDataset(root, "test")
+    result = json.loads((out / "metrics.json").read_text())
+    assert result["n"] == len(ds)
+    for k in evaluate.METRIC_KEYS:
+        assert np.isfinite(result["overall"][k])
+    assert 0 <= result["overall"]["a1"] <= result["overall"]["a2"] <= result["overall"]["a3"] <= 1
+    rows = list(csv.DictReader((out / "frames.csv").open()))
+    assert len(rows) == len(ds) and set(evaluate.METRIC_KEYS) <= set(rows[0])
+    assert {r["organ"] for r in rows} == {ds[i]["organ"] for i in range(len(ds))}
+    # the group tables partition the frames
+    assert sum(g["n"] for g in result["by_group"].values()) == len(ds)
+    assert sum(g["n"] for g in result["by_organ"].values()) == len(ds)
+    assert len(list((out / "error_maps").glob("*.png"))) == 2
+    assert "| Abs Rel |" in (out / "tables.md").read_text()
+    assert "RMSE" in capsys.readouterr().out
+
+
+def test_per_frame_means_equal_the_metric_on_the_whole_set(smoke):
+    """Groups are averaged from per-frame values: the same numbers as one call on all frames."""
+    from geodepth_lite.dataset import SyntheticDepthDataset
+
+    root, ckpt = smoke
+    model, cfg = train.load_model(ckpt)
+    ds = SyntheticDepthDataset(root, "test")
+    result = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"])
+    images = torch.stack([ds[i]["image"] for i in range(len(ds))])
+    gts = np.stack([ds[i]["depth"][0].numpy() for i in range(len(ds))])
+    preds = train.predict_depth(model, images, cfg["image_size"])[:, 0].numpy()
+    whole = compute_depth_metrics(preds, gts)
+    for k in evaluate.METRIC_KEYS:
+        assert result["overall"][k] == pytest.approx(whole[k], rel=1e-5, abs=1e-7)
+    by_organ = {o: [i for i in range(len(ds)) if ds[i]["organ"] == o] for o in result["by_organ"]}
+    for organ, idx in by_organ.items():
+        sub = compute_depth_metrics(preds[idx], gts[idx])
+        assert result["by_organ"][organ]["rmse"] == pytest.approx(sub["rmse"], rel=1e-5)
+
+
+def test_a_perfect_prediction_up_to_scale_scores_perfectly(smoke):
+    """A model that returns the ground truth up to a scale gets Abs Rel 0, a1 1 (median scaling)."""
+    root, _ = smoke
+    from geodepth_lite.dataset import SyntheticDepthDataset
+
+    ds = SyntheticDepthDataset(root, "test")
+    gts = {int(ds[i]["index"]): ds[i]["depth"] for i in range(len(ds))}
+
+    class Oracle(torch.nn.Module):  # returns 3 x ground truth of the frame whose image it sees
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(1))
+            self.lookup = [(ds[i]["image"], ds[i]["depth"]) for i in range(len(ds))]
+
+        def forward(self, x):
+            out = []
+            for img in x:
+                d = next(d for im, d in self.lookup if torch.equal(im, img))
+                out.append(3.0 * d)
+            return torch.stack(out)
+
+    result = evaluate.evaluate_model(Oracle(), ds, image_size=None)
+    assert result["overall"]["abs_rel"] == pytest.approx(0.0, abs=1e-6)
+    assert result["overall"]["a1"] == pytest.approx(1.0)
+    assert all(r["ratio"] == pytest.approx(1 / 3, rel=1e-5) for r in result["frames"])
+    assert len(gts) == result["n"]
+
+
+def test_bad_requests_are_named(smoke, tmp_path):
+    from geodepth_lite import cli
+
+    root, ckpt = smoke
+    with pytest.raises(ValueError, match="--root is required"):
+        evaluate.open_eval_dataset("colondepth")
+    with pytest.raises(ValueError, match="split 'nope'"):
+        evaluate.open_eval_dataset(str(root), split="nope")
+    assert cli.main(["evaluate", "--checkpoint", str(tmp_path / "missing.pt"), "--dataset", str(root)]) == 2
+    assert cli.main(["evaluate", "--checkpoint", str(ckpt), "--dataset", str(root), "--group", "T1-L1"]) == 2
+
+
+def test_markdown_table_rounds_to_three_decimals():
+    md = evaluate.markdown_table(["a", "b"], [["x", 0.123456], ["y", float("nan")]])
+    assert md.splitlines() == ["| a | b |", "|---|---|", "| x | 0.123 |", "| y | nan |"]

@@ -1,0 +1,108 @@
+"""reproduce: every user error is caught before a notebook runs; runs, report, skip on rerun."""
+
+import json
+from pathlib import Path
+
+import nbformat
+import pytest
+
+from geodepth_lite import reproduce
+
+
+def _notebook(path: Path, params: str, body: str) -> Path:
+    nb = nbformat.v4.new_notebook()
+    cell = nbformat.v4.new_code_cell(params)
+    cell.metadata["tags"] = ["parameters"]
+    nb.cells = [nbformat.v4.new_markdown_cell("# test"), cell, nbformat.v4.new_code_cell(body)]
+    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    nbformat.write(nb, str(path))
+    return path
+
+
+BODY = """\
+from geodepth_lite import reproduce
+import matplotlib
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+out = reproduce.resolve_run_dir(profile, run_dir)
+reproduce.save_table(out, f"{NAME}_numbers", ["what", "value"], [["scale", scale], ["profile", profile]], title="T{NAME}")
+fig = plt.figure(); plt.plot([0, scale]); reproduce.save_figure(fig, out, f"{NAME}_line")
+(out / f"ran_{NAME}.txt").open("a").write("x")
+"""
+
+
+@pytest.fixture
+def fake_notebooks(tmp_path, monkeypatch):
+    d = tmp_path / "nbs"
+    d.mkdir()
+    _notebook(d / "01_first.ipynb", 'profile = "teach"  # smoke | teach | paper\nrun_dir = ""  # out\nscale = 2.0  # a float',
+              BODY.replace("{NAME}", "01"))
+    _notebook(d / "02_second.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out\nscale = 1.0  # a float\nlabel = "a"  # text',
+              BODY.replace("{NAME}", "02"))
+    (d / "scratch.ipynb").write_text("{}")  # not numbered: never run
+    monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)
+    return d
+
+
+@pytest.fixture
+def no_papermill(monkeypatch):
+    import papermill
+
+    def refuse(*a, **k):
+        raise AssertionError("a notebook ran although the request was invalid")
+
+    monkeypatch.setattr(papermill, "execute_notebook", refuse)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--profile", "laptop"], "unknown profile 'laptop'"),
+    (["-p", "epochs", "3"], "unknown notebook parameter 'epochs'"),
+    (["-p", "scale", "big"], "parameter 'scale' of 01_first.ipynb expects float"),
+    (["-p", "profile", "paper"], "use --profile"),
+    (["--notebooks", "07"], "no notebook '07'"),
+    (["--notebooks", "01", "-p", "label", "b"], "unknown notebook parameter 'label'"),
+])
+def test_bad_requests_fail_before_anything_runs(fake_notebooks, no_papermill, argv, message, capsys):
+    from geodepth_lite import cli
+
+    assert cli.main(["reproduce", *argv]) == 2
+    assert message in capsys.readouterr().err
+    assert not (reproduce.utils.runs_dir()).exists()  # nothing written either
+
+
+def test_the_real_notebooks_declare_profile_and_run_dir():
+    nbs = reproduce.list_notebooks()
+    for nb in nbs:
+        params = reproduce.notebook_parameters(nb)
+        assert params.get("profile") == "teach" and params.get("run_dir") == "", nb.name
+
+
+def test_runs_writes_report_then_skips_completed_notebooks(fake_notebooks, tmp_path, capsys):
+    from geodepth_lite import cli
+
+    assert cli.main(["reproduce", "--profile", "smoke", "-p", "scale", "3", "--no-progress"]) == 0
+    out = reproduce.utils.runs_dir() / "smoke"
+    report = json.loads((out / "report.json").read_text())
+    assert report["tables"]["01_numbers"]["rows"] == [["scale", 3], ["profile", "smoke"]]
+    assert report["figures"] == ["figures/01_line.png", "figures/02_line.png"]
+    md = (out / "report.md").read_text()
+    assert "| scale | 3 |" in md and "![01_line](figures/01_line.png)" in md
+    assert (out / "notebooks" / "02_second.ipynb").exists()
+
+    # a rerun with the same request skips both; a changed parameter reruns them; --notebooks picks one
+    assert cli.main(["reproduce", "--profile", "smoke", "-p", "scale", "3", "--no-progress"]) == 0
+    assert (out / "ran_01.txt").read_text() == "x" and "skipped" in capsys.readouterr().out
+    assert cli.main(["reproduce", "--profile", "smoke", "--notebooks", "2", "--no-progress"]) == 0
+    assert (out / "ran_01.txt").read_text() == "x" and (out / "ran_02.txt").read_text() == "xx"
+
+
+def test_a_failing_notebook_is_named_and_not_marked_complete(fake_notebooks, capsys):
+    from geodepth_lite import cli
+
+    _notebook(fake_notebooks / "03_broken.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out', "1 / 0")
+    assert cli.main(["reproduce", "--profile", "smoke", "--notebooks", "03", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "03_broken.ipynb failed (ZeroDivisionError" in err
+    out = reproduce.utils.runs_dir() / "smoke"
+    assert (out / "notebooks" / "03_broken.ipynb").exists()  # the executed copy with the traceback
+    assert not (out / ".reproduce" / "03_broken.json").exists()  # not marked complete: a rerun runs it again

@@ -1,0 +1,207 @@
+"""Training: resume == uninterrupted, atomic checkpoints, logs, DDP with 2 CPU processes, caching."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from geodepth_lite import train
+
+
+@pytest.fixture(scope="module")
+def smoke_root(tmp_path_factory):
+    """The smoke dataset, generated once for this module (tests pass its folder as the dataset)."""
+    from geodepth_lite import synth
+
+    home = tmp_path_factory.mktemp("smoke_home")
+    old = os.environ.get("GEODEPTH_LITE_HOME")
+    os.environ["GEODEPTH_LITE_HOME"] = str(home)
+    try:
+        root = Path(synth.ensure_dataset("scenario_smoke", progress=False))
+    finally:
+        if old is None:
+            os.environ.pop("GEODEPTH_LITE_HOME", None)
+        else:
+            os.environ["GEODEPTH_LITE_HOME"] = old
+    return root
+
+
+def _cfg(root, case=4, seed=0, **kw):
+    """Smoke settings at 32x32 (the smallest size the encoder takes) to keep the tests quick."""
+    kw.setdefault("epochs", 3)
+    kw.setdefault("batch_size", 4)
+    kw.setdefault("image_size", 32)
+    return train.make_config("smoke", case, seed, dataset=str(root), **kw)
+
+
+def _scramble_process_state():
+    """What a fresh process would look like: no cached data, unrelated RNG states."""
+    train._MEMORY_CACHE.clear()
+    torch.manual_seed(12345)
+    np.random.seed(999)
+
+
+def test_resume_after_stop_ends_with_the_same_weights(smoke_root, tmp_path):
+    cfg = _cfg(smoke_root, epochs=2)
+    straight = torch.load(train.fit(cfg, tmp_path / "straight", progress=False), weights_only=False)
+
+    _scramble_process_state()
+    first = train.fit(cfg, tmp_path / "resumed", progress=False, stop_after=1)
+    assert torch.load(first, weights_only=False)["epoch"] == 1
+    _scramble_process_state()
+    resumed = torch.load(train.fit(cfg, tmp_path / "resumed", progress=False, resume=True), weights_only=False)
+
+    assert resumed["epoch"] == straight["epoch"] == 2 and resumed["complete"]
+    assert straight["model"].keys() == resumed["model"].keys()
+    for k, v in straight["model"].items():
+        assert torch.equal(v, resumed["model"][k]), k
+    for a, b in zip(straight["optimizer"]["state"].values(), resumed["optimizer"]["state"].values()):
+        assert torch.equal(a["exp_avg"], b["exp_avg"])
+    loss_cols = [k for k in straight["history"][0] if k.startswith(("train_", "val_")) and "per_s" not in k]
+    for ra, rb in zip(straight["history"], resumed["history"]):
+        assert [ra[k] for k in loss_cols] == [rb[k] for k in loss_cols]
+    # and training did something: the weights moved away from the seeded initialisation
+    torch.manual_seed(0)
+    from geodepth_lite.model import DepthNet
+
+    init = DepthNet().state_dict()
+    assert any(not torch.equal(init[k], straight["model"][k]) for k in init if init[k].is_floating_point())
+
+
+def test_different_seed_gives_different_weights(smoke_root, tmp_path):
+    a = torch.load(train.fit(_cfg(smoke_root, epochs=1), tmp_path / "a", progress=False), weights_only=False)
+    b = torch.load(train.fit(_cfg(smoke_root, epochs=1, seed=1), tmp_path / "b", progress=False), weights_only=False)
+    assert any(not torch.equal(a["model"][k], b["model"][k]) for k in a["model"] if a["model"][k].is_floating_point())
+
+
+def test_logs_hold_every_epoch_and_every_term(smoke_root, tmp_path):
+    cfg = _cfg(smoke_root, epochs=2)
+    train.fit(cfg, tmp_path / "run", progress=False)
+    rows = json.loads((tmp_path / "run" / "log.json").read_text())["epochs"]
+    csv_lines = (tmp_path / "run" / "log.csv").read_text().strip().splitlines()
+    assert [r["epoch"] for r in rows] == [1, 2] and len(csv_lines) == 3
+    header = csv_lines[0].split(",")
+    for term in train.LOSS_KEYS:
+        assert f"train_{term}" in header and f"val_{term}" in header
+    for m in train.METRIC_KEYS:
+        assert f"val_{m}" in header
+    for r in rows:
+        assert 0.0 <= r["data_wait_share"] <= 1.0
+        assert np.isfinite([r[k] for k in r if k.startswith(("train_", "val_"))]).all()
+        # Case 4: every term is computed; the weighted total is their sum (lambdas all 1)
+        parts = sum(r[f"train_{k}"] for k in ("depth", "smooth", "grad", "normal", "sdf"))
+        assert r["train_total"] == pytest.approx(parts, rel=1e-5)
+
+
+def test_existing_checkpoint_needs_resume_and_the_same_config(smoke_root, tmp_path):
+    cfg = _cfg(smoke_root, epochs=1)
+    train.fit(cfg, tmp_path / "run", progress=False)
+    with pytest.raises(FileExistsError, match="--resume"):
+        train.fit(cfg, tmp_path / "run", progress=False)
+    with pytest.raises(ValueError, match="lr"):
+        train.fit(_cfg(smoke_root, epochs=1, lr=0.5), tmp_path / "run", progress=False, resume=True)
+    # a finished run resumed is returned untouched
+    before = (tmp_path / "run" / "checkpoint.pt").stat().st_mtime_ns
+    train.fit(cfg, tmp_path / "run", progress=False, resume=True)
+    assert (tmp_path / "run" / "checkpoint.pt").stat().st_mtime_ns == before
+
+
+def test_interrupted_checkpoint_write_keeps_the_previous_one_whole(smoke_root, tmp_path, monkeypatch):
+    cfg = _cfg(smoke_root, epochs=2)
+    run = tmp_path / "run"
+    train.fit(cfg, run, progress=False, stop_after=1)
+    good = (run / "checkpoint.pt").read_bytes()
+
+    real_write = Path.write_bytes
+
+    def dying_write(self, data):  # half the checkpoint reaches the disk, then the process "dies"
+        if self.name.startswith(".checkpoint.pt"):
+            real_write(self, data[: len(data) // 2])
+            raise KeyboardInterrupt
+        return real_write(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", dying_write)
+    with pytest.raises(KeyboardInterrupt):
+        train.fit(cfg, run, progress=False, resume=True)
+    monkeypatch.setattr(Path, "write_bytes", real_write)
+    assert (run / "checkpoint.pt").read_bytes() == good
+    assert not [p.name for p in run.iterdir() if p.name.startswith(".")]  # no temp files left
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["epoch"] == 1
+    assert train.fit(cfg, run, progress=False, resume=True).exists()
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["epoch"] == 2
+
+
+def test_bad_settings_are_named():
+    with pytest.raises(ValueError, match="image_size"):
+        train.make_config("smoke", image_size=100)
+    with pytest.raises(ValueError, match="case"):
+        train.make_config("smoke", case=5)
+    with pytest.raises(ValueError, match="profile"):
+        train.make_config("laptop")
+    with pytest.raises(ValueError, match="unknown training setting 'epoch'"):
+        train.make_config("smoke", epoch=3)
+    with pytest.raises(ValueError, match="batch_size"):
+        train.make_config("smoke", batch_size=0)
+    with pytest.raises(FileNotFoundError, match="encoder_weights"):
+        train.make_config("smoke", encoder_weights="/nonexistent/resnet18.pth")
+
+
+def test_paper_profile_has_the_papers_settings():
+    cfg = train.make_config("paper")
+    assert (cfg["image_size"], cfg["epochs"], cfg["batch_size"], cfg["lr"], cfg["weight_decay"]) == (320, 18, 20, 1e-4, 0.01)
+    assert cfg["betas"] == [0.9, 0.999] and cfg["sdf_grid"] == 32 and cfg["lambdas"] == [1.0, 1.0, 1.0]
+
+
+def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
+    path = train.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    stamp = path.stat().st_mtime_ns
+    again = train.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    assert again == path and path.stat().st_mtime_ns == stamp
+    assert path.parent.parent == train.utils.runs_dir() / "smoke" / "checkpoints"
+    model, cfg = train.load_model(path)
+    assert cfg["lambdas"] == [1.0, 0.0, 0.0] and not model.training
+
+
+def test_predict_depth_resizes_to_the_network_and_back(smoke_root):
+    from geodepth_lite.model import DepthNet
+
+    torch.manual_seed(0)
+    model = DepthNet().eval()
+    images = torch.rand(2, 3, 50, 70)
+    out = train.predict_depth(model, images, 64)
+    assert out.shape == (2, 1, 50, 70) and torch.isfinite(out).all() and (out > 0).all()
+    # at the network size nothing is resized: the same as calling the model
+    x = torch.rand(1, 3, 64, 64)
+    with torch.no_grad():
+        assert torch.allclose(train.predict_depth(model, x, 64), model(x))
+    with pytest.raises(ValueError, match="B x 3"):
+        train.predict_depth(model, torch.rand(2, 1, 64, 64), 64)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_two_cpu_processes_with_gloo(smoke_root, tmp_path):
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+           "--master_port", str(_free_port()), "-m", "geodepth_lite", "train", "--profile", "smoke",
+           "--dataset", str(smoke_root), "--epochs", "1", "--batch-size", "3", "--image-size", "32",
+           "--run-dir", str(run),
+           "--no-progress", "--device", "cpu"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ckpt = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ckpt["world_size"] == 2 and ckpt["epoch"] == 1
+    rows = json.loads((run / "log.json").read_text())["epochs"]
+    assert len(rows) == 1 and np.isfinite(rows[0]["train_total"]) and np.isfinite(rows[0]["val_rmse"])
+    assert proc.stdout.count("checkpoint:") == 1  # only rank 0 reports
