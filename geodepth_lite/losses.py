@@ -145,30 +145,37 @@ def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers:
 
 
 @torch.no_grad()
-def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_elements: int = CHUNK_ELEMENTS) -> torch.Tensor:
-    """Exact nearest neighbour by brute force in blocks of queries, on the tensors' device (CUDA path).
+def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_elements: int = CHUNK_ELEMENTS,
+                            exact: bool = True) -> torch.Tensor:
+    """Nearest neighbour by brute force in blocks of queries, on the tensors' device (CUDA path).
 
-    Distances are computed as differences (not the matrix-product expansion, which loses
-    precision), so the result is the exact argmin up to floating-point ties.
+    With ``exact`` (default) distances are computed as differences, so the result is the exact
+    argmin up to floating-point ties; ``exact=False`` uses the faster matrix-product expansion
+    |q|^2 - 2 q.x + |x|^2, which can pick a near-tie wrongly (used only as a speed baseline).
     points: N x 3, queries: M x 3 -> M indices (int64).
     """
     n = points.shape[0]
     step = max(1, chunk_elements // max(n, 1))
+    mode = "donot_use_mm_for_euclid_dist" if exact else "use_mm_for_euclid_dist"
     out = []
     for s in range(0, queries.shape[0], step):
-        d = torch.cdist(queries[s:s + step], points, compute_mode="donot_use_mm_for_euclid_dist")
+        d = torch.cdist(queries[s:s + step], points, compute_mode=mode)
         out.append(d.argmin(dim=1))
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.int64, device=queries.device)
 
 
 def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "auto") -> torch.Tensor:
-    """Exact nearest-neighbour indices: "kdtree" (CPU), "chunked" (on device) or "auto" (by device)."""
+    """Nearest-neighbour indices: "kdtree" (exact, CPU), "chunked" (exact, on the device), "auto"
+    (kdtree for CPU tensors, chunked otherwise) or "brute_mm" (matrix-product brute force, a
+    speed baseline only)."""
     if method == "auto":
-        method = "chunked" if points.is_cuda else "kdtree"
+        method = "kdtree" if points.device.type == "cpu" else "chunked"
     if method == "kdtree":
         return nearest_indices_kdtree(points, queries)
     if method == "chunked":
         return nearest_indices_chunked(points, queries)
+    if method == "brute_mm":
+        return nearest_indices_chunked(points, queries, exact=False)
     raise ValueError(f"unknown nearest-neighbour method {method!r}: use 'auto', 'kdtree' or 'chunked'")
 
 
@@ -192,6 +199,19 @@ def sample_grid(lower: torch.Tensor, upper: torch.Tensor, grid=DEFAULT_SDF_GRID)
     return lower + t * (upper - lower)
 
 
+def _signed_from_nearest(nearest: torch.Tensor, queries: torch.Tensor, signed: bool = True) -> torch.Tensor:
+    """phi(q) from the nearest surface points X_n (... x 3, differentiable) and queries q (... x 3)."""
+    diff = nearest - queries
+    d2 = (diff * diff).sum(-1)
+    pos = d2 > 0  # the distance's gradient is set to 0 on the surface instead of NaN
+    dist = torch.where(pos, torch.sqrt(torch.where(pos, d2, torch.ones_like(d2))), torch.zeros_like(d2))
+    if not signed:
+        return dist
+    with torch.no_grad():
+        sign = torch.sign((diff * nearest).sum(-1))
+    return sign * dist
+
+
 def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "auto", signed: bool = True) -> torch.Tensor:
     """Signed distance from each query q to the point set S = {X} (camera frame, Sec. 3.C, Eq. 5).
 
@@ -205,15 +225,7 @@ def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "
     points: N x 3, queries: M x 3 -> M signed distances (unsigned when ``signed=False``).
     """
     idx = nearest_indices(points, queries, method)
-    diff = points[idx] - queries  # M x 3, differentiable in points
-    d2 = (diff * diff).sum(-1)
-    pos = d2 > 0
-    dist = torch.where(pos, torch.sqrt(torch.where(pos, d2, torch.ones_like(d2))), torch.zeros_like(d2))
-    if not signed:
-        return dist
-    with torch.no_grad():
-        sign = torch.sign((diff * points[idx]).sum(-1))
-    return sign * dist
+    return _signed_from_nearest(points[idx], queries, signed)
 
 
 def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True):
@@ -221,28 +233,47 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
 
     Returns a list (one entry per image; None when the image has no valid pixel) of dicts
     {"grid": M x 3, "lower", "upper": 3-vectors, "pred": M, "gt": M}, M = r_x r_y r_z; fields are
-    ordered as :func:`sample_grid` (reshape to r_x x r_y x r_z).
+    ordered as :func:`sample_grid` (reshape to r_x x r_y x r_z). The nearest points are searched
+    image by image without gradient; the distances are then computed for the whole batch at
+    once (few, large tensor operations).
     """
     gt_safe, valid = _prepare(pred, gt, mask)
     if torch.as_tensor(K).dim() == 3 and torch.as_tensor(K).shape[0] != pred.shape[0]:
         raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {pred.shape[0]}, got {tuple(torch.as_tensor(K).shape)}")
+    rx, ry, rz = _grid_shape(grid)
     P_pred = camera.backproject(pred, K)  # B x HW x 3 (differentiable)
     P_gt = camera.backproject(gt_safe, K).detach()
     flat_valid = valid.reshape(valid.shape[0], -1)
-    out = []
-    for b in range(pred.shape[0]):
-        vb = flat_valid[b]
-        if not bool(vb.any()):
-            out.append(None)
-            continue
-        g_pts, p_pts = P_gt[b][vb], P_pred[b][vb]
-        lower, upper = g_pts.min(0).values, g_pts.max(0).values  # X_lb, X_ub of the ground truth
-        q = sample_grid(lower, upper, grid)
-        out.append({
-            "grid": q, "lower": lower, "upper": upper,
-            "pred": signed_distance(p_pts, q, method, signed),
-            "gt": signed_distance(g_pts, q, method, signed),
-        })
+    used, grids, lows, ups, idx_g, idx_p = [], [], [], [], [], []
+    with torch.no_grad():
+        for b in range(pred.shape[0]):
+            vb = flat_valid[b]
+            if bool(vb.all()):  # the common case: no gather
+                sel, g_pts, p_pts = None, P_gt[b], P_pred[b].detach()
+            elif bool(vb.any()):
+                sel = vb.nonzero().squeeze(1)
+                g_pts, p_pts = P_gt[b, sel], P_pred[b, sel].detach()
+            else:
+                continue
+            lower, upper = g_pts.min(0).values, g_pts.max(0).values  # X_lb, X_ub of the ground truth
+            q = sample_grid(lower, upper, (rx, ry, rz))
+            ig, ip = nearest_indices(g_pts, q, method), nearest_indices(p_pts, q, method)
+            if sel is not None:  # back to pixel indices
+                ig, ip = sel[ig], sel[ip]
+            used.append(b), grids.append(q), lows.append(lower), ups.append(upper)
+            idx_g.append(ig), idx_p.append(ip)
+    out: list = [None] * pred.shape[0]
+    if not used:
+        return out
+    bi = torch.as_tensor(used, device=pred.device)
+    q = torch.stack(grids)  # B' x M x 3
+    Ig, Ip = torch.stack(idx_g), torch.stack(idx_p)  # B' x M
+    Xg = torch.gather(P_gt[bi], 1, Ig.unsqueeze(-1).expand(-1, -1, 3))
+    Xp = torch.gather(P_pred[bi], 1, Ip.unsqueeze(-1).expand(-1, -1, 3))  # differentiable in pred
+    phi_g = _signed_from_nearest(Xg, q, signed)
+    phi_p = _signed_from_nearest(Xp, q, signed)
+    for k, b in enumerate(used):
+        out[b] = {"grid": q[k], "lower": lows[k], "upper": ups[k], "pred": phi_p[k], "gt": phi_g[k]}
     return out
 
 
@@ -258,7 +289,7 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed) if f is not None]
     if not fields:
         return pred.sum() * 0.0
-    return torch.stack([(f["pred"] - f["gt"]).abs().mean() for f in fields]).mean()
+    return (torch.stack([f["pred"] for f in fields]) - torch.stack([f["gt"] for f in fields])).abs().mean()
 
 
 # ----------------------------------------------------------------------------- total
