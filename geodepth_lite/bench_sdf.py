@@ -1,0 +1,165 @@
+"""Benchmark of the SDF loss (Sec. 3.C) at the paper's scale: ``python -m geodepth_lite.bench_sdf``.
+
+In one run, on the same depth maps (rendered frames of the synthetic dataset) and medians
+of repeats, it times:
+
+1. the SDF loss forward + backward with the exact spatial-index search used in training
+   (cKDTree on the CPU, chunked on-device search on CUDA), batch 20, 320x320, 32^3 grid;
+2. the same loss with a chunked brute-force nearest-neighbour search over all pairs (torch.cdist
+   in its fastest, matrix-product form), measured on fewer images and scaled linearly to the
+   batch (the output says so);
+3. one training step of DepthNet at the same batch (forward, all five losses, backward,
+   Adam step);
+4. inference frames/s of DepthNet at 320x320.
+
+The predictions are the ground truth times a smooth random factor (about +-10 %), so both
+surfaces are realistic endoscopic depth maps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+
+import torch
+
+from . import losses, utils
+from .model import DepthNet
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _timed(fn, device) -> float:
+    _sync(device)
+    t0 = time.perf_counter()
+    fn()
+    _sync(device)
+    return time.perf_counter() - t0
+
+
+def load_batch(batch: int, size: int, device) -> dict:
+    """``batch`` rendered frames (image, depth, K) at size x size from a small synthetic dataset."""
+    from .dataset import SyntheticDepthDataset
+    from .synth import ensure_dataset
+
+    overrides = {"camera": {"width": size, "height": size}, "splits": {"train": batch, "val": 1, "test": 1}}
+    root = ensure_dataset("scenario_smoke", overrides=overrides, progress=False)
+    ds = SyntheticDepthDataset(root, "train")
+    items = [ds[i] for i in range(batch)]
+    return {k: torch.stack([it[k] for it in items]).to(device) for k in ("image", "depth", "K")}
+
+
+def fake_prediction(gt: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """gt times a smooth random factor in about [0.9, 1.1] (a plausible network error)."""
+    g = torch.Generator().manual_seed(seed)
+    B, _, H, W = gt.shape
+    coarse = torch.rand(B, 1, 5, 5, generator=g) * 0.2 - 0.1
+    factor = 1.0 + torch.nn.functional.interpolate(coarse, size=(H, W), mode="bicubic", align_corners=True)
+    return (gt * factor.to(gt.device)).contiguous()
+
+
+def sdf_step(pred0, gt, K, grid, method):
+    pred = pred0.clone().requires_grad_()
+    losses.sdf_loss(pred, gt, K, grid, method=method).backward()
+
+
+def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", train_step=True, seed=0) -> dict:
+    """Run the benchmark; returns a dict of median seconds and the derived ratios."""
+    dev = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
+    utils.seed_everything(seed)
+    data = load_batch(batch, size, dev)
+    gt, K, image = data["depth"], data["K"], data["image"]
+    pred = fake_prediction(gt, seed)
+    g3 = (grid, grid, grid)
+    index = "chunked" if dev.type == "cuda" else "kdtree"
+    res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "repeats": repeats,
+           "index_method": index, "bf_images": bf_images, "torch_threads": torch.get_num_threads()}
+
+    model = opt = None
+    if train_step:
+        model = DepthNet().to(dev)
+        opt = torch.optim.Adam(model.parameters(), lr=1e-4, betas=(0.9, 0.999), weight_decay=0.01)
+
+    def train_once():
+        model.train()
+        p = model(image)
+        loss, _ = losses.total_loss(p, gt, image, K, lambdas=(1.0, 1.0, 1.0), sdf_grid=g3)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    sdf_t, bf_t, step_t = [], [], []
+    sdf_step(pred[:1], gt[:1], K[:1], g3, index)  # warm-ups
+    if train_step:
+        train_once()
+    for _ in range(repeats):  # interleaved, so machine load affects all three alike
+        sdf_t.append(_timed(lambda: sdf_step(pred, gt, K, g3, index), dev))
+        bf_t.append(_timed(lambda: sdf_step(pred[:bf_images], gt[:bf_images], K[:bf_images], g3, "brute_mm"), dev))
+        if train_step:
+            step_t.append(_timed(train_once, dev))
+    res["sdf_s"] = statistics.median(sdf_t)
+    res["brute_force_measured_s"] = statistics.median(bf_t)
+    res["brute_force_s"] = res["brute_force_measured_s"] * batch / bf_images
+    res["speedup_vs_brute_force"] = res["brute_force_s"] / res["sdf_s"]
+    if train_step:
+        res["train_step_s"] = statistics.median(step_t)
+        res["sdf_fraction_of_step"] = res["sdf_s"] / res["train_step_s"]
+        model.eval()
+        with torch.no_grad():
+            inf_t = [_timed(lambda: model(image), dev) for _ in range(repeats)]
+        res["inference_fps"] = batch / statistics.median(inf_t)
+    return res
+
+
+def report(res: dict) -> str:
+    b, s, g = res["batch"], res["size"], res["grid"]
+    lines = [
+        f"SDF loss benchmark on {res['device']} ({res['torch_threads']} torch threads), batch {b}, {s}x{s}, "
+        f"{g}^3 grid, medians of {res['repeats']} repeats",
+        f"  SDF loss fwd+bwd, exact spatial index ({res['index_method']}): {res['sdf_s']:8.2f} s",
+        f"  SDF loss fwd+bwd, chunked brute force (cdist): {res['brute_force_s']:7.2f} s "
+        f"(measured {res['brute_force_measured_s']:.2f} s on {res['bf_images']} image(s), scaled linearly to {b})",
+        f"  speed-up over brute force:                    {res['speedup_vs_brute_force']:8.1f} x   (goal >= 50 x)",
+    ]
+    if "train_step_s" in res:
+        lines += [
+            f"  DepthNet training step (fwd, all losses, bwd, Adam): {res['train_step_s']:8.2f} s",
+            f"  SDF share of a training step:                 {100 * res['sdf_fraction_of_step']:8.1f} %   (goal <= 15 %)",
+            f"  DepthNet inference at {s}x{s}:               {res['inference_fps']:8.1f} frames/s (batch {b})",
+        ]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m geodepth_lite.bench_sdf", description=__doc__.split("\n")[0])
+    ap.add_argument("--batch", type=int, default=20, help="images per batch (paper: 20)")
+    ap.add_argument("--size", type=int, default=320, help="image height = width (paper: 320)")
+    ap.add_argument("--grid", type=int, default=32, help="SDF samples per axis (paper: 32)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed repeats; medians are reported")
+    ap.add_argument("--bf-images", type=int, default=1, help="images timed with brute force (scaled to --batch)")
+    ap.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    ap.add_argument("--no-train-step", action="store_true", help="skip the training-step and inference timing")
+    ap.add_argument("--json", default="", help="also write the figures to this JSON file")
+    a = ap.parse_args(argv)
+    for name in ("batch", "size", "grid", "repeats", "bf_images"):
+        if getattr(a, name) < 1:
+            raise SystemExit(f"error: --{name.replace('_', '-')} must be >= 1")
+    if a.size % 32:
+        raise SystemExit("error: --size must be a multiple of 32")
+    if not 1 <= a.bf_images <= a.batch:
+        raise SystemExit("error: --bf-images must be between 1 and --batch")
+    res = run(a.batch, a.size, a.grid, a.repeats, a.bf_images, a.device, not a.no_train_step)
+    print(report(res))
+    if a.json:
+        utils.write_json_atomic(a.json, {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in res.items()})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
