@@ -29,6 +29,7 @@ import csv
 import hashlib
 import io
 import json
+import math
 import os
 import random
 import time
@@ -52,8 +53,9 @@ LOSS_KEYS = ("depth", "smooth", "grad", "normal", "sdf", "total")
 IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
-    "threads",
+    "threads", "lr_schedule",
 )
+LR_SCHEDULES = ("constant", "cosine")
 
 # Datasets decoded at the network size stay in memory below this many bytes (per process).
 CACHE_LIMIT_BYTES = 2 * 1024**3
@@ -80,6 +82,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "epochs": p["epochs"],
         "batch_size": p["batch_size"],
         "lr": p["lr"],
+        "lr_schedule": p.get("lr_schedule", "constant"),  # constant (the paper) | cosine (decay to 0 per step)
         "weight_decay": p["weight_decay"],
         "betas": [0.9, 0.999],
         "sdf_grid": p["sdf_grid"],
@@ -104,6 +107,9 @@ def validate_config(cfg: dict) -> dict:
     for key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights", "threads"):
         cfg.setdefault(key, None)
     cfg.setdefault("betas", [0.9, 0.999])
+    cfg.setdefault("lr_schedule", "constant")
+    if cfg["lr_schedule"] not in LR_SCHEDULES:
+        raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     missing = [k for k in IDENTITY_KEYS if k not in cfg]
     if missing:
         raise ValueError(f"training config is missing {', '.join(missing)}")
@@ -392,7 +398,7 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
     resume: continue from ``run_dir/checkpoint.pt`` when it exists (same configuration
         required); without it an existing checkpoint is an error, so nothing is overwritten.
     stop_after: stop after this many epochs of this call (used to test resuming).
-    The checkpoint dict holds "model", "optimizer", "scaler", "cfg", "epoch" (epochs done),
+    The checkpoint dict holds "model", "optimizer", "scaler", "schedule", "cfg", "epoch" (epochs done),
     "complete", "rng" and "history" (the per-epoch log rows).
     """
     cfg = validate_config(cfg)
@@ -456,11 +462,17 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
         collate_fn=_collate, worker_init_fn=utils.worker_init, generator=loader_gen,
         pin_memory=device.type == "cuda", persistent_workers=False)
 
+    total_steps = cfg["epochs"] * len(loader)
+    if cfg["lr_schedule"] == "cosine":  # half a cosine from lr to 0 over all steps
+        schedule = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: 0.5 * (1 + math.cos(math.pi * step / total_steps)))
+    else:
+        schedule = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: 1.0)
     history: list[dict] = []
     start = 0
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
+        schedule.load_state_dict(state["schedule"])
         scaler.load_state_dict(state["scaler"])
         _set_rng_state(state["rng"], loader_gen)
         history = list(state["history"])
@@ -488,6 +500,7 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
             scaler.scale(loss).backward()
             scaler.step(opt)
             scaler.update()
+            schedule.step()
             b = batch["image"].shape[0]
             sums[:-1] += torch.tensor([float(terms.get(k, 0.0)) * b for k in LOSS_KEYS], dtype=torch.float64)
             sums[-1] += b
@@ -514,6 +527,7 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
                 "model": model.state_dict(),
                 "optimizer": opt.state_dict(),
                 "scaler": scaler.state_dict(),
+                "schedule": schedule.state_dict(),
                 "cfg": cfg,
                 "epoch": epoch + 1,
                 "complete": epoch + 1 == cfg["epochs"],
@@ -643,6 +657,7 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epochs", type=int, default=None, help="override the profile's epochs")
     parser.add_argument("--batch-size", type=int, default=None, help="override the profile's batch size")
     parser.add_argument("--lr", type=float, default=None, help="override the profile's learning rate")
+    parser.add_argument("--lr-schedule", default=None, choices=LR_SCHEDULES, help="override the profile's schedule")
     parser.add_argument("--image-size", type=int, default=None, help="override the network input size (multiple of 32)")
     parser.add_argument("--dataset", default=None, help="manifest name or dataset directory (default: the profile's)")
     parser.add_argument("--encoder-weights", default=None,
@@ -655,7 +670,7 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
 
 def run_train(args: argparse.Namespace) -> int:
     cfg = make_config(args.profile, args.case, args.seed, epochs=args.epochs, batch_size=args.batch_size,
-                      lr=args.lr, image_size=args.image_size, dataset=args.dataset,
+                      lr=args.lr, lr_schedule=args.lr_schedule, image_size=args.image_size, dataset=args.dataset,
                       encoder_weights=args.encoder_weights)
     run_dir = Path(args.run_dir) if args.run_dir else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}"
     path = fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,

@@ -48,7 +48,7 @@ def _scramble_process_state():
 
 
 def test_resume_after_stop_ends_with_the_same_weights(smoke_root, tmp_path):
-    cfg = _cfg(smoke_root, epochs=2)
+    cfg = _cfg(smoke_root, epochs=2, lr_schedule="cosine")  # the schedule's state is resumed too
     straight = torch.load(train.fit(cfg, tmp_path / "straight", progress=False), weights_only=False)
 
     _scramble_process_state()
@@ -148,6 +148,8 @@ def test_bad_settings_are_named():
         train.make_config("smoke", epoch=3)
     with pytest.raises(ValueError, match="batch_size"):
         train.make_config("smoke", batch_size=0)
+    with pytest.raises(ValueError, match="lr_schedule"):
+        train.make_config("smoke", lr_schedule="linear")
     with pytest.raises(FileNotFoundError, match="encoder_weights"):
         train.make_config("smoke", encoder_weights="/nonexistent/resnet18.pth")
 
@@ -156,6 +158,7 @@ def test_paper_profile_has_the_papers_settings():
     cfg = train.make_config("paper")
     assert (cfg["image_size"], cfg["epochs"], cfg["batch_size"], cfg["lr"], cfg["weight_decay"]) == (320, 18, 20, 1e-4, 0.01)
     assert cfg["betas"] == [0.9, 0.999] and cfg["sdf_grid"] == 32 and cfg["lambdas"] == [1.0, 1.0, 1.0]
+    assert cfg["lr_schedule"] == "constant"
 
 
 def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
