@@ -17,14 +17,19 @@ a difference is valid when both of its pixels are valid.
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import torch
 
 from . import camera
 
 DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
-CHUNK_ELEMENTS = 2**24  # query x point pairs per block of the on-device exact search
+CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
 KDTREE_LEAFSIZE = 32  # points per cKDTree leaf (tuned on 320x320 depth maps)
+KDTREE_WORKERS = -1  # threads of each cKDTree query (-1: all cores)
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -128,7 +133,7 @@ def normal_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None 
 
 # ----------------------------------------------------------------------------- nearest neighbours
 @torch.no_grad()
-def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers: int = -1) -> torch.Tensor:
+def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers: int | None = None) -> torch.Tensor:
     """Exact nearest neighbour of each query among ``points`` with scipy's cKDTree (CPU).
 
     points: N x 3, queries: M x 3 (any device; searched in float64 on the CPU) -> M indices (int64,
@@ -140,7 +145,7 @@ def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers:
     q = queries.detach().cpu().double().numpy()
     # an unbalanced, non-compact tree builds and searches about 2x faster on depth-map surfaces
     tree = cKDTree(p, leafsize=KDTREE_LEAFSIZE, balanced_tree=False, compact_nodes=False)
-    _, idx = tree.query(q, k=1, workers=workers)
+    _, idx = tree.query(q, k=1, workers=KDTREE_WORKERS if workers is None else workers)
     return torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(queries.device)
 
 
@@ -228,23 +233,93 @@ def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "
     return _signed_from_nearest(points[idx], queries, signed)
 
 
-def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True):
+class GTFieldCache:
+    """LRU cache of ground-truth SDF fields, keyed by the bytes of the frame (depth, validity, K).
+
+    The ground truth's field does not depend on the network, and training sees every frame once
+    per epoch, so from the second epoch on only the prediction's field has to be searched. A
+    hit returns exactly what the search would (same inputs, same exact search). Fields are kept
+    on the CPU in their dtype (128 KiB per frame at 32^3 in float32); the least recently used
+    are dropped beyond ``max_bytes`` (512 MiB: about 4000 frames at 32^3); ``max_bytes = 0``
+    disables the cache.
+    """
+
+    def __init__(self, max_bytes: int = 512 * 2**20):
+        self.max_bytes = int(max_bytes)
+        self._d: OrderedDict = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    @staticmethod
+    def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, grid, signed: bool) -> str:
+        h = hashlib.blake2b(digest_size=20)
+        for t in (gt_b, valid_b, K_b):
+            t = t.detach().cpu().contiguous()
+            h.update(str((t.dtype, tuple(t.shape))).encode())
+            h.update(t.numpy().tobytes())
+        h.update(repr((tuple(grid), bool(signed))).encode())
+        return h.hexdigest()
+
+    def get(self, key: str):
+        if self.max_bytes <= 0:
+            return None
+        with self._lock:
+            item = self._d.get(key)
+            if item is None:
+                self.misses += 1
+                return None
+            self._d.move_to_end(key)
+            self.hits += 1
+            return item
+
+    def put(self, key: str, lower: torch.Tensor, upper: torch.Tensor, field: torch.Tensor) -> None:
+        if self.max_bytes <= 0:
+            return
+        item = (lower.detach().cpu(), upper.detach().cpu(), field.detach().cpu())
+        size = item[2].numel() * item[2].element_size() + 64
+        with self._lock:
+            if key in self._d:
+                return
+            self._d[key] = item
+            self._bytes += size
+            while self._bytes > self.max_bytes and self._d:
+                _, old = self._d.popitem(last=False)
+                self._bytes -= old[2].numel() * old[2].element_size() + 64
+
+    def clear(self) -> None:
+        with self._lock:
+            self._d.clear()
+            self._bytes = 0
+            self.hits = self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+
+GT_FIELD_CACHE = GTFieldCache()  # used by sdf_loss / total_loss unless cache=None is passed
+
+
+def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
+               cache: GTFieldCache | None = None):
     """Per image: the sample grid and the signed fields of prediction and ground truth.
 
     Returns a list (one entry per image; None when the image has no valid pixel) of dicts
     {"grid": M x 3, "lower", "upper": 3-vectors, "pred": M, "gt": M}, M = r_x r_y r_z; fields are
     ordered as :func:`sample_grid` (reshape to r_x x r_y x r_z). The nearest points are searched
     image by image without gradient; the distances are then computed for the whole batch at
-    once (few, large tensor operations).
+    once (few, large tensor operations). With a ``cache`` (:class:`GTFieldCache`), ground-truth
+    fields already computed for an identical frame are reused.
     """
     gt_safe, valid = _prepare(pred, gt, mask)
-    if torch.as_tensor(K).dim() == 3 and torch.as_tensor(K).shape[0] != pred.shape[0]:
-        raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {pred.shape[0]}, got {tuple(torch.as_tensor(K).shape)}")
+    Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K)
+    if not (Kt.shape == (3, 3) or (Kt.dim() == 3 and Kt.shape[0] == pred.shape[0] and Kt.shape[1:] == (3, 3))):
+        raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {pred.shape[0]}, got {tuple(Kt.shape)}")
     rx, ry, rz = _grid_shape(grid)
     P_pred = camera.backproject(pred, K)  # B x HW x 3 (differentiable)
     P_gt = camera.backproject(gt_safe, K).detach()
     flat_valid = valid.reshape(valid.shape[0], -1)
-    used, grids, lows, ups, idx_g, idx_p = [], [], [], [], [], []
+    used, grids, lows, ups, idx_g, idx_p, cached = [], [], [], [], [], [], []
     with torch.no_grad():
         for b in range(pred.shape[0]):
             vb = flat_valid[b]
@@ -255,29 +330,50 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
                 g_pts, p_pts = P_gt[b, sel], P_pred[b, sel].detach()
             else:
                 continue
-            lower, upper = g_pts.min(0).values, g_pts.max(0).values  # X_lb, X_ub of the ground truth
+            key = hit = None
+            if cache is not None and cache.max_bytes > 0:
+                key = GTFieldCache.key(gt[b], valid[b], Kt if Kt.dim() == 2 else Kt[b], (rx, ry, rz), signed)
+                hit = cache.get(key)
+            if hit is not None:
+                lower, upper = hit[0].to(P_gt), hit[1].to(P_gt)
+            else:
+                lower, upper = g_pts.min(0).values, g_pts.max(0).values  # X_lb, X_ub of the ground truth
             q = sample_grid(lower, upper, (rx, ry, rz))
-            ig, ip = nearest_indices(g_pts, q, method), nearest_indices(p_pts, q, method)
-            if sel is not None:  # back to pixel indices
-                ig, ip = sel[ig], sel[ip]
+            ig = None
+            if hit is None:
+                ig = nearest_indices(g_pts, q, method)
+                ig = sel[ig] if sel is not None else ig  # back to pixel indices
+            ip = nearest_indices(p_pts, q, method)
+            ip = sel[ip] if sel is not None else ip
             used.append(b), grids.append(q), lows.append(lower), ups.append(upper)
-            idx_g.append(ig), idx_p.append(ip)
+            idx_g.append(ig), idx_p.append(ip), cached.append((key, hit))
     out: list = [None] * pred.shape[0]
     if not used:
         return out
     bi = torch.as_tensor(used, device=pred.device)
     q = torch.stack(grids)  # B' x M x 3
-    Ig, Ip = torch.stack(idx_g), torch.stack(idx_p)  # B' x M
-    Xg = torch.gather(P_gt[bi], 1, Ig.unsqueeze(-1).expand(-1, -1, 3))
+    Ip = torch.stack(idx_p)  # B' x M
     Xp = torch.gather(P_pred[bi], 1, Ip.unsqueeze(-1).expand(-1, -1, 3))  # differentiable in pred
-    phi_g = _signed_from_nearest(Xg, q, signed)
     phi_p = _signed_from_nearest(Xp, q, signed)
+    phi_g = torch.empty_like(phi_p.detach())
+    todo = [k for k, ig in enumerate(idx_g) if ig is not None]
+    if todo:
+        t = torch.as_tensor(todo, device=pred.device)
+        Ig = torch.stack([idx_g[k] for k in todo])
+        Xg = torch.gather(P_gt[bi[t]], 1, Ig.unsqueeze(-1).expand(-1, -1, 3))
+        phi_g[t] = _signed_from_nearest(Xg, q[t], signed)
+    for k, (key, hit) in enumerate(cached):
+        if hit is not None:
+            phi_g[k] = hit[2].to(phi_g)
+        elif key is not None:
+            cache.put(key, lows[k], ups[k], phi_g[k])
     for k, b in enumerate(used):
         out[b] = {"grid": q[k], "lower": lows[k], "upper": ups[k], "pred": phi_p[k], "gt": phi_g[k]}
     return out
 
 
-def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True) -> torch.Tensor:
+def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
+             cache: GTFieldCache | None = GT_FIELD_CACHE) -> torch.Tensor:
     """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 9).
 
     Both depth maps are back-projected with K (valid pixels only); the grid spans the ground
@@ -285,8 +381,10 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     :func:`signed_distance`. The loss is the mean over images with at least one valid pixel
     (0 if none). ``method``: exact nearest-neighbour search, "auto" = cKDTree on the CPU,
     chunked brute force on CUDA. ``signed=False`` gives the unsigned variant (for comparison).
+    ``cache``: ground-truth fields are reused for frames seen before (:class:`GTFieldCache`;
+    None to always search).
     """
-    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed) if f is not None]
+    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache) if f is not None]
     if not fields:
         return pred.sum() * 0.0
     return (torch.stack([f["pred"] for f in fields]) - torch.stack([f["gt"] for f in fields])).abs().mean()

@@ -138,7 +138,7 @@ def test_sdf_loss_matches_reference_on_random_smooth_surfaces():
     gt = smooth_depth(2, 12, 12, seed=1).reshape(2, 1, 12, 12)
     pred = smooth_depth(2, 12, 12, seed=2).reshape(2, 1, 12, 12) * 1.1
     for method in ("kdtree", "chunked"):
-        got = float(L.sdf_loss(pred, gt, K, grid=5, method=method))
+        got = float(L.sdf_loss(pred, gt, K, grid=5, method=method, cache=None))
         assert math.isclose(got, reference_sdf_loss(pred, gt, K, 5), rel_tol=1e-9)
 
 
@@ -234,3 +234,30 @@ def test_total_loss_weights_and_skips():
         L.depth_loss(pred, gt[..., :8])
     with pytest.raises(ValueError, match="mask"):
         L.depth_loss(pred, gt, mask=torch.ones(1, 16, 16, dtype=torch.bool))
+
+
+def test_ground_truth_field_cache_returns_the_same_loss_and_gradient():
+    K = camera.intrinsics(16)
+    gt = smooth_depth(2, 16, 16, seed=7).reshape(2, 1, 16, 16)
+    pred0 = (gt * 1.07 + 0.01).detach()
+    cache = L.GTFieldCache()
+
+    def run(c):
+        p = pred0.clone().requires_grad_()
+        loss = L.sdf_loss(p, gt, K, grid=6, cache=c)
+        loss.backward()
+        return float(loss.detach()), p.grad
+
+    ref_loss, ref_grad = run(None)
+    first, g1 = run(cache)  # misses: fills the cache
+    second, g2 = run(cache)  # hits
+    assert (cache.misses, cache.hits, len(cache)) == (2, 2, 2)
+    assert first == ref_loss == second
+    assert torch.equal(g1, ref_grad) and torch.equal(g2, ref_grad)
+    # a different frame (or grid) is a different entry; a full cache drops the oldest
+    cache.max_bytes = 3 * (6**3 * 8 + 64)
+    run(cache)
+    L.sdf_loss(pred0, gt + 0.5, K, grid=6, cache=cache)
+    assert len(cache) == 3
+    cache.max_bytes = 0
+    assert cache.get("anything") is None
