@@ -260,7 +260,11 @@ def write_report(run_dir: Path, profile: str, notebook_log: dict | None = None) 
     figures = sorted(p.relative_to(run_dir).as_posix() for p in (run_dir / "figures").glob("*.png"))
     notebook_log = notebook_log or {}
     prefixes = sorted({n.split("_")[0] for n in list(tables) + [Path(f).stem for f in figures]})
-    names = {nb.split("_")[0]: nb for nb in notebook_log}
+    try:
+        names = {nb.stem.split("_")[0]: nb.stem for nb in list_notebooks()}
+    except FileNotFoundError:  # installed without the notebooks: headings by number
+        names = {}
+    names.update({nb.split("_")[0]: nb for nb in notebook_log})
     md = [f"# geodepth-lite report: profile `{profile}`", "",
           "Tables and figures written by the notebooks of this run (executed copies in `notebooks/`).", ""]
     if notebook_log:
