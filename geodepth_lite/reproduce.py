@@ -214,8 +214,13 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
             print(f"{'skip' if done else 'run '} {nb.name} {p}")
         return out / "report.md"
 
+    import logging
+
     import papermill
 
+    # papermill's own guess at the parameters cell trips over comments with quotes and
+    # warns about parameters it missed; they were checked above (ast), so keep it quiet
+    logging.getLogger("papermill").setLevel(logging.ERROR)
     log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
     for nb, p, done in plan:
         if done:
