@@ -260,6 +260,8 @@ def _init_distributed(device: torch.device) -> bool:
     if world <= 1:
         return False
     if not dist.is_initialized():
+        if device.type == "cuda":
+            torch.cuda.set_device(device)  # one GPU per process (LOCAL_RANK), before nccl starts
         dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
     return True
 
