@@ -1,6 +1,7 @@
 """Shared test fixtures: every test writes into its own temporary workspace."""
 
 import os
+from pathlib import Path
 
 import matplotlib
 import pytest
@@ -14,3 +15,28 @@ def _isolated_workspace(tmp_path, monkeypatch):
     if "GEODEPTH_LITE_TEST_KEEP_HOME" not in os.environ:
         monkeypatch.setenv("GEODEPTH_LITE_HOME", str(tmp_path / "home"))
     yield
+
+
+@pytest.fixture(scope="session")
+def smoke_root(tmp_path_factory) -> Path:
+    """The ``scenario_smoke`` dataset, generated once per test session in a folder of its own."""
+    from geodepth_lite import synth
+
+    return Path(synth.ensure_dataset("scenario_smoke", root=tmp_path_factory.mktemp("smoke_data"), progress=False))
+
+
+def save_untrained_checkpoint(path: Path, cfg: dict | None = None) -> Path:
+    """A seeded, untrained DepthNet in ``train``'s checkpoint format, so evaluation and prediction
+    run end to end without training (network input 32 unless ``cfg`` says otherwise)."""
+    import torch
+
+    from geodepth_lite.model import DepthNet
+
+    torch.manual_seed(0)
+    torch.save({"model": DepthNet().state_dict(), "cfg": cfg or {"image_size": 32}, "epoch": 0}, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def untrained_checkpoint(tmp_path_factory) -> Path:
+    return save_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "checkpoint.pt")

@@ -11,29 +11,14 @@ import torch
 
 from geodepth_lite import evaluate, train
 from geodepth_lite.metrics import compute_depth_metrics
+from conftest import save_untrained_checkpoint
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
+def smoke(smoke_root, tmp_path_factory):
     """The smoke dataset and an untrained checkpoint in train's format (network size 32)."""
-    from geodepth_lite import synth
-    from geodepth_lite.model import DepthNet
-
-    home = tmp_path_factory.mktemp("eval_home")
-    old = os.environ.get("GEODEPTH_LITE_HOME")
-    os.environ["GEODEPTH_LITE_HOME"] = str(home)
-    try:
-        root = Path(synth.ensure_dataset("scenario_smoke", progress=False))
-    finally:
-        if old is None:
-            os.environ.pop("GEODEPTH_LITE_HOME", None)
-        else:
-            os.environ["GEODEPTH_LITE_HOME"] = old
-    torch.manual_seed(0)
-    ckpt = home / "checkpoint.pt"
-    cfg = train.make_config("smoke", 4, 0, dataset=str(root), image_size=32)
-    torch.save({"model": DepthNet().state_dict(), "cfg": cfg, "epoch": 0}, ckpt)
-    return root, ckpt
+    cfg = train.make_config("smoke", 4, 0, dataset=str(smoke_root), image_size=32)
+    return smoke_root, save_untrained_checkpoint(tmp_path_factory.mktemp("eval_ckpt") / "checkpoint.pt", cfg)
 
 
 def test_cli_writes_metrics_frames_and_error_maps(smoke, tmp_path, capsys):

@@ -226,17 +226,6 @@ def test_check_subset_counts_and_reports_mismatches(tmp_path, capsys):
     assert "fewer" in report and "missing" in report
 
 
-@pytest.fixture(scope="module")
-def untrained_checkpoint(tmp_path_factory):
-    """A small untrained DepthNet in train's checkpoint format: evaluation runs end to end without training."""
-    from geodepth_lite.model import DepthNet
-
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("ckpt") / "checkpoint.pt"
-    torch.save({"model": DepthNet().state_dict(), "cfg": {"image_size": 32}, "epoch": 0}, path)
-    return path
-
-
 WRITERS = {"endoslam": _write_endoslam, "colondepth": _write_colondepth, "simcol3d": _write_simcol3d, "c3vd": _write_c3vd}
 
 

@@ -16,14 +16,8 @@ def _cli(argv):
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory):
-    """A small untrained DepthNet in the checkpoint format of ``train`` (no training needed)."""
-    from geodepth_lite.model import DepthNet
-
-    torch.manual_seed(0)
-    path = tmp_path_factory.mktemp("ckpt") / "checkpoint.pt"
-    torch.save({"model": DepthNet().state_dict(), "cfg": {"image_size": 32}, "epoch": 0}, path)
-    return path
+def checkpoint(untrained_checkpoint):
+    return untrained_checkpoint
 
 
 def _frame(h, w, seed):

@@ -14,24 +14,6 @@ import torch
 from geodepth_lite import train
 
 
-@pytest.fixture(scope="module")
-def smoke_root(tmp_path_factory):
-    """The smoke dataset, generated once for this module (tests pass its folder as the dataset)."""
-    from geodepth_lite import synth
-
-    home = tmp_path_factory.mktemp("smoke_home")
-    old = os.environ.get("GEODEPTH_LITE_HOME")
-    os.environ["GEODEPTH_LITE_HOME"] = str(home)
-    try:
-        root = Path(synth.ensure_dataset("scenario_smoke", progress=False))
-    finally:
-        if old is None:
-            os.environ.pop("GEODEPTH_LITE_HOME", None)
-        else:
-            os.environ["GEODEPTH_LITE_HOME"] = old
-    return root
-
-
 def _cfg(root, case=4, seed=0, **kw):
     """Smoke settings at 32x32 (the smallest size the encoder takes) to keep the tests quick."""
     kw.setdefault("epochs", 3)
