@@ -28,6 +28,33 @@ import torch.nn.functional as F
 from . import camera as cam
 
 
+def resize_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Images (... x 3 x H x W in [0, 1]) to ``size`` = (h, w): bilinear with antialiasing, so that
+    training, evaluation and prediction all see the network's input made the same way."""
+    batched = image.dim() == 4
+    x = image if batched else image[None]
+    if tuple(x.shape[-2:]) != tuple(size):
+        x = F.interpolate(x, size=tuple(size), mode="bilinear", align_corners=False, antialias=True).clamp_(0, 1)
+    return x if batched else x[0]
+
+
+def resize_frame(image: torch.Tensor, depth: torch.Tensor, K: np.ndarray, size: tuple[int, int],
+                 valid: torch.Tensor | None = None):
+    """One frame (image 3 x H x W, depth 1 x H x W, K 3x3, optional valid mask 1 x H x W) resized to
+    ``size`` = (h, w): image by :func:`resize_image`, depth and mask by nearest-exact sampling (no
+    depth is invented across an edge), K by :func:`camera.scale_intrinsics`.
+    Returns (image, depth, K) or (image, depth, K, valid)."""
+    h0, w0 = depth.shape[-2:]
+    h, w = size
+    image = resize_image(image, (h, w))
+    depth = F.interpolate(depth[None], size=(h, w), mode="nearest-exact")[0]
+    K = cam.scale_intrinsics(K, w / w0, h / h0)
+    if valid is None:
+        return image, depth, K
+    valid = F.interpolate(valid[None].float(), size=(h, w), mode="nearest-exact")[0] > 0.5
+    return image, depth, K, valid
+
+
 def read_frames(root: str | Path, split: str) -> list[dict]:
     """The frames.jsonl records of a split (clear errors for a missing directory or split)."""
     root = Path(root)
@@ -75,10 +102,6 @@ class SyntheticDepthDataset(torch.utils.data.Dataset):
         depth_t = torch.from_numpy(depth.astype(np.float32, copy=False))[None]
         K = np.asarray(rec["K"], dtype=np.float64)
         if self.size is not None and self.size != tuple(depth.shape):
-            h0, w0 = depth.shape
-            h, w = self.size
-            image = F.interpolate(image[None], size=(h, w), mode="bilinear", align_corners=False, antialias=True)[0].clamp_(0, 1)
-            depth_t = F.interpolate(depth_t[None], size=(h, w), mode="nearest-exact")[0]
-            K = cam.scale_intrinsics(K, w / w0, h / h0)
+            image, depth_t, K = resize_frame(image, depth_t, K, self.size)
         return {"image": image, "depth": depth_t, "K": torch.from_numpy(K.astype(np.float32)),
                 "organ": rec["organ"], "group": rec["group"], "index": int(rec["index"])}

@@ -31,11 +31,11 @@ from typing import Callable, Iterable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from PIL import Image
 from torch.utils.data import Dataset
 
 from . import camera, utils
+from .dataset import resize_frame
 
 DATASETS = ("endoslam", "colondepth", "simcol3d", "c3vd")
 
@@ -269,13 +269,7 @@ class PublicDepthDataset(Dataset):
         valid_t = torch.from_numpy(valid)[None]
         K = np.asarray(rec["K"], dtype=np.float64)
         if self.image_size is not None and tuple(depth.shape) != self.image_size:
-            H, W = depth.shape
-            h, w = self.image_size
-            image = F.interpolate(image[None], size=(h, w), mode="bilinear", align_corners=False,
-                                  antialias=True)[0].clamp_(0, 1)
-            depth_t = F.interpolate(depth_t[None], size=(h, w), mode="nearest")[0]
-            valid_t = F.interpolate(valid_t[None].float(), size=(h, w), mode="nearest")[0] > 0.5
-            K = camera.scale_intrinsics(K, w / W, h / H)
+            image, depth_t, K, valid_t = resize_frame(image, depth_t, K, self.image_size, valid_t)
         return {
             "image": image.contiguous(),
             "depth": depth_t.contiguous(),

@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from . import camera, recon, utils
+from .dataset import resize_image
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_EXTS = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v", ".wmv"}
@@ -166,10 +167,7 @@ def predict_frames(model, frames: list[np.ndarray], image_size) -> list[np.ndarr
     from .train import predict_depth
 
     size = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
-    x = torch.stack([
-        F.interpolate(torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255.0), size=size,
-                      mode="bilinear", align_corners=False, antialias=True)[0].clamp_(0, 1)
-        for f in frames])
+    x = torch.stack([resize_image(torch.from_numpy(f).permute(2, 0, 1).float().div(255.0), size) for f in frames])
     pred = predict_depth(model, x, size).cpu()
     out = []
     for f, p in zip(frames, pred):

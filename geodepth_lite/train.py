@@ -41,6 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from geodepth_lite import config, utils
+from geodepth_lite.dataset import resize_image
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_CSV = "log.csv"
@@ -620,7 +621,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
 
 @torch.no_grad()
 def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int] | None = None) -> torch.Tensor:
-    """Depth B x 1 x H x W for images B x 3 x H x W in [0, 1]: resized (bilinear) to the
+    """Depth B x 1 x H x W for images B x 3 x H x W in [0, 1]: resized (dataset.resize_image) to the
     network's ``image_size`` (int or (h, w), multiples of 32), predicted, resized back."""
     if images.dim() == 3:
         images = images[None]
@@ -635,8 +636,7 @@ def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int]
         size = tuple(int(s) for s in image_size)
     device = next(model.parameters()).device
     x = images.to(device=device, dtype=torch.float32)
-    if x.shape[-2:] != size:
-        x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    x = resize_image(x, size)  # as the training frames were made (antialiased)
     was_training = model.training
     model.eval()
     pred = model(x).float()
