@@ -11,6 +11,8 @@ overall and per group (organ; texture x lighting group).
 ``evaluate_model`` is what the notebooks call: it returns plain dicts (no pandas)
 and, given ``out_dir``, writes ``metrics.json``, ``frames.csv`` (one row per
 frame), ``tables.md`` and error-map PNGs laid out like the paper's Fig. 7.
+It is ``evaluate_predictor`` for a network: any function images -> depth is scored
+the same way, which is how the trivial baselines of ``baselines.py`` get their rows.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import csv
 import io
 import os
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
@@ -94,40 +96,98 @@ def summarize(rows: list[dict], by: str | None = None) -> dict:
     return {g: summarize(rs) for g, rs in sorted(groups.items())}
 
 
-def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size: int = 8,
-                   out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = 1e-3,
-                   max_depth: float = 100.0, progress: bool = False, name: str = "") -> dict:
-    """Evaluate ``model`` on ``dataset`` (items as ``SyntheticDepthDataset``'s; optional "valid").
+def _as_depth_batch(pred: Any) -> np.ndarray:
+    """A predictor's output (numpy or torch; N x H x W or N x 1 x H x W) as float32 N x H x W."""
+    if hasattr(pred, "detach"):
+        pred = pred.detach().float().cpu().numpy()
+    pred = np.asarray(pred, dtype=np.float32)
+    if pred.ndim == 4 and pred.shape[1] == 1:
+        pred = pred[:, 0]
+    if pred.ndim != 3:
+        raise ValueError(f"a predictor must return N x H x W (or N x 1 x H x W) depth, got shape {pred.shape}")
+    return pred
 
-    Returns {"name", "n", "overall": {metric: mean}, "by_group": {group: {...}},
-    "by_organ": {organ: {...}}, "frames": [one dict per frame: index, organ, group,
-    seven metrics, median-scaling ratio]}. With ``out_dir`` also writes metrics.json,
-    frames.csv, tables.md and ``error_maps`` PNGs (input | GT | prediction | Abs Rel map).
-    """
-    from geodepth_lite.train import predict_depth
+
+def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, error_maps: int = 0,
+              min_depth: float = 1e-3, max_depth: float = 100.0, progress: bool = False,
+              desc: str = "evaluate") -> tuple[dict[str, dict], list[dict]]:
+    """One pass over ``dataset`` scoring every predictor: ({name: result}, error-map examples of the first)."""
     from tqdm.auto import tqdm
 
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
                                          collate_fn=_collate_eval)
-    rows: list[dict] = []
+    rows: dict[str, list[dict]] = {name: [] for name in predictors}
     examples: list[dict] = []
-    for batch in tqdm(loader, desc=f"evaluate {name}".strip(), disable=not progress, leave=False):
-        pred = predict_depth(model, batch["image"], image_size).cpu().numpy()[:, 0]
+    first = next(iter(predictors), None)
+    for batch in tqdm(loader, desc=desc, disable=not progress, leave=False):
         gt = batch["depth"].numpy()[:, 0]
         valid = batch["valid"].numpy()[:, 0].astype(bool) if "valid" in batch else None
-        for j in range(pred.shape[0]):
-            m = _frame_metrics(pred[j], gt[j], None if valid is None else valid[j], min_depth, max_depth)
-            rows.append({"index": int(batch["index"][j]), "organ": str(batch["organ"][j]),
-                         "group": str(batch["group"][j]), **m})
-            if len(examples) < error_maps:
-                examples.append({"image": batch["image"][j].permute(1, 2, 0).numpy(), "gt": gt[j],
-                                 "pred": pred[j] * m["ratio"], "index": rows[-1]["index"],
-                                 "valid": None if valid is None else valid[j]})
-    result = {"name": name, "n": len(rows), "overall": summarize(rows), "by_group": summarize(rows, "group"),
-              "by_organ": summarize(rows, "organ"), "frames": rows}
+        for name, predict_fn in predictors.items():
+            pred = _as_depth_batch(predict_fn(batch["image"]))
+            if pred.shape != gt.shape:  # the protocol scores predictions at the ground truth's size
+                raise ValueError(f"predictor {name!r} returned depth of shape {pred.shape} for ground truth "
+                                 f"{gt.shape}: resize the prediction to the frame's size")
+            for j in range(pred.shape[0]):
+                m = _frame_metrics(pred[j], gt[j], None if valid is None else valid[j], min_depth, max_depth)
+                rows[name].append({"index": int(batch["index"][j]), "organ": str(batch["organ"][j]),
+                                   "group": str(batch["group"][j]), **m})
+                if name == first and len(examples) < error_maps:
+                    examples.append({"image": batch["image"][j].permute(1, 2, 0).numpy(), "gt": gt[j],
+                                     "pred": pred[j] * m["ratio"], "index": rows[name][-1]["index"],
+                                     "valid": None if valid is None else valid[j]})
+    results = {name: {"name": name, "n": len(rs), "overall": summarize(rs), "by_group": summarize(rs, "group"),
+                      "by_organ": summarize(rs, "organ"), "frames": rs} for name, rs in rows.items()}
+    return results, examples
+
+
+def evaluate_predictors(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, min_depth: float = 1e-3,
+                        max_depth: float = 100.0, progress: bool = False) -> dict[str, dict]:
+    """``evaluate_predictor`` for several predictors in one pass over ``dataset``: {name: result}."""
+    return _evaluate(predictors, dataset, batch_size=batch_size, min_depth=min_depth, max_depth=max_depth,
+                     progress=progress, desc="evaluate " + ", ".join(predictors))[0]
+
+
+def evaluate_predictor(predict_fn: Callable, dataset, *, batch_size: int = 8,
+                       out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = 1e-3,
+                       max_depth: float = 100.0, progress: bool = False, name: str = "",
+                       baselines: dict | None = None) -> dict:
+    """Evaluate any depth predictor on ``dataset`` (items as ``SyntheticDepthDataset``'s; optional "valid").
+
+    predict_fn: images B x 3 x H x W (torch, in [0, 1]) -> depth B x H x W or B x 1 x H x W
+    (numpy or torch) at the frames' own size H x W; a model (``evaluate_model``) or a
+    baseline (``baselines.py``) alike, so every row of a table is scored the same way.
+    Returns {"name", "n", "overall": {metric: mean}, "by_group": {group: {...}},
+    "by_organ": {organ: {...}}, "frames": [one dict per frame: index, organ, group,
+    seven metrics, median-scaling ratio]}. ``baselines`` ({name: result} from
+    ``baselines.evaluate_baselines``) is kept under "baselines" and adds rows to the overall
+    table. With ``out_dir`` also writes metrics.json, frames.csv, tables.md and
+    ``error_maps`` PNGs (input | GT | prediction | Abs Rel map).
+    """
+    results, examples = _evaluate({name: predict_fn}, dataset, batch_size=batch_size, error_maps=error_maps,
+                                  min_depth=min_depth, max_depth=max_depth, progress=progress,
+                                  desc=f"evaluate {name}".strip())
+    result = results[name]
+    if baselines:
+        result["baselines"] = baselines
     if out_dir is not None:
         write_results(result, out_dir, examples, min_depth=min_depth, max_depth=max_depth)
     return result
+
+
+def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size: int = 8,
+                   out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = 1e-3,
+                   max_depth: float = 100.0, progress: bool = False, name: str = "",
+                   baselines: dict | None = None) -> dict:
+    """``evaluate_predictor`` for a network: each batch resized to the network's ``image_size``,
+    predicted and resized back (``train.predict_depth``). Same result dict and files."""
+    from geodepth_lite.train import predict_depth
+
+    def predict_fn(images: torch.Tensor) -> torch.Tensor:
+        return predict_depth(model, images, image_size).cpu()
+
+    return evaluate_predictor(predict_fn, dataset, batch_size=batch_size, out_dir=out_dir, error_maps=error_maps,
+                              min_depth=min_depth, max_depth=max_depth, progress=progress, name=name,
+                              baselines=baselines)
 
 
 def _collate_eval(batch: list[dict]) -> dict:
@@ -139,14 +199,25 @@ def _collate_eval(batch: list[dict]) -> dict:
 def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_teach", *, split: str = "test",
                         root: str | os.PathLike | None = None, out_dir: str | os.PathLike | None = None,
                         device: str | None = None, batch_size: int = 8, error_maps: int = 4,
-                        progress: bool = False, **kw: Any) -> dict:
-    """``evaluate_model`` for a checkpoint file on a dataset named as in ``open_eval_dataset``."""
+                        progress: bool = False, baselines: bool = False, **kw: Any) -> dict:
+    """``evaluate_model`` for a checkpoint file on a dataset named as in ``open_eval_dataset``.
+
+    baselines: also score the trivial baselines (``baselines.BASELINES``) on the same frames
+    and add them to the result ("baselines") and the overall table. The mean depth map is fitted
+    on the dataset's own train split, else on the checkpoint's training dataset (``cfg["dataset"]``).
+    """
     from geodepth_lite.train import load_model, pick_device
 
     model, cfg = load_model(checkpoint, pick_device(device))
     ds = open_eval_dataset(dataset, split=split, root=root, progress=progress, **kw)
+    base = None
+    if baselines:
+        from geodepth_lite import baselines as bl
+
+        train_root, note = bl.mean_map_training_root(ds, cfg, progress=progress)
+        base = bl.evaluate_baselines(ds, train_root, batch_size=batch_size, progress=progress, mean_map_note=note)
     return evaluate_model(model, ds, image_size=cfg["image_size"], batch_size=batch_size, out_dir=out_dir,
-                          error_maps=error_maps, progress=progress, name=f"{dataset}/{split}")
+                          error_maps=error_maps, progress=progress, name=f"{dataset}/{split}", baselines=base)
 
 
 # --------------------------------------------------------------------------- tables and files
@@ -167,9 +238,15 @@ def markdown_table(columns: list[str], rows: Iterable[Iterable[Any]], digits: in
 
 
 def metrics_table(result: dict, by: str | None = None) -> dict:
-    """{"columns", "rows"} of the seven metrics: one row overall, or one per group/organ."""
+    """{"columns", "rows"} of the seven metrics: one row overall (plus one per baseline in
+    ``result["baselines"]``), or one per group/organ."""
     columns = [by or "set", "frames"] + [METRIC_LABELS[k] for k in METRIC_KEYS]
-    if by is None:
+    baselines = result.get("baselines") or {}
+    if by is None and baselines:  # the model's row, then one row per baseline on the same frames
+        columns[0] = "method"
+        parts = {f"model ({result['name']})" if result.get("name") else "model": result["overall"]}
+        parts.update({f"baseline: {k}": b["overall"] for k, b in baselines.items()})
+    elif by is None:
         parts = {result.get("name") or "all": result["overall"]}
     else:
         parts = result[f"by_{by}"]
@@ -182,7 +259,11 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict]
     """metrics.json, frames.csv, tables.md and error_maps/*.png in ``out_dir`` (each atomic)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    utils.write_json_atomic(out / "metrics.json", {k: v for k, v in result.items() if k != "frames"})
+    summary = {k: v for k, v in result.items() if k != "frames"}
+    if result.get("baselines"):
+        summary["baselines"] = {name: {k: v for k, v in b.items() if k != "frames"}
+                                for name, b in result["baselines"].items()}
+    utils.write_json_atomic(out / "metrics.json", summary)
     fields = ["index", "organ", "group", *METRIC_KEYS, "ratio"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
@@ -193,7 +274,15 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict]
     md = [f"# Evaluation {result.get('name', '')}".rstrip(), "", f"{result['n']} frames; median scaling per frame.", ""]
     for by in (None, "organ", "group"):
         t = metrics_table(result, by)
-        md += [f"## {'Overall' if by is None else 'By ' + by}", "", markdown_table(t["columns"], t["rows"]), ""]
+        title = "Overall" if by is None else f"By {by}" + (" (model)" if result.get("baselines") else "")
+        md += [f"## {title}", "", markdown_table(t["columns"], t["rows"]), ""]
+        if by is None and result.get("baselines"):
+            md += ["Baselines: trivial predictors scored on the same frames with the same protocol; "
+                   "a model must beat them for its numbers to mean anything.", ""]
+            for name, b in result["baselines"].items():
+                md.append(f"- `{name}`: {b.get('description', '')}".rstrip())
+                md += [f"  - {note}" for note in b.get("notes", [])]
+            md.append("")
     utils.write_bytes_atomic(out / "tables.md", "\n".join(md).encode())
     if examples:
         import matplotlib
@@ -270,6 +359,8 @@ def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--error-maps", type=int, default=4, help="number of error-map PNGs (default 4)")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--device", default=None, help="cpu | cuda (default: CUDA when available)")
+    parser.add_argument("--no-baselines", action="store_true",
+                        help="skip the trivial baselines (constant, mean depth map, shading prior) in the tables")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -282,7 +373,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else utils.runs_dir() / "eval" / f"{Path(args.dataset).name}-{args.split}"
     result = evaluate_checkpoint(args.checkpoint, args.dataset, split=args.split, root=args.root, out_dir=out,
                                  device=args.device, batch_size=args.batch_size, error_maps=args.error_maps,
-                                 progress=not args.no_progress, **kw)
+                                 progress=not args.no_progress, baselines=not args.no_baselines, **kw)
     t = metrics_table(result)
     print(markdown_table(t["columns"], t["rows"]))
     print(f"wrote {out / 'metrics.json'}, {out / 'frames.csv'}, {out / 'tables.md'}")
