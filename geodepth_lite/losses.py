@@ -13,6 +13,18 @@ valid (then 0, still connected to ``pred`` for autograd).
 Image gradients are forward differences in depth units per pixel:
 ``grad_x D(v, u) = D(v, u+1) - D(v, u)`` and ``grad_y D(v, u) = D(v+1, u) - D(v, u)``;
 a difference is valid when both of its pixels are valid.
+
+SDF sign (Sec. 3.C: positive ahead of the surface from the camera viewpoint, negative
+behind). The "view" rule (default of :func:`sdf_loss`): a sample point q is projected with K,
+(u, v) = (fx q_x/q_z + cx, fy q_y/q_z + cy) rounded to the nearest pixel (``torch.round``,
+halves to even), and signed by sign(D(v, u) - q_z) with D the depth map whose surface is
+measured: +1 in front of the depth map along its own ray, -1 beyond it, 0 on it. Fallback,
+where q_z <= 0, q projects outside the image, or onto a pixel that is not valid (masked,
+non-finite or <= 0): the nearest-point rule sign((X_n - q) . X_n), X_n the nearest surface
+point, i.e. whether q lies on the camera's side of the surface at X_n (the local estimate of
+the same thing: for q near a front-facing smooth surface both rules agree). The two rules
+differ behind occluding edges, e.g. a point behind a near step, nearest to the far wall.
+The magnitude is always the exact Euclidean nearest distance; the sign carries no gradient.
 """
 
 from __future__ import annotations
@@ -30,6 +42,10 @@ DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
 CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
 KDTREE_LEAFSIZE = 32  # points per cKDTree leaf (tuned on 320x320 depth maps)
 KDTREE_WORKERS = -1  # threads of each cKDTree query (-1: all cores)
+SIGN_RULES = {  # SDF sign rules, with the tag that keys cached ground-truth fields
+    "view": "sign:view-ray-projection,fallback:nearest-direction",  # the paper's (default)
+    "nearest": "sign:nearest-direction",  # sign((X_n - q) . X_n) everywhere (the former rule)
+}
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -81,6 +97,20 @@ def depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None =
     """L_depth = || D_pred - D_gt ||_1, as the mean absolute difference over valid pixels (Sec. 3.C, Eq. 1)."""
     gt_safe, valid = _prepare(pred, gt, mask)
     return masked_mean((pred - gt_safe).abs(), valid)
+
+
+def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """|ln D_pred - ln D_gt|, mean over valid pixels: the depth term in relative units.
+
+    Not the paper's term (its Eq. 1 is the absolute L1 above). A far lumen pixel at 30 units
+    weighs no more here than a wall pixel at 1 unit, as in the median-scaled metrics
+    (Abs Rel, RMSE log); the teach profile uses it (see ``config.TEACH_EVIDENCE``).
+    """
+    gt_safe, valid = _prepare(pred, gt, mask)
+    return masked_mean((torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe)).abs(), valid)
+
+
+DEPTH_TERMS = {"l1": depth_loss, "log_l1": log_depth_loss}  # the depth term's variants
 
 
 def smoothness_loss(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
@@ -204,8 +234,41 @@ def sample_grid(lower: torch.Tensor, upper: torch.Tensor, grid=DEFAULT_SDF_GRID)
     return lower + t * (upper - lower)
 
 
-def _signed_from_nearest(nearest: torch.Tensor, queries: torch.Tensor, signed: bool = True) -> torch.Tensor:
-    """phi(q) from the nearest surface points X_n (... x 3, differentiable) and queries q (... x 3)."""
+def _check_sign_rule(sign_rule: str) -> None:
+    if sign_rule not in SIGN_RULES:
+        raise ValueError(f"sign_rule must be one of {', '.join(SIGN_RULES)}, got {sign_rule!r}")
+
+
+@torch.no_grad()
+def _view_sign(queries: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, valid: torch.Tensor):
+    """The view rule's sign of each query and whether it applies (batched, no gradient).
+
+    queries: B x M x 3 (camera frame); depth: B x H x W; K: B x 3 x 3; valid: B x H x W bool ->
+    (sign, known), both B x M: sign = sign(D(v, u) - q_z) in the queries' dtype at the rounded
+    projection (u, v), known = q_z > 0, (u, v) inside the image, valid there and D finite > 0.
+    """
+    B, H, W = depth.shape
+    K = K.to(dtype=queries.dtype, device=queries.device)
+    x, y, z = queries.unbind(-1)
+    front = z > 0
+    zs = torch.where(front, z, torch.ones_like(z))  # no division by zero behind the camera
+    u = torch.round(K[:, 0, 0, None] * x / zs + K[:, 0, 2, None])
+    v = torch.round(K[:, 1, 1, None] * y / zs + K[:, 1, 2, None])
+    known = front & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)  # False for NaN/inf too
+    lin = torch.where(known, v * W + u, torch.zeros_like(u)).long()  # B x M pixel indices
+    D = torch.gather(depth.detach().reshape(B, H * W), 1, lin).to(queries.dtype)
+    ok = torch.gather(valid.reshape(B, H * W).to(torch.bool), 1, lin)
+    known = known & ok & torch.isfinite(D) & (D > 0)
+    return torch.where(known, torch.sign(D - z), torch.zeros_like(z)), known
+
+
+def _signed_from_nearest(nearest: torch.Tensor, queries: torch.Tensor, signed: bool = True,
+                         view=None) -> torch.Tensor:
+    """phi(q) from the nearest surface points X_n (... x 3, differentiable) and queries q (... x 3).
+
+    ``view``: None (nearest-point sign everywhere) or the (sign, known) pair of :func:`_view_sign`
+    (... each): the view sign where known, the nearest-point sign elsewhere (the fallback).
+    """
     diff = nearest - queries
     d2 = (diff * diff).sum(-1)
     pos = d2 > 0  # the distance's gradient is set to 0 on the surface instead of NaN
@@ -214,27 +277,52 @@ def _signed_from_nearest(nearest: torch.Tensor, queries: torch.Tensor, signed: b
         return dist
     with torch.no_grad():
         sign = torch.sign((diff * nearest).sum(-1))
+        if view is not None:
+            sign = torch.where(view[1], view[0].to(sign), sign)
     return sign * dist
 
 
-def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "auto", signed: bool = True) -> torch.Tensor:
+def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "auto", signed: bool = True,
+                    depth=None, K=None, valid=None) -> torch.Tensor:
     """Signed distance from each query q to the point set S = {X} (camera frame, Sec. 3.C, Eq. 5).
 
     phi(q) = ||X_n - q||_2 with X_n the exact nearest point of S (index searched without
     gradient, distance recomputed in torch so gradients reach ``points`` through X_n).
 
-    Sign (the paper: positive ahead of the surface as seen from the camera, negative behind):
-    sign((X_n - q) . X_n), i.e. positive when q lies before X_n along X_n's viewing ray from the
-    camera centre (q is between the camera and the surface, inside the lumen), negative when
-    it lies beyond, 0 on the surface. For a fronto-parallel plane z = d this is sign(d - q_z).
+    Sign (the paper: positive ahead of the surface as seen from the camera, negative behind),
+    computed without gradient:
+    - with ``depth`` (H x W, torch or numpy) and ``K`` (3 x 3), the view rule: q projects to the
+      nearest pixel (u, v) = round(fx q_x/q_z + cx, fy q_y/q_z + cy) and the sign is
+      sign(D(v, u) - q_z) (+1 in front of the depth map along q's ray, -1 beyond, 0 on it).
+      Where q_z <= 0, (u, v) is outside the image, or the pixel is not usable (``valid``, H x W
+      bool, False there, or D not finite or <= 0), the fallback is the nearest-point rule below.
+      ``points`` should be the back-projection of ``depth``'s usable pixels (not checked);
+    - without them, the nearest-point rule everywhere: sign((X_n - q) . X_n), positive when q
+      lies on the camera's side of the surface at X_n, negative beyond, 0 on it. For a
+      fronto-parallel plane z = d both rules give sign(d - q_z); they differ behind occluding
+      edges (a point behind a near step whose nearest surface point is on the far wall).
     points: N x 3, queries: M x 3 -> M signed distances (unsigned when ``signed=False``).
     """
     idx = nearest_indices(points, queries, method)
-    return _signed_from_nearest(points[idx], queries, signed)
+    view = None
+    if depth is not None and signed:
+        if K is None:
+            raise ValueError("signed_distance: the view rule needs K with depth")
+        d = torch.as_tensor(depth).to(device=queries.device)
+        if d.dim() != 2:
+            raise ValueError(f"depth must be H x W, got shape {tuple(d.shape)}")
+        Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K).to(queries.device)
+        v = torch.ones_like(d, dtype=torch.bool) if valid is None else torch.as_tensor(valid).to(d.device)
+        if v.shape != d.shape:
+            raise ValueError(f"valid must have the depth's shape {tuple(d.shape)}, got {tuple(v.shape)}")
+        view = tuple(t[0] for t in _view_sign(queries[None], d[None], Kt.reshape(1, 3, 3), v[None]))
+    return _signed_from_nearest(points[idx], queries, signed, view)
 
 
 class GTFieldCache:
-    """LRU cache of ground-truth SDF fields, keyed by the bytes of the frame (depth, validity, K).
+    """LRU cache of ground-truth SDF fields, keyed by the bytes of the frame (depth, validity, K),
+    the grid, ``signed`` and the sign rule's tag (:data:`SIGN_RULES`; fields signed under another
+    rule, such as the former nearest-point-only sign, never match).
 
     The ground truth's field does not depend on the network, and training sees every frame once
     per epoch, so from the second epoch on only the prediction's field has to be searched. A
@@ -252,13 +340,14 @@ class GTFieldCache:
         self.hits = self.misses = 0
 
     @staticmethod
-    def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, grid, signed: bool) -> str:
+    def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, grid, signed: bool,
+            sign_rule: str = "view") -> str:
         h = hashlib.blake2b(digest_size=20)
         for t in (gt_b, valid_b, K_b):
             t = t.detach().cpu().contiguous()
             h.update(str((t.dtype, tuple(t.shape))).encode())
             h.update(t.numpy().tobytes())
-        h.update(repr((tuple(grid), bool(signed))).encode())
+        h.update(repr((tuple(grid), bool(signed), SIGN_RULES[sign_rule])).encode())
         return h.hexdigest()
 
     def get(self, key: str):
@@ -301,7 +390,7 @@ GT_FIELD_CACHE = GTFieldCache()  # used by sdf_loss / total_loss unless cache=No
 
 
 def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-               cache: GTFieldCache | None = None):
+               cache: GTFieldCache | None = None, sign_rule: str = "view"):
     """Per image: the sample grid and the signed fields of prediction and ground truth.
 
     Returns a list (one entry per image; None when the image has no valid pixel) of dicts
@@ -310,7 +399,16 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     image by image without gradient; the distances are then computed for the whole batch at
     once (few, large tensor operations). With a ``cache`` (:class:`GTFieldCache`), ground-truth
     fields already computed for an identical frame are reused.
+
+    Sign (``sign_rule``, no gradient): "view" (default, the paper's) projects each grid point
+    with K to its nearest pixel and compares q_z with each map's own depth there: the
+    prediction's field uses ``pred``, the ground truth's ``gt`` (+1 where q_z < D, -1 where
+    q_z > D, 0 on it), both at the ground truth's valid pixels (where ``pred`` is also finite and
+    > 0 for the prediction's). Fallback, for points with q_z <= 0, projecting outside the image
+    or onto an unusable pixel: the nearest-point sign sign((X_n - q) . X_n). "nearest" uses the
+    nearest-point sign everywhere (the former rule, for comparison). See :func:`signed_distance`.
     """
+    _check_sign_rule(sign_rule)
     gt_safe, valid = _prepare(pred, gt, mask)
     Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K)
     if not (Kt.shape == (3, 3) or (Kt.dim() == 3 and Kt.shape[0] == pred.shape[0] and Kt.shape[1:] == (3, 3))):
@@ -332,7 +430,8 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
                 continue
             key = hit = None
             if cache is not None and cache.max_bytes > 0:
-                key = GTFieldCache.key(gt[b], valid[b], Kt if Kt.dim() == 2 else Kt[b], (rx, ry, rz), signed)
+                key = GTFieldCache.key(gt[b], valid[b], Kt if Kt.dim() == 2 else Kt[b], (rx, ry, rz), signed,
+                                       sign_rule)
                 hit = cache.get(key)
             if hit is not None:
                 lower, upper = hit[0].to(P_gt), hit[1].to(P_gt)
@@ -352,16 +451,20 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
         return out
     bi = torch.as_tensor(used, device=pred.device)
     q = torch.stack(grids)  # B' x M x 3
+    view = signed and sign_rule == "view"
+    Kb = Kt.to(device=pred.device).expand(pred.shape[0], 3, 3)[bi] if view else None  # B' x 3 x 3
     Ip = torch.stack(idx_p)  # B' x M
     Xp = torch.gather(P_pred[bi], 1, Ip.unsqueeze(-1).expand(-1, -1, 3))  # differentiable in pred
-    phi_p = _signed_from_nearest(Xp, q, signed)
+    vs_p = _view_sign(q, pred.detach()[bi, 0], Kb, valid[bi, 0]) if view else None
+    phi_p = _signed_from_nearest(Xp, q, signed, vs_p)
     phi_g = torch.empty_like(phi_p.detach())
     todo = [k for k, ig in enumerate(idx_g) if ig is not None]
     if todo:
         t = torch.as_tensor(todo, device=pred.device)
         Ig = torch.stack([idx_g[k] for k in todo])
         Xg = torch.gather(P_gt[bi[t]], 1, Ig.unsqueeze(-1).expand(-1, -1, 3))
-        phi_g[t] = _signed_from_nearest(Xg, q[t], signed)
+        vs_g = _view_sign(q[t], gt_safe[bi[t], 0], Kb[t], valid[bi[t], 0]) if view else None
+        phi_g[t] = _signed_from_nearest(Xg, q[t], signed, vs_g)
     for k, (key, hit) in enumerate(cached):
         if hit is not None:
             phi_g[k] = hit[2].to(phi_g)
@@ -373,18 +476,24 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
 
 
 def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-             cache: GTFieldCache | None = GT_FIELD_CACHE) -> torch.Tensor:
+             cache: GTFieldCache | None = GT_FIELD_CACHE, sign_rule: str = "view") -> torch.Tensor:
     """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 9).
 
     Both depth maps are back-projected with K (valid pixels only); the grid spans the ground
-    truth's 3D bounding box [X_lb, X_ub] (:func:`sample_grid`); phi is the signed distance of
-    :func:`signed_distance`. The loss is the mean over images with at least one valid pixel
+    truth's 3D bounding box [X_lb, X_ub] (:func:`sample_grid`); phi is the exact nearest
+    distance, signed by the paper's view rule (``sign_rule="view"``): grid point q projected with K
+    to its nearest pixel, +1 where q_z is less than that map's own depth there (the prediction's
+    field uses ``pred``, the ground truth's ``gt``), -1 where greater, 0 on it; for q_z <= 0, q
+    projecting outside the image or onto an invalid pixel, the fallback sign((X_n - q) . X_n)
+    with X_n the nearest surface point (:func:`sdf_fields`, :func:`signed_distance`).
+    ``sign_rule="nearest"`` uses that nearest-point sign everywhere (the former rule, for
+    comparison). The loss is the mean over images with at least one valid pixel
     (0 if none). ``method``: exact nearest-neighbour search, "auto" = cKDTree on the CPU,
     chunked brute force on CUDA. ``signed=False`` gives the unsigned variant (for comparison).
     ``cache``: ground-truth fields are reused for frames seen before (:class:`GTFieldCache`;
     None to always search).
     """
-    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache) if f is not None]
+    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule) if f is not None]
     if not fields:
         return pred.sum() * 0.0
     return (torch.stack([f["pred"] for f in fields]) - torch.stack([f["gt"] for f in fields])).abs().mean()
@@ -394,21 +503,25 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
 TERMS = ("depth", "smooth", "grad", "normal", "sdf", "total")
 
 
-def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID):
+def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID,
+               depth_term: str = "l1"):
     """L_total = l1 (L_depth + L_smooth) + l2 (L_grad + L_normal) + l3 L_sdf (Sec. 3.C, Eq. 10).
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats
     with keys depth, smooth, grad, normal, sdf, total (unweighted terms, weighted total).
     A zero lambda skips computing its terms, which are then reported as 0.0. The ablation
-    cases of Sec. 4.3 are lambda settings (``config.ABLATION_CASES``).
+    cases of Sec. 4.3 are lambda settings (``config.ABLATION_CASES``). ``depth_term``: "l1"
+    (the paper's Eq. 1) or "log_l1" (:func:`log_depth_loss`).
     """
+    if depth_term not in DEPTH_TERMS:
+        raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
     if len(lambdas) != 3 or any(float(l) < 0 for l in lambdas):
         raise ValueError(f"lambdas must be three non-negative weights (l1, l2, l3), got {lambdas!r}")
     l1, l2, l3 = (float(l) for l in lambdas)
     zero = pred.sum() * 0.0
     t = {k: zero for k in TERMS[:-1]}
     if l1:
-        t["depth"], t["smooth"] = depth_loss(pred, gt, mask), smoothness_loss(pred, image)
+        t["depth"], t["smooth"] = DEPTH_TERMS[depth_term](pred, gt, mask), smoothness_loss(pred, image)
     if l2:
         t["grad"], t["normal"] = gradient_loss(pred, gt, mask), normal_loss(pred, gt, mask)
     if l3:

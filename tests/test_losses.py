@@ -95,23 +95,46 @@ def test_signed_distance_sign_convention():
     assert torch.allclose(L.signed_distance(pts, q, signed=False), sd.abs())
 
 
-def reference_sdf_loss(pred, gt, K, r, signed=True):
-    """Independent numpy brute force of Eq. 9 with the +X_lb grid and the viewing-ray sign."""
+def reference_view_sign(D, K, q):
+    """Paper's sign by hand: project q, round to the nearest pixel, compare q_z with D there.
+
+    D: H x W numpy (all valid), q: M x 3 -> (sign, known); unknown where q_z <= 0 or outside."""
+    H, W = D.shape
+    sign, known = np.zeros(len(q)), np.zeros(len(q), dtype=bool)
+    for i, (x, y, z) in enumerate(q):
+        if z <= 0:
+            continue
+        u, v = int(np.rint(K[0, 0] * x / z + K[0, 2])), int(np.rint(K[1, 1] * y / z + K[1, 2]))
+        if 0 <= u < W and 0 <= v < H:
+            sign[i], known[i] = np.sign(D[v, u] - z), True
+    return sign, known
+
+
+def reference_sdf_loss(pred, gt, K, r, signed=True, sign="view"):
+    """Independent numpy brute force of Eq. 9 with the +X_lb grid; ``sign``: "view" (the paper's
+    projection rule, nearest-direction fallback outside the image) or "nearest" (direction to the
+    nearest point everywhere)."""
     out = []
     for b in range(pred.shape[0]):
-        P = camera.backproject(pred[b, 0].numpy(), K).reshape(-1, 3)
-        G = camera.backproject(gt[b, 0].numpy(), K).reshape(-1, 3)
+        Dp, Dg = pred[b, 0].numpy(), gt[b, 0].numpy()
+        P = camera.backproject(Dp, K).reshape(-1, 3)
+        G = camera.backproject(Dg, K).reshape(-1, 3)
         lo, hi = G.min(0), G.max(0)
         t = np.linspace(0, 1, r)
         grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo) + lo
 
-        def field(S):
+        def field(S, D):
             d = np.linalg.norm(S[None] - grid[:, None], axis=-1)
             n = d.argmin(1)
-            s = np.sign(np.einsum("ij,ij->i", S[n] - grid, S[n])) if signed else 1.0
+            if not signed:
+                return d.min(1)
+            s = np.sign(np.einsum("ij,ij->i", S[n] - grid, S[n]))
+            if sign == "view":
+                vs, known = reference_view_sign(D, K, grid)
+                s = np.where(known, vs, s)
             return s * d.min(1)
 
-        out.append(np.abs(field(P) - field(G)).mean())
+        out.append(np.abs(field(P, Dp) - field(G, Dg)).mean())
     return float(np.mean(out))
 
 
@@ -131,6 +154,71 @@ def test_signed_and_unsigned_fields_give_different_losses():
     assert math.isclose(signed, reference_sdf_loss(pred, gt, K, 6), rel_tol=1e-9)
     assert math.isclose(unsigned, reference_sdf_loss(pred, gt, K, 6, signed=False), rel_tol=1e-9)
     assert signed > unsigned + 0.1  # points between the surfaces: the signs disagree
+
+
+# the step of step_depth(near=1, far=3) seen with K = intrinsics(16) (fx = fy = 8.8896, cx = cy = 8):
+# columns u <= 7 at z = 1, u >= 8 at z = 3; the far wall's innermost point on row 8 is (0, 0, 3)
+K16 = camera.intrinsics(16)
+Q_BEHIND_NEAR = [-0.2, 0.0, 2.4]  # projects to u = 7.26 -> 7 (D = 1): behind the near step
+Q_AHEAD_FAR = [0.1, 0.0, 1.2]  # projects to u = 8.74 -> 9 (D = 3): in the open, ahead of the far wall
+
+
+def test_view_sign_differs_from_nearest_direction_behind_a_step_edge():
+    D = step_depth(near=1.0, far=3.0)[0, 0]
+    pts = camera.backproject(D, K16).reshape(-1, 3)
+    q = torch.tensor([Q_BEHIND_NEAR, Q_AHEAD_FAR], dtype=torch.float64)
+    view = L.signed_distance(pts, q, depth=D, K=K16)
+    old = L.signed_distance(pts, q)
+    # q1: nearest point (0, 0, 3) on the far wall, distance sqrt(0.2^2 + 0.6^2); the old rule
+    # calls it ahead ((X_n - q) . X_n = 1.8 > 0), the paper's behind (q_z = 2.4 > D = 1)
+    # q2: nearest point (-1/fx, 0, 1), the near step's edge; (X_n - q) . X_n < 0 but q_z = 1.2 < D = 3
+    x7 = -1.0 / K16[0, 0]
+    d2 = math.hypot(x7 - 0.1, 0.2)
+    assert torch.allclose(view, torch.tensor([-math.sqrt(0.4), d2], dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(old, -view, atol=1e-12)
+    # the numpy reference rule agrees; unsigned magnitudes are unchanged
+    sign, known = reference_view_sign(D.numpy(), K16, q.numpy())
+    assert known.all() and (sign == [-1.0, 1.0]).all()
+    assert torch.allclose(L.signed_distance(pts, q, signed=False, depth=D, K=K16), view.abs())
+
+
+def test_view_sign_falls_back_to_nearest_direction_off_the_image():
+    D = step_depth(near=1.0, far=3.0)[0, 0]
+    pts = camera.backproject(D, K16).reshape(-1, 3)
+    # right of the image (u = 30.2), behind the camera, and onto a masked pixel (u = 7, D = 1)
+    q = torch.tensor([[5.0, 0.0, 2.0], [0.0, 0.0, -1.0], Q_BEHIND_NEAR], dtype=torch.float64)
+    valid = torch.ones(16, 16, dtype=torch.bool)
+    valid[8, 7] = False
+    view = L.signed_distance(pts, q, depth=D, K=K16, valid=valid)
+    assert torch.equal(view, L.signed_distance(pts, q))  # all three: the nearest-direction sign
+    # q1's nearest point is the far wall's last column (3 * 7/fx, 0, 3): (X_n - q) . X_n < 0
+    x15 = 3 * 7 / K16[0, 0]
+    assert math.isclose(float(view[0]), -math.hypot(5.0 - x15, 1.0), rel_tol=1e-12)
+    assert float(view[1]) > 0  # behind the camera: the camera side of the surface at X_n
+    assert float(view[2]) > 0  # Q_BEHIND_NEAR on a masked pixel: the nearest rule's +
+    _, known = reference_view_sign(D.numpy(), K16, q.numpy()[:2])
+    assert not known.any()
+
+
+def test_sdf_loss_between_step_edges_follows_the_view_sign():
+    K = K16.copy()
+    K[0, 2], K[1, 2] = 7.3, 6.6  # off-centre: no exact distance ties
+    gt = step_depth(near=1.0, far=3.0)
+    pred = step_depth(near=1.4, far=2.5)
+    pred[..., :, 5:8] = 2.5  # the edge moved left by three columns
+    for method in ("kdtree", "chunked"):
+        view = float(L.sdf_loss(pred, gt, K, grid=6, method=method, cache=None))
+        old = float(L.sdf_loss(pred, gt, K, grid=6, method=method, cache=None, sign_rule="nearest"))
+        assert math.isclose(view, reference_sdf_loss(pred, gt, K, 6), rel_tol=1e-9)
+        assert math.isclose(old, reference_sdf_loss(pred, gt, K, 6, sign="nearest"), rel_tol=1e-9)
+        assert abs(view - old) > 0.05
+    # the two rules key different cached ground-truth fields
+    cache = L.GTFieldCache()
+    L.sdf_loss(pred, gt, K, grid=6, cache=cache)
+    L.sdf_loss(pred, gt, K, grid=6, cache=cache, sign_rule="nearest")
+    assert (cache.misses, cache.hits, len(cache)) == (2, 0, 2)
+    with pytest.raises(ValueError, match="sign_rule"):
+        L.sdf_loss(pred, gt, K, grid=6, sign_rule="camera")
 
 
 def test_sdf_loss_matches_reference_on_random_smooth_surfaces():
