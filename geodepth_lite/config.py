@@ -66,6 +66,16 @@ ABLATION_CASES: dict[int, tuple[float, float, float]] = {
 }
 
 
+def case_lambdas(case: int, geo_weights=None) -> list[float]:
+    """(lambda1, lambda2, lambda3) of ablation ``case``: the case's terms switched on, weighted by the
+    profile's ``geo_weights`` = (lambda2, lambda3) (None: the paper's unstated weights taken as 1)."""
+    if case not in ABLATION_CASES:
+        raise ValueError(f"case must be one of {sorted(ABLATION_CASES)}, got {case!r}")
+    l2, l3 = (1.0, 1.0) if geo_weights is None else (float(geo_weights[0]), float(geo_weights[1]))
+    on = ABLATION_CASES[case]
+    return [on[0], on[1] * l2, on[2] * l3]
+
+
 def get_profile(name: str) -> dict:
     """The settings of profile ``name``; a clear error for an unknown one."""
     if name not in PROFILES:

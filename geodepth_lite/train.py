@@ -54,9 +54,11 @@ LOSS_KEYS = ("depth", "smooth", "grad", "normal", "sdf", "total")
 IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
-    "threads", "lr_schedule",
+    "threads", "lr_schedule", "optimizer", "depth_term", "augment",
 )
 LR_SCHEDULES = ("constant", "cosine")
+OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
+AUGMENTS = ("none", "flip", "flip_color")  # training-time augmentation (see augment_batch)
 
 # Datasets decoded at the network size stay in memory below this many bytes (per process).
 CACHE_LIMIT_BYTES = 2 * 1024**3
@@ -87,7 +89,10 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "weight_decay": p["weight_decay"],
         "betas": [0.9, 0.999],
         "sdf_grid": p["sdf_grid"],
-        "lambdas": list(config.ABLATION_CASES[case]),
+        "lambdas": config.case_lambdas(case, p.get("geo_weights")),
+        "optimizer": p.get("optimizer", "adam"),
+        "depth_term": p.get("depth_term", "l1"),
+        "augment": p.get("augment", "none"),
         "seed": int(seed),
         "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
@@ -109,6 +114,14 @@ def validate_config(cfg: dict) -> dict:
         cfg.setdefault(key, None)
     cfg.setdefault("betas", [0.9, 0.999])
     cfg.setdefault("lr_schedule", "constant")
+    cfg.setdefault("optimizer", "adam")
+    cfg.setdefault("depth_term", "l1")
+    cfg.setdefault("augment", "none")
+    from geodepth_lite.losses import DEPTH_TERMS
+
+    for key, allowed in (("optimizer", OPTIMIZERS), ("depth_term", tuple(DEPTH_TERMS)), ("augment", AUGMENTS)):
+        if cfg[key] not in allowed:
+            raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
     if cfg["lr_schedule"] not in LR_SCHEDULES:
         raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     missing = [k for k in IDENTITY_KEYS if k not in cfg]
@@ -357,7 +370,38 @@ def _losses(pred, batch, cfg):
 
     g = cfg["sdf_grid"]
     return total_loss(pred.float(), batch["depth"], batch["image"], batch["K"],
-                      lambdas=tuple(cfg["lambdas"]), mask=batch.get("valid"), sdf_grid=(g, g, g))
+                      lambdas=tuple(cfg["lambdas"]), mask=batch.get("valid"), sdf_grid=(g, g, g),
+                      depth_term=cfg.get("depth_term", "l1"))
+
+
+def augment_batch(batch: dict, kind: str) -> dict:
+    """Training-time augmentation, drawn from torch's global RNG (saved in checkpoints, so resume repeats it).
+
+    flip: each frame mirrored left-right with probability 1/2; image, depth and validity are
+    flipped and K follows (cx -> W - 1 - cx), so the frame stays a valid pinhole view.
+    flip_color: flip, then a per-frame gain in [0.7, 1.4] and gamma in [0.8, 1.25] on the image
+    (exposure and camera response; the depth is unchanged).
+    """
+    if kind == "none":
+        return batch
+    img, depth = batch["image"], batch["depth"]
+    B, W = img.shape[0], img.shape[-1]
+    flip = torch.rand(B) < 0.5
+    out = dict(batch)
+    if bool(flip.any()):
+        f = flip.to(img.device).view(B, 1, 1, 1)
+        out["image"] = torch.where(f, img.flip(-1), img)
+        out["depth"] = torch.where(f, depth.flip(-1), depth)
+        if batch.get("valid") is not None:
+            out["valid"] = torch.where(f, batch["valid"].flip(-1), batch["valid"])
+        K = batch["K"].clone()
+        K[flip.to(K.device), 0, 2] = (W - 1) - K[flip.to(K.device), 0, 2]
+        out["K"] = K
+    if kind == "flip_color":
+        gain = (0.7 + 0.7 * torch.rand(B)).to(img).view(B, 1, 1, 1)
+        gamma = torch.exp(torch.empty(B).uniform_(np.log(0.8), np.log(1.25))).to(img).view(B, 1, 1, 1)
+        out["image"] = (out["image"].clamp(0, 1) ** gamma * gain).clamp(0, 1)
+    return out
 
 
 def _to(batch: dict, device: torch.device) -> dict:
@@ -454,8 +498,8 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
 
     utils.seed_everything(cfg["seed"])
     model = DepthNet(encoder_weights=cfg["encoder_weights"]).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]),
-                           weight_decay=cfg["weight_decay"])
+    opt_cls = torch.optim.AdamW if cfg["optimizer"] == "adamw" else torch.optim.Adam
+    opt = opt_cls(model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]), weight_decay=cfg["weight_decay"])
     scaler = torch.amp.GradScaler("cuda", enabled=device.type == "cuda" and not torch.cuda.is_bf16_supported())
     sampler = torch.utils.data.DistributedSampler(train_ds, num_replicas=world, rank=rank, shuffle=True,
                                                   seed=cfg["seed"], drop_last=False)
@@ -495,7 +539,7 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
         t_epoch = tick = time.perf_counter()
         for batch in loader:
             got = time.perf_counter()
-            batch = _to(batch, device)
+            batch = augment_batch(_to(batch, device), cfg["augment"])
             with _autocast(device):
                 pred = net(batch["image"])
             loss, terms = _losses(pred, batch, cfg)
