@@ -407,3 +407,25 @@ def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth:
             ex["pred"] = list(preds.values())[-1]
         out.append(ex)
     return out
+
+
+def flat_record(tree: dict, digits: int = 4, keys: Iterable[str] = METRIC_KEYS) -> dict[str, float]:
+    """A nested dict ending in metric dicts, flattened to {"a | b | metric": value rounded to ``digits``}.
+
+    The notebooks print such a record of every number that comes from trained weights, so a
+    test can compare a fresh run with the committed one within a tolerance.
+    """
+    out: dict[str, float] = {}
+
+    def walk(node: dict, path: list[str]) -> None:
+        if any(k in node for k in keys):
+            for k in keys:
+                if k in node:
+                    out[" | ".join(path + [k])] = round(float(node[k]), digits)
+            return
+        for name, child in node.items():
+            if isinstance(child, dict):
+                walk(child, path + [str(name)])
+
+    walk(tree, [])
+    return out

@@ -530,3 +530,28 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     terms = {k: float(v.detach()) for k, v in t.items()}
     terms["total"] = float(loss.detach())
     return loss, terms
+
+
+def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID, depth_term: str = "l1",
+                        terms=TERMS[:-1]) -> dict[str, float]:
+    """||dL_term / dD_pred||_2 of each unweighted term at the network's output (a loss-balancing diagnostic).
+
+    The network sees the losses only through this gradient on its output depth map, so the
+    ratio of two norms says how strongly each term pulls on the prediction at a given lambda:
+    a term whose gradient is 10x the depth term's dominates the update at lambda = 1.
+    ``pred`` is detached here (nothing reaches the network); returns {term: norm} for ``terms``.
+    """
+    p = pred.detach().float().clone().requires_grad_(True)
+    fns = {
+        "depth": lambda: DEPTH_TERMS[depth_term](p, gt, mask),
+        "smooth": lambda: smoothness_loss(p, image),
+        "grad": lambda: gradient_loss(p, gt, mask),
+        "normal": lambda: normal_loss(p, gt, mask),
+        "sdf": lambda: sdf_loss(p, gt, K, sdf_grid, mask),
+    }
+    out = {}
+    for name in terms:
+        (g,) = torch.autograd.grad(fns[name](), p, allow_unused=True)
+        out[name] = 0.0 if g is None else float(g.norm())
+    return out
+

@@ -374,6 +374,15 @@ def _losses(pred, batch, cfg):
                       depth_term=cfg.get("depth_term", "l1"))
 
 
+def _term_gradient_norms(pred, batch, cfg) -> dict[str, float]:
+    """Each loss term's gradient norm at the network output (logged once per epoch, first batch)."""
+    from geodepth_lite.losses import term_gradient_norms
+
+    g = cfg["sdf_grid"]
+    return term_gradient_norms(pred, batch["depth"], batch["image"], batch["K"], mask=batch.get("valid"),
+                               sdf_grid=(g, g, g), depth_term=cfg.get("depth_term", "l1"))
+
+
 def augment_batch(batch: dict, kind: str) -> dict:
     """Training-time augmentation, drawn from torch's global RNG (saved in checkpoints, so resume repeats it).
 
@@ -537,12 +546,15 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
         bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{cfg['epochs']}", disable=not (progress and is_main),
                    leave=False)
         t_epoch = tick = time.perf_counter()
+        grad_norms: dict[str, float] = {}
         for batch in loader:
             got = time.perf_counter()
             batch = augment_batch(_to(batch, device), cfg["augment"])
             with _autocast(device):
                 pred = net(batch["image"])
             loss, terms = _losses(pred, batch, cfg)
+            if not grad_norms:  # the first step of the epoch (at initialisation in epoch 1)
+                grad_norms = _term_gradient_norms(pred, batch, cfg)
             opt.zero_grad(set_to_none=True)
             scaler.scale(loss).backward()
             scaler.step(opt)
@@ -564,6 +576,7 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
         row.update({f"train_{k}": float(sums[i] / max(sums[-1], 1)) for i, k in enumerate(LOSS_KEYS)})
         if is_main:
             row.update(validate(model, val_ds, cfg, device))
+        row.update({f"gradnorm_{k}": v for k, v in grad_norms.items()})
         row["lr"] = opt.param_groups[0]["lr"]
         row["epoch_s"] = time.perf_counter() - t_epoch
         row["train_frames_per_s"] = float(sums[-1]) / max(step_total, 1e-9)

@@ -1,0 +1,76 @@
+"""One tuning run of the teach recipe, scored on the validation split, logged as one JSON line.
+
+    python benchmarks/tune_teach.py NAME --case 1 --seed 0 --set epochs=10 --set weight_decay=0 ...
+
+Trains ``train.make_config("teach", case, seed, **settings)`` into ``runs/tune/NAME`` and appends
+{name, case, seed, settings, val metrics on the whole validation split, minutes} to
+``benchmarks/tuning_log.jsonl``. The test split is never read here: choices are made on
+validation (the tables in ``config.TEACH_EVIDENCE`` and notebook 04 come from this log).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from geodepth_lite import train, utils
+from geodepth_lite.metrics import compute_depth_metrics
+
+LOG = Path(__file__).with_name("tuning_log.jsonl")
+
+
+def parse_value(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("name")
+    ap.add_argument("--case", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a training setting (JSON value), e.g. lr=3e-4, lambdas=[1,0.1,0.1]")
+    ap.add_argument("--log", default=str(LOG))
+    args = ap.parse_args(argv)
+    settings = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        settings[key] = parse_value(value)
+    cfg = train.make_config("teach", args.case, args.seed, **settings)
+    run_dir = utils.runs_dir() / "tune" / args.name
+    t0 = time.perf_counter()
+    ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
+    minutes = (time.perf_counter() - t0) / 60
+    model, _ = train.load_model(ckpt)
+    torch.set_num_threads(cfg["threads"] or torch.get_num_threads())
+    root = train.resolve_dataset(cfg)
+    val = train.load_split(root, "val", cfg["image_size"])  # the whole validation split
+    preds, gts = [], []
+    with torch.no_grad():
+        for i in range(0, len(val), 40):
+            items = [val[j] for j in range(i, min(i + 40, len(val)))]
+            x = torch.stack([it["image"] for it in items])
+            preds.append(model(x)[:, 0])
+            gts.append(torch.stack([it["depth"] for it in items])[:, 0])
+    m = compute_depth_metrics(torch.cat(preds).numpy(), torch.cat(gts).numpy())
+    hist = train.read_log(run_dir)
+    row = {"name": args.name, "case": args.case, "seed": args.seed, "settings": settings,
+           "val_abs_rel": round(m["abs_rel"], 4), "val_rmse": round(m["rmse"], 4),
+           "val_rmse_log": round(m["rmse_log"], 4), "val_a1": round(m["a1"], 4),
+           "train_depth_last": round(hist[-1]["train_depth"], 4), "minutes": round(minutes, 2),
+           "frames_per_s": round(hist[-1]["train_frames_per_s"], 1)}
+    with open(args.log, "a") as f:
+        f.write(json.dumps(row) + "\n")
+    print(json.dumps(row))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
