@@ -81,3 +81,15 @@ def get_profile(name: str) -> dict:
     if name not in PROFILES:
         raise ValueError(f"unknown profile {name!r}: choose one of {', '.join(PROFILES)}")
     return dict(PROFILES[name])
+
+
+# --------------------------------------------------------------------------- evidence for the teach recipe
+# Runs of benchmarks/tune_teach.py (Case 1, seed 0, scenario_teach, 64 px input), scored on the
+# whole validation split; every run is a line of benchmarks/tuning_log.jsonl. Notebook 04 shows it.
+TEACH_EVIDENCE: list[dict] = []
+TEACH_EVIDENCE_NOTE = ""
+
+# The loss-weight search: Case 2 runs for lambda2 and Case 3 runs for lambda3 at the teach budget,
+# scored on the validation split (benchmarks/tuning_log.jsonl). Notebook 04 shows it.
+LAMBDA_SEARCH: list[dict] = []
+LAMBDA_SEARCH_NOTE = ""

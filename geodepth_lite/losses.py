@@ -110,7 +110,30 @@ def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | No
     return masked_mean((torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe)).abs(), valid)
 
 
-DEPTH_TERMS = {"l1": depth_loss, "log_l1": log_depth_loss}  # the depth term's variants
+SILOG_VARIANCE_FOCUS = 0.85  # lambda of the scale-invariant log loss (Eigen et al. 2014; BTS)
+
+
+def silog_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Scale-invariant log loss, per frame sqrt(mean(d^2) - lambda mean(d)^2), d = ln D_pred - ln D_gt.
+
+    Not the paper's term. One image does not say how far away the scene is (the endoscope's
+    auto-exposure removes the brightness cue for absolute scale), and the metrics median-scale
+    every frame. With lambda = 0.85 the loss mostly ignores a frame's global scale error
+    (the mean of d) and spends the network's effort on relative depth; the remaining 15%
+    keeps the scale anchored. Mean over the frames that have valid pixels.
+    """
+    gt_safe, valid = _prepare(pred, gt, mask)
+    d = torch.where(valid, torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe), torch.zeros_like(pred))
+    n = valid.flatten(1).sum(1).to(d.dtype)  # valid pixels per frame
+    has = n > 0
+    n = n.clamp(min=1)
+    mean = d.flatten(1).sum(1) / n
+    msq = (d * d).flatten(1).sum(1) / n
+    per_frame = torch.sqrt((msq - SILOG_VARIANCE_FOCUS * mean * mean).clamp(min=1e-12))
+    return torch.where(has, per_frame, torch.zeros_like(per_frame)).sum() / has.sum().clamp(min=1).to(d.dtype)
+
+
+DEPTH_TERMS = {"l1": depth_loss, "log_l1": log_depth_loss, "silog": silog_depth_loss}  # the depth term's variants
 
 
 def smoothness_loss(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:

@@ -232,7 +232,13 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
         target.parent.mkdir(parents=True, exist_ok=True)
         (out / MARKER_DIR / f"{nb.stem}.json").unlink(missing_ok=True)
         try:
-            papermill.execute_notebook(str(nb), str(target), parameters=p, kernel_name="python3",
+            # only what differs from the notebook's own defaults is injected, so a default run's
+            # executed notebook is the notebook itself, outputs filled in (no injected cell)
+            defaults = notebook_parameters(nb)
+            given = {k: v for k, v in p.items() if not (k in defaults and defaults[k] == v)}
+            if run_dir is None and str(out) == str(resolve_run_dir(profile, "")):
+                given.pop("run_dir", None)  # "" resolves to the same folder in the kernel
+            papermill.execute_notebook(str(nb), str(target), parameters=given, kernel_name="python3",
                                        cwd=str(nb.parent), progress_bar=progress)
         except papermill.PapermillExecutionError as exc:
             raise NotebookFailed(f"{nb.name} failed ({exc.ename}: {exc.evalue}); the executed copy with the "

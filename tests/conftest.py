@@ -8,6 +8,10 @@ import pytest
 
 matplotlib.use("Agg")
 
+# the workspace the user chose (or "" for the checkout's), before unit tests isolate theirs:
+# tests that must share checkpoints with the notebooks (tests/test_results.py) go back to it
+os.environ.setdefault("GEODEPTH_LITE_TEST_REAL_HOME", os.environ.get("GEODEPTH_LITE_HOME", ""))
+
 
 @pytest.fixture(autouse=True)
 def _isolated_workspace(tmp_path, monkeypatch):
