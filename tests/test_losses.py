@@ -349,3 +349,40 @@ def test_ground_truth_field_cache_returns_the_same_loss_and_gradient():
     assert len(cache) == 3
     cache.max_bytes = 0
     assert cache.get("anything") is None
+
+
+def test_log_and_scale_invariant_depth_terms_known_values():
+    gt = torch.rand(3, 1, 6, 7, dtype=torch.float64) + 0.5
+    # log-L1: a prediction 2x too far is ln 2 off everywhere
+    assert float(L.log_depth_loss(2 * gt, gt)) == pytest.approx(np.log(2), rel=1e-9)
+    # scale-invariant log: a global scale c costs only sqrt(1 - lambda) |ln c| ...
+    lam = L.SILOG_VARIANCE_FOCUS
+    assert float(L.silog_depth_loss(3 * gt, gt)) == pytest.approx(np.sqrt(1 - lam) * np.log(3), rel=1e-9)
+    # ... while relative errors cost fully: d = +-a on half the pixels each gives sqrt(a^2)
+    a = 0.2
+    sign = torch.ones_like(gt)
+    sign[..., ::2] = -1  # 7 columns: 4 at -a, 3 at +a per row
+    d = a * sign
+    mean = d.mean(dim=(1, 2, 3))
+    expected = torch.sqrt((d * d).mean(dim=(1, 2, 3)) - lam * mean**2).mean()
+    assert float(L.silog_depth_loss(gt * torch.exp(d), gt)) == pytest.approx(float(expected), rel=1e-9)
+    # invalid ground truth is ignored, a frame without valid pixels does not count
+    gt2 = gt.clone()
+    gt2[1] = float("nan")
+    per = [float(L.silog_depth_loss((3 * gt)[i:i + 1], gt[i:i + 1])) for i in (0, 2)]
+    assert float(L.silog_depth_loss(3 * gt, gt2)) == pytest.approx(np.mean(per), rel=1e-9)
+    with pytest.raises(ValueError, match="depth_term"):
+        L.total_loss(gt, gt, torch.rand(3, 3, 6, 7), torch.eye(3), depth_term="l2")
+
+
+def test_term_gradient_norms_known_values():
+    """dL1/dD = sign(D - gt) / N at each of N valid pixels, so its norm is 1 / sqrt(N)."""
+    gt = torch.randint(4, 12, (2, 1, 5, 4)).float() / 4  # dyadic: the offset's differences are exact
+    pred = gt + 0.25
+    K = torch.tensor([[4.0, 0, 2.0], [0, 4.0, 2.5], [0, 0, 1]])
+    norms = L.term_gradient_norms(pred, gt, torch.rand(2, 3, 5, 4), K, sdf_grid=3)
+    assert set(norms) == {"depth", "smooth", "grad", "normal", "sdf"}
+    assert norms["depth"] == pytest.approx(1 / np.sqrt(40), rel=1e-6)
+    assert norms["grad"] == pytest.approx(0.0, abs=1e-7)  # an offset has the ground truth's gradients
+    assert norms["normal"] == pytest.approx(0.0, abs=1e-7)
+    assert norms["sdf"] > 0

@@ -134,6 +134,9 @@ def test_bad_settings_are_named():
         train.make_config("smoke", lr_schedule="linear")
     with pytest.raises(FileNotFoundError, match="encoder_weights"):
         train.make_config("smoke", encoder_weights="/nonexistent/resnet18.pth")
+    for key in ("optimizer", "depth_term", "augment"):
+        with pytest.raises(ValueError, match=key):
+            train.make_config("smoke", **{key: "nonsense"})
 
 
 def test_paper_profile_has_the_papers_settings():
@@ -141,6 +144,45 @@ def test_paper_profile_has_the_papers_settings():
     assert (cfg["image_size"], cfg["epochs"], cfg["batch_size"], cfg["lr"], cfg["weight_decay"]) == (320, 18, 20, 1e-4, 0.01)
     assert cfg["betas"] == [0.9, 0.999] and cfg["sdf_grid"] == 32 and cfg["lambdas"] == [1.0, 1.0, 1.0]
     assert cfg["lr_schedule"] == "constant"
+    assert (cfg["optimizer"], cfg["depth_term"], cfg["augment"]) == ("adam", "l1", "none")
+
+
+def test_case_lambdas_switch_terms_on_with_the_profiles_weights():
+    from geodepth_lite import config
+
+    w2, w3 = config.PROFILES["teach"]["geo_weights"]
+    assert [train.make_config("teach", c)["lambdas"] for c in (1, 2, 3, 4)] == [
+        [1.0, 0.0, 0.0], [1.0, w2, 0.0], [1.0, 0.0, w3], [1.0, w2, w3]]
+    assert train.make_config("paper", 4)["lambdas"] == [1.0, 1.0, 1.0]  # the paper states no weights
+
+
+def test_flip_augmentation_mirrors_the_3d_scene():
+    """A flipped frame with K's cx moved to W - 1 - cx back-projects to the mirror image (x -> -x)."""
+    from geodepth_lite import camera
+
+    torch.manual_seed(0)
+    B, H, W = 6, 8, 10
+    depth = torch.rand(B, 1, H, W) + 1
+    K = torch.tensor([[7.0, 0, 4.3], [0, 7.0, 3.9], [0, 0, 1]]).expand(B, 3, 3).clone()
+    batch = {"image": torch.rand(B, 3, H, W), "depth": depth, "K": K, "valid": depth > 1.5}
+    torch.manual_seed(1)
+    out = train.augment_batch(batch, "flip")
+    torch.manual_seed(1)
+    flipped = torch.rand(B) < 0.5  # the same draw
+    assert 0 < int(flipped.sum()) < B
+    P = camera.backproject(depth, K).reshape(B, H, W, 3)
+    Q = camera.backproject(out["depth"], out["K"]).reshape(B, H, W, 3)
+    for b in range(B):
+        if flipped[b]:
+            mirror = P[b].flip(1) * torch.tensor([-1.0, 1.0, 1.0])
+            torch.testing.assert_close(Q[b], mirror)
+            assert torch.equal(out["valid"][b], batch["valid"][b].flip(-1))
+            assert torch.equal(out["image"][b], batch["image"][b].flip(-1))
+        else:
+            torch.testing.assert_close(Q[b], P[b])
+    assert train.augment_batch(batch, "none") is batch
+    color = train.augment_batch(batch, "flip_color")
+    assert color["image"].min() >= 0 and color["image"].max() <= 1
 
 
 def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):

@@ -1,0 +1,64 @@
+"""The ablation's statistics: paired differences, Student-t intervals, verdicts, records."""
+
+import math
+
+import numpy as np
+import pytest
+
+from geodepth_lite import ablation
+
+
+def test_t_interval_hand_computed():
+    # values 1, 2, 3: mean 2, sd 1, t(0.975, 2) = 4.302653 -> half width 4.302653 / sqrt(3)
+    m, lo, hi = ablation.t_interval([1.0, 2.0, 3.0])
+    half = 4.302652729911275 / math.sqrt(3)
+    assert m == pytest.approx(2.0) and lo == pytest.approx(2 - half) and hi == pytest.approx(2 + half)
+    assert ablation.t_interval([5.0])[1:] == (-math.inf, math.inf)
+
+
+def test_verdict_reads_the_interval():
+    assert ablation.verdict(-0.3, -0.1) == "reproduced"
+    assert ablation.verdict(0.1, 0.3) == "opposite"
+    assert ablation.verdict(-0.1, 0.1) == "undecided at this power"
+    # higher is better (a1): a positive interval is an improvement
+    assert ablation.verdict(0.1, 0.3, lower_is_better=False) == "reproduced"
+
+
+def _result(case_offsets, seed_effects, cases=(1, 2)):
+    scores = {}
+    for c in cases:
+        for s, e in enumerate(seed_effects):
+            m = {k: 0.5 for k in ablation.evaluate.METRIC_KEYS}
+            m["abs_rel"] = 0.20 + e + case_offsets[c][s]
+            scores[(c, s)] = {ablation.IN_DOMAIN: m}
+    base = {ablation.IN_DOMAIN: {"constant": {"abs_rel": 0.33}, "shading_prior": {"abs_rel": 0.16}}}
+    return {"cases": list(cases), "seeds": list(range(len(seed_effects))), "scores": scores, "baselines": base}
+
+
+def test_pairing_removes_the_seed_effect():
+    """Seeds differ a lot (0.00, 0.05, 0.10) but Case 2 is 0.01 better at every seed: paired, that is
+    certain; unpaired (two independent means) it would drown in the seed spread."""
+    r = _result({1: [0, 0, 0], 2: [-0.01, -0.011, -0.009]}, [0.0, 0.05, 0.10])
+    p = ablation.paired(r, "abs_rel", ablation.IN_DOMAIN, 2)
+    assert p["diffs"] == pytest.approx([-0.01, -0.011, -0.009])
+    assert p["verdict"] == "reproduced"
+    assert p["rel"] == pytest.approx(100 * -0.01 / 0.25)
+    stats = ablation.case_stats(r, ablation.IN_DOMAIN, "abs_rel")
+    assert stats[1][1] == pytest.approx(0.05)  # the seed spread the pairing removed
+    worse = _result({1: [0, 0, 0], 2: [0.02, 0.03, 0.025]}, [0.0, 0.05, 0.10])
+    assert ablation.paired(worse, "abs_rel", ablation.IN_DOMAIN, 2)["verdict"] == "opposite"
+    mixed = _result({1: [0, 0, 0], 2: [0.02, -0.03, 0.0]}, [0.0, 0.05, 0.10])
+    assert ablation.paired(mixed, "abs_rel", ablation.IN_DOMAIN, 2)["verdict"] == "undecided at this power"
+
+
+def test_baselines_margin_and_record():
+    r = _result({1: [0, 0, 0], 2: [-0.1, -0.1, -0.1]}, [-0.08, -0.07, 0.0])
+    # case 1: 0.12, 0.13, 0.20; case 2: 0.02, 0.03, 0.10; best baseline 0.16, 20% below it = 0.128
+    beats = ablation.beats_baselines(r, ablation.IN_DOMAIN, "abs_rel", 0.2)
+    assert beats == {(1, 0): True, (1, 1): False, (1, 2): False, (2, 0): True, (2, 1): True, (2, 2): True}
+    rec = ablation.record(r)
+    assert rec[f"case1 seed2 | {ablation.IN_DOMAIN} | abs_rel"] == 0.2
+    assert rec[f"baselines | {ablation.IN_DOMAIN} | shading_prior | abs_rel"] == 0.16
+    lines = ablation.claims(r)
+    assert any("Case 2 vs Case 1 -> reproduced" in line for line in lines)
+    assert f"{ablation.IN_DOMAIN}: runs below every baseline in Abs Rel: 5 of 6; at least 20% below the best baseline: 4 of 6" in lines
