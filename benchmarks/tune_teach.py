@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -66,6 +67,9 @@ def main(argv=None) -> int:
            "val_rmse_log": round(m["rmse_log"], 4), "val_a1": round(m["a1"], 4),
            "train_depth_last": round(hist[-1]["train_depth"], 4), "minutes": round(minutes, 2),
            "frames_per_s": round(hist[-1]["train_frames_per_s"], 1)}
+    env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
+    if env:  # a kernel cap changes the trained weights: say so
+        row["env"] = env
     with open(args.log, "a") as f:
         f.write(json.dumps(row) + "\n")
     print(json.dumps(row))

@@ -4,15 +4,18 @@ Trained weights differ between computers (CPU math kernels sum in different orde
 notebook cells that print them are not compared digit by digit by nbval. Each such notebook
 ends with a "# results record" cell printing every one of those numbers as JSON. This test
 executes the notebook on the machine at hand (reusing cached checkpoints, as nbval does next)
-and compares its fresh record with the committed one:
+and compares its fresh record with the committed one (when `reproduce` already executed the same
+notebook in this workspace, that run's record is used instead of executing it again):
 
 - metrics of trained models: |fresh - committed| <= ABS_TOL[metric] + REL_TOL * |committed|;
 - baselines (no training involved): within 1e-3.
 
 The tolerances were set from the change a different kernel set makes: retraining the teach
-runs with oneDNN capped one instruction-set level lower (``ONEDNN_MAX_CPU_ISA=AVX2``, what
-``perturbed-pytest`` does) moved Abs Rel by up to MEASURED_ABS_REL_SHIFT; the tolerance is
-about three times that, still far below the gap between a trained model and the baselines.
+Case 1 recipe with oneDNN capped one instruction-set level lower (``ONEDNN_MAX_CPU_ISA=AVX2``,
+what ``perturbed-pytest`` does) moved the final validation Abs Rel from 0.1034 to 0.1021 and
+RMSE from 0.809 to 0.821 (benchmarks/tuning_log.jsonl, runs r3_c1_e8 and r3_c1_e8_avx2). The
+tolerance for Abs Rel at 0.10 is 0.015, about ten times that shift and still less than a
+quarter of the gap between the trained models and the best baseline (the shading prior, 0.16).
 The verdicts and the standing against the baselines are strict nbval outputs in the notebooks.
 """
 
@@ -27,10 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 NOTEBOOKS = sorted(p for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb")
                    if "# results record" in p.read_text())
 BASELINE_KEYS = ("constant", "mean_depth_map", "shading_prior")
-MEASURED_ABS_REL_SHIFT = 0.01  # see the module docstring
-REL_TOL = 0.10
-DEFAULT_ABS_TOL = 0.02  # other numbers of the records (notebook 07: scale ratios, wall errors)
-ABS_TOL = {"abs_rel": 0.02, "sq_rel": 0.03, "rmse": 0.10, "rmse_log": 0.03, "a1": 0.04, "a2": 0.03, "a3": 0.02}
+REL_TOL = 0.05
+DEFAULT_ABS_TOL = 0.02  # other numbers of the records (notebook 07: one frame's Abs Rel, scale ratios, wall errors)
+ABS_TOL = {"abs_rel": 0.01, "sq_rel": 0.02, "rmse": 0.05, "rmse_log": 0.015, "a1": 0.02, "a2": 0.015, "a3": 0.01}
 
 
 def record_of(nb) -> dict:
@@ -39,6 +41,19 @@ def record_of(nb) -> dict:
             text = "".join(o.get("text", "") for o in cell.get("outputs", []) if o.get("name") == "stdout")
             return json.loads(text)
     raise AssertionError("no '# results record' cell with output")
+
+
+def reproduced_copy(path: Path, nb):
+    """The copy of ``path`` that ``python -m geodepth_lite reproduce`` (default profile) executed in this
+    workspace, if its code is the committed notebook's cell for cell; else None."""
+    from geodepth_lite import utils
+
+    copy = utils.runs_dir() / "teach" / "notebooks" / path.name
+    if not copy.exists():
+        return None
+    done = nbformat.read(str(copy), as_version=4)
+    code = lambda n: [c.source for c in n.cells if c.cell_type == "code"]  # noqa: E731
+    return done if code(done) == code(nb) else None
 
 
 def tolerance(key: str, committed: float) -> float:
@@ -63,11 +78,16 @@ def test_record_matches_committed(path, tmp_path, monkeypatch):
         monkeypatch.setenv("GEODEPTH_LITE_HOME", home)
     else:
         monkeypatch.delenv("GEODEPTH_LITE_HOME", raising=False)
-    committed = record_of(nbformat.read(str(path), as_version=4))
-    out = tmp_path / path.name
-    pm.execute_notebook(str(path), str(out), parameters={"run_dir": str(tmp_path / "run")}, kernel_name="python3",
-                        progress_bar=False, cwd=str(path.parent))
-    fresh = record_of(nbformat.read(str(out), as_version=4))
+    nb = nbformat.read(str(path), as_version=4)
+    committed = record_of(nb)
+    done = reproduced_copy(path, nb)
+    if done is not None:  # `reproduce` executed this very notebook on this machine: use its record
+        fresh = record_of(done)
+    else:
+        out = tmp_path / path.name
+        pm.execute_notebook(str(path), str(out), parameters={"run_dir": str(tmp_path / "run")},
+                            kernel_name="python3", progress_bar=False, cwd=str(path.parent))
+        fresh = record_of(nbformat.read(str(out), as_version=4))
     assert sorted(fresh) == sorted(committed), "the record's entries changed: re-execute the notebook"
     bad = [f"{k}: committed {committed[k]}, now {fresh[k]} (tolerance {tolerance(k, committed[k]):.3f})"
            for k in committed if abs(fresh[k] - committed[k]) > tolerance(k, committed[k])]
