@@ -42,7 +42,7 @@ PROFILES: dict[str, dict] = {
         "optimizer": "adam",
         "depth_term": "silog",         # relative depth; the absolute L1 is dominated by far lumen pixels
         "augment": "none",
-        "geo_weights": (0.1, 0.1),     # (lambda2, lambda3), chosen on the validation split (LAMBDA_SEARCH)
+        "geo_weights": (1.0, 0.01),    # (lambda2, lambda3), chosen on the validation split (LAMBDA_SEARCH)
         "sdf_grid": 8,                 # 8^3 samples for 64x64 depth maps (the paper: 32^3 for 320x320)
         "seeds": [0, 1, 2],            # paired seeds of the ablation
         "train_frames": None,          # all 600 training frames
@@ -99,12 +99,48 @@ def get_profile(name: str) -> dict:
 
 
 # --------------------------------------------------------------------------- evidence for the teach recipe
-# Runs of benchmarks/tune_teach.py (Case 1, seed 0, scenario_teach, 64 px input), scored on the
-# whole validation split; every run is a line of benchmarks/tuning_log.jsonl. Notebook 04 shows it.
-TEACH_EVIDENCE: list[dict] = []
-TEACH_EVIDENCE_NOTE = ""
+# Runs of benchmarks/tune_teach.py (Case 1, seed 0, scenario_teach, 64 px input, lr 1e-3 with
+# cosine decay, all 600 training frames unless the row says otherwise), scored on the whole
+# validation split (120 frames; the test split was never used to choose). Every run is a line of
+# benchmarks/tuning_log.jsonl ("run" names it). Notebook 04 shows this table.
+TEACH_EVIDENCE: list[dict] = [
+    {"recipe": "paper's optimizer: L1 depth term, Adam with coupled weight decay 0.01", "epochs": 10, "abs_rel": 0.1782, "rmse": 1.0327, "rmse_log": 0.2276, "run": "r1_l1_adam_wd.01"},
+    {"recipe": "L1, weight decay 0", "epochs": 10, "abs_rel": 0.1705, "rmse": 0.9601, "rmse_log": 0.2221, "run": "r1_l1_wd0"},
+    {"recipe": "log-L1 depth term, weight decay 0", "epochs": 10, "abs_rel": 0.1601, "rmse": 1.2128, "rmse_log": 0.2326, "run": "r1_log_wd0"},
+    {"recipe": "log-L1, AdamW (decoupled) 0.01", "epochs": 10, "abs_rel": 0.1482, "rmse": 1.2169, "rmse_log": 0.2228, "run": "r1_log_adamw.01"},
+    {"recipe": "scale-invariant log (silog), weight decay 0", "epochs": 10, "abs_rel": 0.0972, "rmse": 0.786, "rmse_log": 0.1372, "run": "r2_silog"},
+    {"recipe": "silog, AdamW 0.01", "epochs": 10, "abs_rel": 0.0986, "rmse": 0.7901, "rmse_log": 0.1391, "run": "r2_silog_adamw.01"},
+    {"recipe": "silog, AdamW 0.01, flip augmentation", "epochs": 10, "abs_rel": 0.0977, "rmse": 0.7794, "rmse_log": 0.1397, "run": "r2_silog_adamw_flip"},
+    {"recipe": "silog, AdamW 0.01, batch 8 (2.5x the steps, 1.2x the time)", "epochs": 10, "abs_rel": 0.0936, "rmse": 0.7893, "rmse_log": 0.1341, "run": "r2_silog_adamw_bs8"},
+    {"recipe": "silog, weight decay 0, lr 3e-4", "epochs": 8, "abs_rel": 0.1041, "rmse": 0.7771, "rmse_log": 0.1467, "run": "r4_c1_e8_lr3e-4"},
+    {"recipe": "silog, weight decay 0, 300 frames x 16 epochs (same steps)", "epochs": 16, "abs_rel": 0.1072, "rmse": 0.8213, "rmse_log": 0.1516, "run": "r4_c1_e8_frames300_e16"},
+    {"recipe": "**teach: silog, weight decay 0** (8 epochs to fit the budget)", "epochs": 8, "abs_rel": 0.1034, "rmse": 0.8094, "rmse_log": 0.1455, "run": "r3_c1_e8"},
+]
+TEACH_EVIDENCE_NOTE = (
+    "Validation split, 120 frames; the shading prior scores Abs Rel 0.165 there. The depth term "
+    "decides almost everything: the absolute L1 (the paper's) is dominated by far lumen pixels, and "
+    "the scale-invariant log loss lowers Abs Rel from 0.17 to 0.10. Coupled weight decay 0.01 "
+    "costs a little; AdamW, flips, and the other knobs move Abs Rel by less than one seed's noise "
+    "(about 0.005: the same run with CPU kernels capped at AVX2 gave 0.1021 instead of 0.1034). "
+    "Teach trains 8 epochs rather than 10 (+0.006 Abs Rel) so that the twelve ablation runs fit "
+    "the reproduce budget."
+)
 
-# The loss-weight search: Case 2 runs for lambda2 and Case 3 runs for lambda3 at the teach budget,
-# scored on the validation split (benchmarks/tuning_log.jsonl). Notebook 04 shows it.
-LAMBDA_SEARCH: list[dict] = []
-LAMBDA_SEARCH_NOTE = ""
+# The loss-weight search: Case 2 runs for lambda2 and Case 3 runs for lambda3 with the teach recipe
+# (8 epochs, seed 0), the other geometric weight at 0, scored on the validation split
+# (benchmarks/tuning_log.jsonl). The chosen weights are the teach profile's geo_weights.
+LAMBDA_SEARCH: list[dict] = [
+    {"case": 1, "lambda2": 0.0, "lambda3": 0.0, "abs_rel": 0.1034, "rmse": 0.8094, "run": "r3_c1_e8"},
+    {"case": 2, "lambda2": 1.0, "lambda3": 0.0, "abs_rel": 0.1002, "rmse": 0.776, "run": "r3_c2_l1"},
+    {"case": 2, "lambda2": 0.1, "lambda3": 0.0, "abs_rel": 0.102, "rmse": 0.8136, "run": "r3_c2_l0.1"},
+    {"case": 2, "lambda2": 0.01, "lambda3": 0.0, "abs_rel": 0.102, "rmse": 0.7993, "run": "r3_c2_l0.01"},
+    {"case": 3, "lambda2": 0.0, "lambda3": 1.0, "abs_rel": 0.1971, "rmse": 1.8382, "run": "r3_c3_l1"},
+    {"case": 3, "lambda2": 0.0, "lambda3": 0.1, "abs_rel": 0.1127, "rmse": 0.7372, "run": "r3_c3_l0.1"},
+    {"case": 3, "lambda2": 0.0, "lambda3": 0.01, "abs_rel": 0.1002, "rmse": 0.7642, "run": "r3_c3_l0.01"},
+]
+LAMBDA_SEARCH_NOTE = (
+    "Chosen by the lowest validation Abs Rel per weight: lambda2 = 1 and lambda3 = 0.01. The SDF "
+    "term at weight 1 doubles Abs Rel (0.197, worse than the shading prior): its gradient at the "
+    "output is about twenty times the depth term's. At 0.1 it lowers RMSE but raises Abs Rel. "
+    "One seed per row: differences below about 0.005 are within noise."
+)
