@@ -104,7 +104,7 @@ def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | No
 
     Not the paper's term (its Eq. 1 is the absolute L1 above). A far lumen pixel at 30 units
     weighs no more here than a wall pixel at 1 unit, as in the median-scaled metrics
-    (Abs Rel, RMSE log); the teach profile uses it (see ``config.TEACH_EVIDENCE``).
+    (Abs Rel, RMSE log). Measured against L1 and silog in ``config.TEACH_EVIDENCE``.
     """
     gt_safe, valid = _prepare(pred, gt, mask)
     return masked_mean((torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe)).abs(), valid)
@@ -534,7 +534,7 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     with keys depth, smooth, grad, normal, sdf, total (unweighted terms, weighted total).
     A zero lambda skips computing its terms, which are then reported as 0.0. The ablation
     cases of Sec. 4.3 are lambda settings (``config.ABLATION_CASES``). ``depth_term``: "l1"
-    (the paper's Eq. 1) or "log_l1" (:func:`log_depth_loss`).
+    (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
     """
     if depth_term not in DEPTH_TERMS:
         raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
