@@ -6,6 +6,8 @@ Trains ``train.make_config("teach", case, seed, **settings)`` into ``runs/tune/N
 {name, case, seed, settings, val metrics on the whole validation split, minutes} to
 ``benchmarks/tuning_log.jsonl``. The test split is never read here: choices are made on
 validation (the tables in ``config.TEACH_EVIDENCE`` and notebook 04 come from this log).
+With ``--closeups`` the row also holds the model's and the shading prior's Abs Rel on the
+teach profile's ``heldout_closeup`` set, for the record only (never used to choose).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from geodepth_lite import train, utils
+from geodepth_lite import baselines, config, evaluate, synth, train, utils
 from geodepth_lite.metrics import compute_depth_metrics
 
 LOG = Path(__file__).with_name("tuning_log.jsonl")
@@ -39,6 +41,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a training setting (JSON value), e.g. lr=3e-4, lambdas=[1,0.1,0.1]")
     ap.add_argument("--log", default=str(LOG))
+    ap.add_argument("--closeups", action="store_true", help="also score heldout_closeup (recorded, not for choosing)")
     args = ap.parse_args(argv)
     settings = {}
     for item in args.set:
@@ -67,6 +70,15 @@ def main(argv=None) -> int:
            "val_rmse_log": round(m["rmse_log"], 4), "val_a1": round(m["a1"], 4),
            "train_depth_last": round(hist[-1]["train_depth"], 4), "minutes": round(minutes, 2),
            "frames_per_s": round(hist[-1]["train_frames_per_s"], 1)}
+    row["generator"] = synth.GENERATOR_VERSION
+    if args.closeups:
+        prof = config.get_profile("teach")
+        ds = evaluate.open_eval_dataset(str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"],
+                                                                  progress=False)), split="test")
+        r = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"], error_maps=0)
+        b = baselines.evaluate_baselines(ds, None, names=["shading_prior"])["shading_prior"]
+        row["closeup_abs_rel"] = round(r["overall"]["abs_rel"], 4)
+        row["closeup_shading_prior_abs_rel"] = round(b["overall"]["abs_rel"], 4)
     env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
     if env:  # a kernel cap changes the trained weights: say so
         row["env"] = env

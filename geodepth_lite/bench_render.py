@@ -1,7 +1,8 @@
 """Renderer benchmark: frames/s at 320x320 for the colon preset (``python -m geodepth_lite.bench_render``).
 
 Times what dataset generation does per frame once a scene is set up: sample a pose,
-auto-exposure rays, lights, render, read back RGB + depth. One scene (tube, texture)
+auto-exposure rays, lights, render, read back RGB + depth, and the appearance
+post-process (``appearance.py``) with the recipe's settings. One scene (tube, texture)
 is reused; the figure is the median over repeats of ``--frames`` frames each.
 Scene set-up (tube mesh, texture) is reported separately.
 """
@@ -22,8 +23,9 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
     Uses the ``scenario_paper`` recipe (the one that renders 320x320 frames) at ``size``;
     ``resolution`` ({"n_theta", "ring_step"}) overrides its mesh resolution.
     """
-    from . import synth
+    from . import appearance as ap
     from . import render as rd
+    from . import synth
     from . import tube as tb
 
     overrides = {"camera": {"width": size, "height": size}}
@@ -44,11 +46,13 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
         for rep in range(repeats + 1):
             t = time.perf_counter()
             for _ in range(frames):
-                T, _ = rd.sample_pose(tube, rng, m["camera_path"])
+                T, _ = rd.sample_pose(tube, rng, synth.split_path(m, "train"))
                 lights, tint = rd.sample_lighting(lighting, rng, float(tube.preset["radius"]),
                                                   rd.exposure_distance(tube, T, K, size, size))
+                look = ap.sample_appearance(m["appearance"], rng)
                 renderer.set_tint(tint)
-                renderer.render(T, lights)
+                rgb, _depth = renderer.render(T, lights)
+                ap.apply_appearance(rgb, look)
             if rep > 0:  # the first repeat warms up caches and the GL pipeline
                 fps.append(frames / (time.perf_counter() - t))
     finally:

@@ -27,6 +27,7 @@ PROFILES: dict[str, dict] = {
         "val_frames": None,            # N evenly spaced validation frames (None = the whole split)
         "threads": 1,                  # CPU threads per run (None = torch's default); results depend on it
         "heldout_overrides": {"camera": {"width": 64, "height": 64}, "splits": {"test": 6}},  # held-out groups
+        "closeup_overrides": {"camera": {"width": 64, "height": 64}, "splits": {"test": 6}},  # heldout_closeup
     },
     "teach": {
         # Departs from the paper where a CPU budget and the validation split said so
@@ -50,6 +51,7 @@ PROFILES: dict[str, dict] = {
         "threads": 1,                  # one thread per run, two runs side by side on two cores
         # held-out texture x lighting groups rendered smaller and shorter than ColonDepth's 364 at 256x256
         "heldout_overrides": {"camera": {"width": 128, "height": 128}, "splits": {"test": 60}},
+        "closeup_overrides": {"camera": {"width": 128, "height": 128}},  # all 300 close-ups, at 128x128
     },
     "paper": {
         "dataset": "scenario_paper",
@@ -69,6 +71,7 @@ PROFILES: dict[str, dict] = {
         "val_frames": None,
         "threads": None,
         "heldout_overrides": None,     # the manifests as shipped: 364 frames at 256x256 per group
+        "closeup_overrides": None,     # 300 close-ups at 256x256
     },
 }
 

@@ -190,6 +190,85 @@ def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size:
                               baselines=baselines)
 
 
+BORDER_BANDS = ("top", "bottom", "left", "right")
+
+
+def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band: float = 0.1,
+                     min_depth: float = 1e-3, max_depth: float = 100.0, progress: bool = False) -> dict:
+    """Is a predictor biased near the image border? Per-pixel log errors averaged over ``dataset``.
+
+    Each frame's prediction is median-scaled to its ground truth (as the metrics see it); then
+    e = log(pred) - log(gt) on valid pixels. Returns {"signed": H x W mean e, "abs": H x W mean
+    |e|, "count": H x W valid frames per pixel, "bands": mean |e| over the outer ``band``
+    fraction of rows/columns on each side and over the centre (the middle half in both axes),
+    "ratios": each border band's mean |e| over the centre's}. Frames must share one size.
+    """
+    from tqdm.auto import tqdm
+
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=_collate_eval)
+    signed = absolute = count = None
+    for batch in tqdm(loader, desc="border error map", disable=not progress, leave=False):
+        gt = batch["depth"].numpy()[:, 0].astype(np.float64)  # (B, H, W)
+        valid = (gt > min_depth) & (gt < max_depth)
+        if "valid" in batch:
+            valid &= batch["valid"].numpy()[:, 0].astype(bool)
+        pred = _as_depth_batch(predict_fn(batch["image"])).astype(np.float64)  # (B, H, W)
+        if pred.shape != gt.shape:
+            raise ValueError(f"predictor returned depth of shape {pred.shape} for ground truth {gt.shape}")
+        if signed is None:
+            signed, absolute, count = (np.zeros(gt.shape[1:]) for _ in range(3))
+        elif gt.shape[1:] != signed.shape:
+            raise ValueError(f"border_error_map needs frames of one size, got {gt.shape[1:]} after {signed.shape}")
+        for j in range(gt.shape[0]):
+            v = valid[j] & (pred[j] > 0) & np.isfinite(pred[j])
+            if not v.any():
+                continue
+            ratio = np.median(gt[j][v]) / np.median(pred[j][v])  # the protocol's median scaling
+            e = np.where(v, np.log(np.where(v, pred[j] * ratio, 1.0)) - np.log(np.where(v, gt[j], 1.0)), 0.0)
+            signed += e
+            absolute += np.abs(e)
+            count += v
+    if signed is None:
+        raise ValueError("border_error_map: the dataset has no frame")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = {"signed": signed / count, "abs": absolute / count, "count": count}
+    out["bands"], out["ratios"] = border_bands(absolute, count, band)
+    return out
+
+
+def border_bands(abs_sum: np.ndarray, count: np.ndarray, band: float = 0.1) -> tuple[dict, dict]:
+    """Mean |error| per region from per-pixel sums and counts: ({region: mean}, {border band: mean / centre})."""
+    H, W = abs_sum.shape
+    bh, bw = max(1, round(band * H)), max(1, round(band * W))
+    regions = {"top": (slice(0, bh), slice(None)), "bottom": (slice(H - bh, H), slice(None)),
+               "left": (slice(None), slice(0, bw)), "right": (slice(None), slice(W - bw, W)),
+               "centre": (slice(H // 4, H - H // 4), slice(W // 4, W - W // 4))}
+    means = {k: float(abs_sum[r].sum() / max(count[r].sum(), 1)) for k, r in regions.items()}
+    ratios = {k: means[k] / means["centre"] if means["centre"] > 0 else float("nan") for k in BORDER_BANDS}
+    return means, ratios
+
+
+def border_map_figure(maps: dict, title: str = ""):
+    """Two panels: the mean signed log error (diverging colours) and the mean |log error| per pixel."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(8.4, 3.6))
+    lim = float(np.nanmax(np.abs(maps["signed"]))) or 1.0
+    im = axes[0].imshow(maps["signed"], cmap="RdBu_r", vmin=-lim, vmax=lim)
+    axes[0].set_title("mean signed log error\n(red: too far, blue: too near)")
+    fig.colorbar(im, ax=axes[0], fraction=0.046)
+    im = axes[1].imshow(maps["abs"], cmap="magma", vmin=0)
+    ratios = ", ".join(f"{k} {v:.2f}" for k, v in maps["ratios"].items())
+    axes[1].set_title(f"mean |log error|\nborder / centre: {ratios}", fontsize=9)
+    fig.colorbar(im, ax=axes[1], fraction=0.046)
+    for ax in axes:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
 def _collate_eval(batch: list[dict]) -> dict:
     from geodepth_lite.train import _collate
 

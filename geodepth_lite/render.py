@@ -42,6 +42,8 @@ TEXTURES: dict[str, dict] = {
     "T1":     {"base_color": [0.93, 0.70, 0.52], "mottle": 0.10, "mottle_scale": 0.15, "vessel_color": [0.70, 0.25, 0.20], "vessel_density": 3.0, "vessel_width": 0.07, "vessel_strength": 0.6, "size": 512},
     "T2":     {"base_color": [0.70, 0.22, 0.22], "mottle": 0.30, "mottle_scale": 0.04, "vessel_color": [0.35, 0.03, 0.06], "vessel_density": 12.0, "vessel_width": 0.03, "vessel_strength": 0.7, "size": 512},
     "T3":     {"base_color": [0.82, 0.50, 0.55], "mottle": 0.25, "mottle_scale": 0.10, "vessel_color": [0.40, 0.10, 0.30], "vessel_density": 5.0, "vessel_width": 0.05, "vessel_strength": 0.9, "size": 512},
+    # held-out close-up family: yellowish duodenal mucosa with fine villous mottling, few vessels
+    "T4":     {"base_color": [0.92, 0.72, 0.48], "mottle": 0.28, "mottle_scale": 0.03, "vessel_color": [0.72, 0.35, 0.22], "vessel_density": 4.0, "vessel_width": 0.04, "vessel_strength": 0.35, "size": 512},
 }
 # Lighting families: light guides (offset: fraction of the lumen radius), exposure range (intensity
 # = exposure x d_ref^2, see ``exposure_distance``), light colour and jitter, mucosa tint jitter, material.
@@ -53,6 +55,7 @@ LIGHTINGS: dict[str, dict] = {
     "L1": {"n_lights": 1, "offset": 0.12, "intensity": [1.4, 2.2], "color": [1.0, 0.88, 0.70], "color_jitter": 0.05, "tint_jitter": 0.06, "ambient": 0.02, "diffuse": 0.95, "specular": 0.7, "specular_power": 60.0},
     "L2": {"n_lights": 2, "offset": 0.15, "intensity": [0.8, 1.3], "color": [0.85, 0.92, 1.0], "color_jitter": 0.05, "tint_jitter": 0.1, "ambient": 0.06, "diffuse": 0.8, "specular": 0.25, "specular_power": 15.0},
     "L3": {"n_lights": 1, "offset": 0.05, "intensity": [0.7, 1.1], "color": [1.0, 0.80, 0.60], "color_jitter": 0.08, "tint_jitter": 0.12, "ambient": 0.08, "diffuse": 0.85, "specular": 0.5, "specular_power": 40.0},
+    "L4": {"n_lights": 2, "offset": 0.2, "intensity": [1.6, 2.6], "color": [1.0, 0.92, 0.72], "color_jitter": 0.04, "tint_jitter": 0.06, "ambient": 0.05, "diffuse": 0.9, "specular": 0.8, "specular_power": 80.0},
 }
 
 
@@ -163,14 +166,76 @@ def _min_radius(tube, s: float, half_window: float) -> float:
     return float(tube.radius(ss[:, None], th[None, :]).min())
 
 
+VIEW_KINDS = ("lumen", "wall", "oblique", "closeup", "papilla")  # camera_path.views: share of each kind
+
+
+def choose_view(shares: dict, u: float) -> str:
+    """The view kind whose cumulative share (normalized, in VIEW_KINDS order) first exceeds ``u`` in [0, 1)."""
+    total = sum(float(shares.get(k, 0.0)) for k in VIEW_KINDS)
+    acc = 0.0
+    for kind in VIEW_KINDS:
+        acc += float(shares.get(kind, 0.0)) / total
+        if u < acc:
+            return kind
+    return [k for k in VIEW_KINDS if shares.get(k, 0.0) > 0][-1]
+
+
+def inside_tube(tube, point, margin: float = 0.0) -> bool:
+    """Whether ``point`` lies in the lumen at least ``margin`` from the wall (nearest centerline ring)."""
+    point = np.asarray(point, dtype=np.float64)
+    s0 = float(tube.s_grid[np.argmin(np.linalg.norm(tube.points - point, axis=1))])
+    t, n, b = tube.frame(s0)
+    v = point - tube.centerline(s0)
+    v = v - (v @ t) * t
+    theta = math.atan2(float(v @ b), float(v @ n)) % (2 * np.pi)
+    return float(np.linalg.norm(v)) < float(tube.radius(s0, theta)) - margin
+
+
+def wall_normal(tube, s: float, theta: float, h: float = 1e-3) -> np.ndarray:
+    """Unit surface normal of the wall at (s, theta), pointing into the lumen (central differences)."""
+    d_s = tube.wall_point(s + h, theta) - tube.wall_point(s - h, theta)
+    d_t = tube.wall_point(s, theta + h) - tube.wall_point(s, theta - h)
+    m = np.cross(d_s, d_t)
+    m /= np.linalg.norm(m)
+    return m if m @ (tube.centerline(s) - tube.wall_point(s, theta)) > 0 else -m
+
+
+def _facing_pose(tube, rng, path: dict, s: float, theta: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Close-up facing the wall point (s, theta): position, forward, tilt from the normal (deg), distance.
+
+    The camera sits at ``closeup_distance`` x local radius from the point, along the wall's
+    inward normal tilted by up to ``closeup_tilt_deg``; moved closer (x0.7, up to 8 times)
+    if that position would be outside the lumen (behind a fold).
+    """
+    target = tube.wall_point(s, theta)
+    m = wall_normal(tube, s, theta)
+    e1 = np.cross(m, tube.frame(s)[0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(m, e1)
+    tilt = math.radians(rng.uniform(0.0, float(path["closeup_tilt_deg"])))
+    az = rng.uniform(0, 2 * np.pi)
+    v = math.cos(tilt) * m + math.sin(tilt) * (math.cos(az) * e1 + math.sin(az) * e2)
+    dist = float(rng.uniform(*path["closeup_distance"])) * float(tube.radius(s, theta))
+    margin = 0.05 * float(tube.preset["radius"])
+    for _ in range(8):
+        if inside_tube(tube, target + dist * v, margin):
+            break
+        dist *= 0.7
+    return target + dist * v, -v, math.degrees(tilt), dist
+
+
 def sample_pose(tube, rng: np.random.Generator, path: dict) -> tuple[np.ndarray, dict]:
-    """One endoscope pose: along the centerline with jitter, mostly down the lumen, sometimes at the wall.
+    """One endoscope pose of a view kind drawn from ``path["views"]`` (shares of VIEW_KINDS).
 
     path: {"mode": "random" | "axis", "s_range": [lo, hi] (fractions of the length),
-    "jitter_pos": max offset from the centerline (fraction of the local minimum radius),
-    "jitter_angle_deg": std of the view direction's tilt, "p_wall": chance of a close,
-    wall-facing view, "wall_angle_deg": [lo, hi] tilt of wall-facing views}.
-    Returns (T_world_cam, info) where info records s, the view kind and tilt.
+    "views": {kind: share}, "jitter_pos", "jitter_angle_deg" (lumen views: offset from the
+    centerline as a fraction of the local minimum radius, std of the tilt), "wall_angle_deg"
+    (wall views: tilt range from the axis, camera 0.3-0.6 radius off the centre towards that
+    wall), "oblique_angle_deg" (oblique views: from near one wall across the lumen at that
+    tilt, so folds are seen side-on), "closeup_distance" (closeup and papilla views: fraction of
+    the local radius between camera and the wall point faced), "closeup_tilt_deg" (their max
+    tilt from the wall normal)}. A papilla view faces one of the tube's papillae (a closeup
+    when it has none). Returns (T_world_cam, info) with s, the view kind, tilt and distance.
     """
     L, R = tube.length, float(tube.preset["radius"])
     lo, hi = path["s_range"]
@@ -178,28 +243,44 @@ def sample_pose(tube, rng: np.random.Generator, path: dict) -> tuple[np.ndarray,
     t, n, b = tube.frame(s)
     c = tube.centerline(s)
     if path["mode"] == "axis":
-        return _axis_pose(c, t, n, b), {"s": s, "view": "axis", "tilt_deg": 0.0}
+        return _axis_pose(c, t, n, b), {"s": s, "view": "axis", "tilt_deg": 0.0, "distance": None}
     r_min = _min_radius(tube, s, R)
     roll = rng.uniform(0, 2 * np.pi)
-    if rng.uniform() < float(path["p_wall"]):
-        phi = rng.uniform(0, 2 * np.pi)
-        radial = math.cos(phi) * n + math.sin(phi) * b
+    view = choose_view(path["views"], rng.uniform())
+    phi = rng.uniform(0, 2 * np.pi)
+    radial = math.cos(phi) * n + math.sin(phi) * b
+    distance = None
+    if view == "wall":
         rho = rng.uniform(0.3, 0.6) * r_min
         tilt = math.radians(rng.uniform(*path["wall_angle_deg"]))
         forward = math.cos(tilt) * t + math.sin(tilt) * radial
         position = c + rho * radial
-        view = "wall"
+    elif view == "oblique":
+        rho = rng.uniform(0.3, 0.6) * r_min
+        tilt = math.radians(rng.uniform(*path["oblique_angle_deg"]))
+        forward = math.cos(tilt) * t + math.sin(tilt) * radial  # across the lumen to the far wall
+        position = c - rho * radial
+    elif view in ("closeup", "papilla"):
+        papillae = tube.features.papillae
+        if view == "papilla" and papillae:
+            s, phi, _size = papillae[int(rng.integers(len(papillae)))]
+        position, forward, tilt_deg, distance = _facing_pose(tube, rng, path, s, phi)
+        tilt = math.radians(tilt_deg)
+        t = tube.frame(s)[0]
+        side = np.cross(forward, t)
+        side /= np.linalg.norm(side)
+        up = math.cos(roll) * t + math.sin(roll) * side
+        return look_pose(position, forward, up), {"s": float(s), "view": view, "tilt_deg": math.degrees(tilt),
+                                                  "distance": distance}
     else:
-        phi = rng.uniform(0, 2 * np.pi)
         rho = math.sqrt(rng.uniform()) * float(path["jitter_pos"]) * r_min
-        position = c + rho * (math.cos(phi) * n + math.sin(phi) * b)
+        position = c + rho * radial
         tilt = abs(rng.normal(0.0, math.radians(float(path["jitter_angle_deg"]))))
         az = rng.uniform(0, 2 * np.pi)
         forward = math.cos(tilt) * t + math.sin(tilt) * (math.cos(az) * n + math.sin(az) * b)
-        view = "lumen"
     up = math.cos(roll) * n + math.sin(roll) * b
     up = up - (up @ forward) * forward
-    return look_pose(position, forward, up), {"s": s, "view": view, "tilt_deg": math.degrees(tilt)}
+    return look_pose(position, forward, up), {"s": s, "view": view, "tilt_deg": math.degrees(tilt), "distance": distance}
 
 
 def _axis_pose(c, t, n, b) -> np.ndarray:

@@ -32,12 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from . import appearance as ap
 from . import camera as cam
 from . import render as rd
 from . import tube as tb
 from .utils import atomic_path, data_dir, manifests_dir, write_bytes_atomic, write_json_atomic
 
-GENERATOR_VERSION = 2  # bump whenever the same manifest would render different files
+GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files
 SPLITS = ("train", "val", "test")
 ORGANS = ("colon", "small_intestine", "stomach")
 DEFAULT_FOV_X_DEG = cam.fov_x_deg(cam.intrinsics(320), 320)  # fx = 0.5556 W (the authors' set), ~84 degrees
@@ -68,13 +69,19 @@ DEFAULTS: dict = {
         "s_range": [0.1, 0.6],         # camera positions along the tube (fractions of its length)
         "jitter_pos": 0.5,             # max offset from the centerline (fraction of the local radius)
         "jitter_angle_deg": 12.0,      # std of the view direction's tilt from the lumen axis
-        "p_wall": 0.2,                 # chance of a close, wall-facing view
+        "views": {"lumen": 0.8, "wall": 0.2},  # share of each view kind (render.VIEW_KINDS), normalized
+        "views_by_split": {},          # per-split shares replacing "views", e.g. {"test": {"closeup": 1}}
         "wall_angle_deg": [45.0, 80.0],  # tilt range of wall-facing views
+        "oblique_angle_deg": [25.0, 50.0],  # tilt of oblique views, from near one wall across the lumen
+        "closeup_distance": [0.2, 1.0],  # closeup/papilla views: camera-to-wall, fraction of the radius
+        "closeup_tilt_deg": 30.0,      # closeup/papilla views: max tilt from the wall normal
     },
+    "appearance": dict(ap.APPEARANCE_DEFAULTS),  # camera/mucosa effects applied to each frame (appearance.py)
     "organ_presets": {},
     "texture_sets": {},
     "lighting_sets": {},
 }
+LUMEN_RADII = 4.0  # a pixel deeper than this many lumen radii sees down the lumen (frames.jsonl "lumen_share")
 
 
 # ----------------------------------------------------------------------------- validation
@@ -102,7 +109,7 @@ def _check_type(field: str, value, template) -> None:
         raise ValueError(f"manifest field '{field}' must be a {_type_name(template)}, got {_type_name(value)} {value!r}")
 
 
-_REPLACED = {"splits"}  # sections replaced as a whole, not merged key by key
+_REPLACED = {"splits", "camera_path.views"}  # sections replaced as a whole, not merged key by key
 
 
 def _merge(field: str, base: dict, update: dict) -> dict:
@@ -156,9 +163,9 @@ def _check_preset(field: str, p: dict) -> None:
     _range(f"{field}.teniae", p["teniae"], 0, 12)
     if p["fold_kind"] not in tb.FOLD_KINDS:
         raise ValueError(f"manifest field '{field}.fold_kind' must be one of {', '.join(tb.FOLD_KINDS)}, got {p['fold_kind']!r}")
-    for key in ("polyps", "diverticula", "ridges"):
+    for key in ("polyps", "diverticula", "ridges", "papillae"):
         _pair(f"{field}.{key}", p[key], 0, 50, integer=True)
-    for key in ("polyp_size", "diverticulum_size", "ridge_size"):
+    for key in ("polyp_size", "diverticulum_size", "ridge_size", "papilla_size"):
         _pair(f"{field}.{key}", p[key], 0.0, 3.0, lo_open=True)
 
 
@@ -180,6 +187,24 @@ def _check_lighting(field: str, l: dict) -> None:
     for key in ("color_jitter", "tint_jitter", "ambient", "diffuse", "specular"):
         _range(f"{field}.{key}", l[key], 0.0, 1.0)
     _range(f"{field}.specular_power", l["specular_power"], 0.0, lo_open=True)
+
+
+def _check_views(field: str, shares) -> None:
+    if not isinstance(shares, dict) or not shares:
+        raise ValueError(f"manifest field '{field}' must be an object of view-kind shares, got {shares!r}")
+    for kind, share in shares.items():
+        if kind not in rd.VIEW_KINDS:
+            raise ValueError(f"manifest field '{field}' names an unknown view kind {kind!r} (choose from {', '.join(rd.VIEW_KINDS)})")
+        if not isinstance(share, (int, float)) or isinstance(share, bool) or share < 0:
+            raise ValueError(f"manifest field '{field}.{kind}' must be a number >= 0, got {share!r}")
+    if sum(shares.values()) <= 0:
+        raise ValueError(f"manifest field '{field}' must give at least one view kind a share > 0, got {shares!r}")
+
+
+def split_path(m: dict, split: str) -> dict:
+    """The camera path of one split: ``views`` replaced by ``views_by_split[split]`` when given."""
+    p = m["camera_path"]
+    return dict(p, views=p["views_by_split"].get(split, p["views"]))
 
 
 def _library_entries(field: str, names: list, given: dict, library: dict, check) -> dict:
@@ -251,8 +276,16 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
     _pair("camera_path.s_range", p["s_range"], 0.0, 1.0)
     _range("camera_path.jitter_pos", p["jitter_pos"], 0.0, 0.9)
     _range("camera_path.jitter_angle_deg", p["jitter_angle_deg"], 0.0, 60.0)
-    _range("camera_path.p_wall", p["p_wall"], 0.0, 1.0)
+    _check_views("camera_path.views", p["views"])
+    for split, shares in p["views_by_split"].items():
+        if split not in SPLITS:
+            raise ValueError(f"manifest has an unknown split 'camera_path.views_by_split.{split}' (allowed: {', '.join(SPLITS)})")
+        _check_views(f"camera_path.views_by_split.{split}", shares)
     _pair("camera_path.wall_angle_deg", p["wall_angle_deg"], 0.0, 89.0)
+    _pair("camera_path.oblique_angle_deg", p["oblique_angle_deg"], 0.0, 89.0)
+    _pair("camera_path.closeup_distance", p["closeup_distance"], 0.0, 1.0, lo_open=True)
+    _range("camera_path.closeup_tilt_deg", p["closeup_tilt_deg"], 0.0, 80.0)
+    ap.check_appearance("appearance", m["appearance"])
     m["organ_presets"] = _library_entries("organ_presets", m["organs"], m["organ_presets"], tb.PRESETS, _check_preset)
     m["texture_sets"] = _library_entries("texture_sets", m["textures"], m["texture_sets"], rd.TEXTURES, _check_texture)
     m["lighting_sets"] = _library_entries("lighting_sets", m["lightings"], m["lighting_sets"], rd.LIGHTINGS, _check_lighting)
@@ -387,6 +420,7 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
     try:
         for split in m["splits"]:
             records = []
+            path = split_path(m, split)
             for scene in _scene_plan(m, split):
                 preset = m["organ_presets"][scene["organ"]]
                 tube = tb.build_tube(preset, scene["tube_seed"], m["resolution"])
@@ -400,24 +434,32 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                 for i, lighting_name in scene["frames"]:
                     lighting = m["lighting_sets"][lighting_name]
                     rng = _frame_rng(m, split, scene["scene"], i)
-                    T, info = rd.sample_pose(tube, rng, m["camera_path"])
+                    T, info = rd.sample_pose(tube, rng, path)
                     d_ref = rd.exposure_distance(tube, T, K, W, H)
                     lights, tint = rd.sample_lighting(lighting, rng, float(preset["radius"]), d_ref)
+                    look = ap.sample_appearance(m["appearance"], rng)
                     if i in todo:
                         renderer.set_material({k: lighting[k] for k in rd.MATERIAL_KEYS})
                         renderer.set_tint(tint)
                         rgb, depth = renderer.render(T, lights)
+                        rgb = ap.apply_appearance(rgb, look)
                         write_bytes_atomic(out / split / "depth" / f"{i:06d}.npy", _npy_bytes(depth))
                         write_bytes_atomic(out / split / "rgb" / f"{i:06d}.png", _png_bytes(rgb))
+                    else:
+                        depth = np.load(out / split / "depth" / f"{i:06d}.npy", allow_pickle=False)
                     records.append({
                         "index": i, "rgb": f"{split}/rgb/{i:06d}.png", "depth": f"{split}/depth/{i:06d}.npy",
                         "width": W, "height": H, "K": _round(K), "T_world_cam": _round(T),
                         "organ": scene["organ"], "texture": scene["texture"], "lighting": lighting_name,
                         "group": f"{scene['texture']}-{lighting_name}", "scene": scene["scene"],
                         "tube_seed": scene["tube_seed"], "s": round(info["s"], 10), "view": info["view"],
-                        "tilt_deg": round(info["tilt_deg"], 10), "tint": _round(tint), "exposure_distance": round(d_ref, 10),
+                        "tilt_deg": round(info["tilt_deg"], 10),
+                        "view_distance": None if info["distance"] is None else round(info["distance"], 10),
+                        "lumen_share": lumen_share(depth, float(preset["radius"])),
+                        "tint": _round(tint), "exposure_distance": round(d_ref, 10),
                         "lights": [{"offset_cam": _round(l.offset), "color": _round(l.color), "intensity": round(l.intensity, 10),
                                     "attenuation": [0.0, 0.0, 1.0]} for l in lights],
+                        "appearance": look,
                     })
                     bar.update(1)
             body = "".join(json.dumps(r, sort_keys=True) + "\n" for r in records)
@@ -428,6 +470,12 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
             renderer.close()
     write_checksums(out, m)
     return out
+
+
+def lumen_share(depth: np.ndarray, radius: float) -> float:
+    """Share of a frame's pixels that see down the lumen: deeper than LUMEN_RADII radii, or beyond far (0)."""
+    d = np.asarray(depth)
+    return round(float(np.mean((d > LUMEN_RADII * radius) | (d <= 0))), 6)
 
 
 def _sha256(path: Path) -> str:
@@ -506,12 +554,13 @@ def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path
 
 
 def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, seed: int = 0,
-            path: dict | None = None, tube=None, renderer=None) -> list[dict]:
+            path: dict | None = None, appearance: dict | None = None, tube=None, renderer=None) -> list[dict]:
     """Render ``n`` frames of one organ x texture x lighting of manifest ``m`` without writing files.
 
-    Uses the manifest's camera, resolution and camera path (``path`` updates the latter).
-    ``tube`` and ``renderer`` (an ``render.Renderer`` of the manifest's size) may be reused.
-    Returns dicts {"rgb", "depth", "K", "T_world_cam", "view", "tube"} (the same tube for all).
+    Uses the manifest's camera, resolution, camera path and appearance (``path`` and
+    ``appearance`` update the latter two). ``tube`` and ``renderer`` (an ``render.Renderer``
+    of the manifest's size) may be reused. Returns dicts {"rgb", "depth", "K", "T_world_cam",
+    "view", "appearance", "tube"} (the same tube for all).
     """
     for field, name, table in (("organs", organ, m["organ_presets"]), ("textures", texture, m["texture_sets"]),
                                ("lightings", lighting, m["lighting_sets"])):
@@ -523,6 +572,9 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
     preset = m["organ_presets"][organ]
     light = m["lighting_sets"][lighting]
     cam_path = dict(m["camera_path"], **(path or {}))
+    _check_views("camera_path.views", cam_path["views"])
+    look_params = dict(m["appearance"], **(appearance or {}))
+    ap.check_appearance("appearance", look_params)
     rng = np.random.default_rng(np.random.SeedSequence([m["seed"], seed, 99]))
     tube_seed = int(rng.integers(2**31))  # drawn either way, so a reused tube leaves the rest unchanged
     tube = tube if tube is not None else tb.build_tube(preset, tube_seed, m["resolution"])
@@ -535,9 +587,11 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
         for _ in range(n):
             T, info = rd.sample_pose(tube, rng, cam_path)
             lights, tint = rd.sample_lighting(light, rng, float(preset["radius"]), rd.exposure_distance(tube, T, K, W, H))
+            look = ap.sample_appearance(look_params, rng)
             renderer.set_tint(tint)
             rgb, depth = renderer.render(T, lights)
-            out.append({"rgb": rgb, "depth": depth, "K": K, "T_world_cam": T, "view": info["view"], "tube": tube})
+            out.append({"rgb": ap.apply_appearance(rgb, look), "depth": depth, "K": K, "T_world_cam": T,
+                        "view": info["view"], "appearance": look, "tube": tube})
     finally:
         if own:
             renderer.close()

@@ -58,7 +58,12 @@ IDENTITY_KEYS = (
 )
 LR_SCHEDULES = ("constant", "cosine")
 OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
-AUGMENTS = ("none", "flip", "flip_color")  # training-time augmentation (see augment_batch)
+AUGMENTS = ("none", "flip", "flip_color", "camera")  # training-time augmentation (see augment_batch)
+# augment="camera": the appearance effects that are cheaper to add to a training image than to
+# render (appearance.py), drawn afresh every time a frame is seen; ranges beyond the datasets'.
+CAMERA_AUGMENT = {"exposure_stops": [-1.0, 1.0], "gamma": [0.8, 1.3], "color_cast": [-1.0, 1.0],
+                  "vignetting": [0.0, 0.5], "specular_flecks": [0, 10], "noise": [0.0, 0.04],
+                  "p_blur": 0.3, "blur_px": [0.5, 2.0], "p_jpeg": 0.3, "jpeg_quality": [30, 95]}
 
 # Datasets decoded at the network size stay in memory below this many bytes (per process).
 CACHE_LIMIT_BYTES = 2 * 1024**3
@@ -390,6 +395,9 @@ def augment_batch(batch: dict, kind: str) -> dict:
     flipped and K follows (cx -> W - 1 - cx), so the frame stays a valid pinhole view.
     flip_color: flip, then a per-frame gain in [0.7, 1.4] and gamma in [0.8, 1.25] on the image
     (exposure and camera response; the depth is unchanged).
+    camera: flip, then per frame the appearance effects of ``CAMERA_AUGMENT`` (exposure, gamma,
+    colour cast, vignetting, flecks, noise, blur, JPEG; ``appearance.apply_appearance``) on the
+    image quantized to 8 bits, as a camera would deliver it.
     """
     if kind == "none":
         return batch
@@ -410,6 +418,15 @@ def augment_batch(batch: dict, kind: str) -> dict:
         gain = (0.7 + 0.7 * torch.rand(B)).to(img).view(B, 1, 1, 1)
         gamma = torch.exp(torch.empty(B).uniform_(np.log(0.8), np.log(1.25))).to(img).view(B, 1, 1, 1)
         out["image"] = (out["image"].clamp(0, 1) ** gamma * gain).clamp(0, 1)
+    if kind == "camera":
+        from geodepth_lite import appearance
+
+        params = dict(appearance.APPEARANCE_DEFAULTS, **CAMERA_AUGMENT)
+        seeds = torch.randint(0, 2**31 - 1, (B,)).tolist()
+        frames = (out["image"].detach().clamp(0, 1).permute(0, 2, 3, 1).cpu().numpy() * 255.0).round().astype(np.uint8)
+        looks = [appearance.sample_appearance(params, np.random.default_rng(sd)) for sd in seeds]
+        done = np.stack([appearance.apply_appearance(f, look) for f, look in zip(frames, looks)])
+        out["image"] = torch.from_numpy(done).permute(0, 3, 1, 2).to(img).div(255.0)
     return out
 
 

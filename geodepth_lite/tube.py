@@ -7,7 +7,8 @@ tube swept along a smooth 3D centerline with rotation-minimizing
 organ's folds (colon: semilunar haustral folds between three teniae; small
 intestine: dense circular folds; stomach: longitudinal rugae) and the local
 structures of the paper's shape-index discussion (Section 3.C, Fig. 5): polyps
-(caps), diverticula (cups) and ridges.
+(caps), diverticula (cups) and ridges, plus papilla-like mounds (a cap with a
+small central pit, as the duodenal papilla seen close up).
 
 Coordinates: ``s`` is arc length along the centerline (scene units), ``theta``
 the angle around it measured from the frame's normal ``N`` towards ``B``. A wall
@@ -45,6 +46,8 @@ PRESETS: dict[str, dict] = {
         "diverticulum_size": [0.25, 0.5],
         "ridges": [0, 3],          # [min, max] count of extra ridge-shaped folds
         "ridge_size": [0.8, 2.0],  # [min, max] ridge length, fraction of the lumen radius
+        "papillae": [0, 0],         # [min, max] count of papilla-like mounds (a cap with a central pit)
+        "papilla_size": [0.3, 0.5], # [min, max] mound radius, fraction of the lumen radius
     },
     "small_intestine": {
         "radius": 1.0,
@@ -63,6 +66,8 @@ PRESETS: dict[str, dict] = {
         "diverticulum_size": [0.2, 0.4],
         "ridges": [0, 2],
         "ridge_size": [0.6, 1.5],
+        "papillae": [0, 1],
+        "papilla_size": [0.3, 0.5],
     },
     "stomach": {
         "radius": 4.0,
@@ -81,6 +86,8 @@ PRESETS: dict[str, dict] = {
         "diverticulum_size": [0.1, 0.2],
         "ridges": [1, 4],
         "ridge_size": [0.5, 1.5],
+        "papillae": [0, 0],
+        "papilla_size": [0.1, 0.2],
     },
     "cylinder": {  # the analytic check: straight, constant radius, nothing on the wall
         "radius": 1.0,
@@ -99,9 +106,13 @@ PRESETS: dict[str, dict] = {
         "diverticulum_size": [0.2, 0.3],
         "ridges": [0, 0],
         "ridge_size": [0.5, 1.0],
+        "papillae": [0, 0],
+        "papilla_size": [0.2, 0.3],
     },
 }
 FOLD_KINDS = ("haustral", "circular", "longitudinal", "none")
+# papilla shape (fractions of the mound radius): dome height, pit depth and pit radius
+PAPILLA_HEIGHT, PAPILLA_PIT_DEPTH, PAPILLA_PIT_RADIUS = 0.6, 0.2, 0.3
 
 # Mesh resolution: rings along s per unit radius, and points around each ring.
 DEFAULT_RESOLUTION = {"n_theta": 96, "ring_step": 0.07}  # ring_step: ring spacing, fraction of radius
@@ -176,6 +187,7 @@ class WallFeatures:
     polyps: list = field(default_factory=list)       # (s, theta, size)
     diverticula: list = field(default_factory=list)  # (s, theta, size)
     ridges: list = field(default_factory=list)       # (s, theta, length, angle, height)
+    papillae: list = field(default_factory=list)     # (s, theta, size): duodenal papilla-like mounds
 
 
 def _draw_features(preset: dict, rng: np.random.Generator) -> WallFeatures:
@@ -213,6 +225,7 @@ def _draw_features(preset: dict, rng: np.random.Generator) -> WallFeatures:
     feats.diverticula = place(preset["diverticula"], preset["diverticulum_size"])
     for s, theta, length in place(preset["ridges"], preset["ridge_size"]):
         feats.ridges.append((s, theta, length, rng.uniform(0, np.pi), rng.uniform(0.1, 0.2) * R))
+    feats.papillae = place(preset["papillae"], preset["papilla_size"])  # drawn last: older draws unchanged
     return feats
 
 
@@ -270,6 +283,10 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
     for ds_, dth, size in feats.diverticula:  # cups: outward pockets
         d2 = ((s - ds_) ** 2 + (R * _wrap(theta - dth)) ** 2) / size**2
         r = r + 0.9 * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+    for ps, pth, size in feats.papillae:  # papilla: a low dome with a small pit at its top (the orifice)
+        d2 = ((s - ps) ** 2 + (R * _wrap(theta - pth)) ** 2) / size**2
+        r = r - PAPILLA_HEIGHT * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+        r = r + PAPILLA_PIT_DEPTH * size * np.exp(-d2 / PAPILLA_PIT_RADIUS**2)
     for rs, rth, length, angle, height in feats.ridges:  # ridges: a short fold at any orientation
         ds_, dt = s - rs, R * _wrap(theta - rth)
         along = ds_ * np.cos(angle) + dt * np.sin(angle)

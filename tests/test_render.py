@@ -61,7 +61,7 @@ def test_rendered_depth_back_projects_onto_the_mesh():
     tm = tube.build_tube(preset, 11, {"n_theta": 96, "ring_step": 0.08})
     K = camera.intrinsics(80, 64)
     rng = np.random.default_rng(0)
-    path = dict(synth.DEFAULTS["camera_path"], p_wall=0.5)
+    path = dict(synth.DEFAULTS["camera_path"], views={"lumen": 1, "wall": 1, "oblique": 1, "closeup": 1})
     with render.Renderer(80, 64, K) as r:
         r.set_tube(tm, render.make_texture(render.TEXTURES["pink"], rng))
         for _ in range(3):

@@ -35,7 +35,8 @@ def test_same_manifest_gives_byte_identical_files(tmp_path):
     assert synth.verify(a) == []
     # frames.jsonl carries what the issue asks for
     rec = json.loads((a / "train" / "frames.jsonl").read_text().splitlines()[0])
-    for key in ("rgb", "depth", "K", "T_world_cam", "organ", "lights", "group", "tint"):
+    for key in ("rgb", "depth", "K", "T_world_cam", "organ", "lights", "group", "tint", "view", "lumen_share",
+                "appearance"):
         assert key in rec
     assert np.asarray(rec["T_world_cam"]).shape == (4, 4) and np.asarray(rec["K"]).shape == (3, 3)
     depth = np.load(a / rec["depth"])
@@ -73,7 +74,15 @@ def test_verify_names_a_flipped_byte_a_missing_and_an_unreadable_file(tmp_path, 
     ({"splits": {"train": 0}}, "splits.train"),
     ({"splits": {"train": 5, "holdout": 3}}, "splits.holdout"),
     ({"textures": ["velvet"]}, "velvet"),
-    ({"camera_path": {"p_wall": 1.5}}, "camera_path.p_wall"),
+    ({"camera_path": {"p_wall": 0.5}}, "camera_path.p_wall"),
+    ({"camera_path": {"views": {"selfie": 1.0}}}, "camera_path.views"),
+    ({"camera_path": {"views": {"closeup": -1.0}}}, "camera_path.views.closeup"),
+    ({"camera_path": {"views": {"closeup": 0.0}}}, "camera_path.views"),
+    ({"camera_path": {"views_by_split": {"holdout": {"lumen": 1}}}}, "camera_path.views_by_split.holdout"),
+    ({"camera_path": {"closeup_distance": [0.0, 1.0]}}, "camera_path.closeup_distance"),
+    ({"organ_presets": {"small_intestine": {"papillae": [2, 1]}}}, "organ_presets.small_intestine.papillae"),
+    ({"appearance": {"gamma": [1.2, 0.9]}}, "appearance.gamma"),
+    ({"appearance": {"p_jpeg": 1.5}}, "appearance.p_jpeg"),
 ])
 def test_bad_manifest_values_are_one_line_errors_naming_the_field(bad, field):
     with pytest.raises(ValueError) as err:
