@@ -161,6 +161,9 @@ class DepthDecoder(nn.Module):
 
 
 # ----------------------------------------------------------------------------- the network
+PADDINGS = ("zeros", "replicate")  # DepthNet.set_padding
+
+
 class DepthNet(nn.Module):
     """Image B x 3 x H x W in [0, 1] -> z-depth B x 1 x H x W in (0.01, 100) (Sec. 3.B).
 
@@ -168,15 +171,30 @@ class DepthNet(nn.Module):
     ``resnet18`` state dict (ImageNet weights); see :func:`load_encoder_weights`.
     """
 
-    def __init__(self, encoder_weights: str | os.PathLike | None = None):
+    def __init__(self, encoder_weights: str | os.PathLike | None = None, padding: str = "zeros"):
         super().__init__()
         self.encoder = ResNet18Encoder()
         self.sab = SpatialAttention()
         self.decoder = DepthDecoder()
+        self.set_padding(padding)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         if encoder_weights is not None:
             load_encoder_weights(self.encoder, encoder_weights)
+
+    def set_padding(self, mode: str) -> None:
+        """How every padded convolution extends its input beyond the image border (PADDINGS).
+
+        "zeros" (torchvision's and the paper's ResNet) shows the network a dark frame around
+        every image, from which it can learn position-dependent depth (a near wall at the
+        border); "replicate" repeats the edge pixels. No parameter changes.
+        """
+        if mode not in PADDINGS:
+            raise ValueError(f"padding must be one of {', '.join(PADDINGS)}, got {mode!r}")
+        self.padding = mode
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d) and any(p > 0 for p in m.padding):
+                m.padding_mode = mode
 
     @staticmethod
     def check_input(image: torch.Tensor) -> None:

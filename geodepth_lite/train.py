@@ -54,7 +54,7 @@ LOSS_KEYS = ("depth", "smooth", "grad", "normal", "sdf", "total")
 IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
-    "threads", "lr_schedule", "optimizer", "depth_term", "augment",
+    "threads", "lr_schedule", "optimizer", "depth_term", "augment", "padding",
 )
 LR_SCHEDULES = ("constant", "cosine")
 OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
@@ -98,6 +98,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "optimizer": p.get("optimizer", "adam"),
         "depth_term": p.get("depth_term", "l1"),
         "augment": p.get("augment", "none"),
+        "padding": p.get("padding", "zeros"),   # the network's convolution padding (model.PADDINGS)
         "seed": int(seed),
         "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
@@ -122,9 +123,12 @@ def validate_config(cfg: dict) -> dict:
     cfg.setdefault("optimizer", "adam")
     cfg.setdefault("depth_term", "l1")
     cfg.setdefault("augment", "none")
+    cfg.setdefault("padding", "zeros")
     from geodepth_lite.losses import DEPTH_TERMS
+    from geodepth_lite.model import PADDINGS
 
-    for key, allowed in (("optimizer", OPTIMIZERS), ("depth_term", tuple(DEPTH_TERMS)), ("augment", AUGMENTS)):
+    for key, allowed in (("optimizer", OPTIMIZERS), ("depth_term", tuple(DEPTH_TERMS)), ("augment", AUGMENTS),
+                         ("padding", PADDINGS)):
         if cfg[key] not in allowed:
             raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
     if cfg["lr_schedule"] not in LR_SCHEDULES:
@@ -523,7 +527,7 @@ def _fit(cfg, run_dir, *, resume, progress, device, num_workers, cache, stop_aft
         num_workers = 0 if in_memory else min(4, os.cpu_count() or 1)
 
     utils.seed_everything(cfg["seed"])
-    model = DepthNet(encoder_weights=cfg["encoder_weights"]).to(device)
+    model = DepthNet(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"]).to(device)
     opt_cls = torch.optim.AdamW if cfg["optimizer"] == "adamw" else torch.optim.Adam
     opt = opt_cls(model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]), weight_decay=cfg["weight_decay"])
     scaler = torch.amp.GradScaler("cuda", enabled=device.type == "cuda" and not torch.cuda.is_bf16_supported())
@@ -644,6 +648,13 @@ def ensure_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: b
     return fit(cfg, run_dir, resume=True, progress=progress)
 
 
+def predict_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: bool = False) -> Path:
+    """The checkpoint of the model that notebooks 04, 06, 07 and ``predict`` use: ``case``/``seed``
+    trained at the profile's ``predict_image_size`` (the ablation's runs use ``image_size``)."""
+    size = config.get_profile(profile)["predict_image_size"]
+    return ensure_checkpoint(profile, case, seed, progress=progress, image_size=size)
+
+
 def _complete(profile: str, case: int, seed: int, overrides: dict) -> bool:
     path = checkpoint_dir(profile, case, seed, **overrides) / CHECKPOINT_NAME
     if not path.exists():
@@ -688,7 +699,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
     from geodepth_lite.model import DepthNet
 
     ckpt = read_checkpoint(path)
-    model = DepthNet()
+    model = DepthNet(padding=ckpt["cfg"].get("padding", "zeros"))
     model.load_state_dict(ckpt["model"])
     return model.to(device).eval(), dict(ckpt["cfg"])
 

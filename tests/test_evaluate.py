@@ -110,3 +110,36 @@ def test_bad_requests_are_named(smoke, tmp_path):
 def test_markdown_table_rounds_to_three_decimals():
     md = evaluate.markdown_table(["a", "b"], [["x", 0.123456], ["y", float("nan")]])
     assert md.splitlines() == ["| a | b |", "|---|---|", "| x | 0.123 |", "| y | nan |"]
+
+
+class _ConstantFrames(torch.utils.data.Dataset):
+    """Frames of constant depth 2 (H x W), for border-map known answers."""
+
+    def __init__(self, n=3, H=40, W=40):
+        self.n, self.H, self.W = n, H, W
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, i):
+        return {"image": torch.zeros(3, self.H, self.W), "depth": torch.full((1, self.H, self.W), 2.0),
+                "index": i, "organ": "x", "group": "g", "K": torch.eye(3)}
+
+
+def test_border_error_map_known_answer():
+    """Log error 0.2 on the top band, 0.1 on the centre, exact elsewhere (median scaling leaves it so)."""
+    ds = _ConstantFrames()
+    H = W = 40
+    e = torch.zeros(H, W)
+    e[:4] = 0.2                      # the top band: 10% of the rows
+    e[10:30, 10:30] = 0.1            # the centre: the middle half in both directions
+    pred = lambda images: (2.0 * torch.exp(e)).expand(images.shape[0], 1, H, W)
+    out = evaluate.border_error_map(pred, ds, batch_size=2)
+    np.testing.assert_allclose(out["signed"], e.numpy(), atol=1e-6)
+    np.testing.assert_allclose(out["count"], np.full((H, W), 3.0))
+    assert out["bands"]["top"] == pytest.approx(0.2) and out["bands"]["centre"] == pytest.approx(0.1)
+    assert out["ratios"]["top"] == pytest.approx(2.0) and out["ratios"]["bottom"] == pytest.approx(0.0)
+    assert out["ratios"]["left"] == pytest.approx(0.2 * 4 / 40 / 0.1)  # the band's top 4 rows of 40
+    # a prediction right up to scale has no error anywhere
+    scaled = evaluate.border_error_map(lambda images: torch.full((images.shape[0], 1, H, W), 7.0), ds)
+    assert np.abs(scaled["abs"]).max() == pytest.approx(0.0, abs=1e-6)

@@ -128,3 +128,27 @@ def test_spatial_attention_gates_with_pooled_maps():
         sab.conv.weight.zero_()
         sab.conv.weight[0, 1, 3, 3] = 1.0  # max channel
     assert torch.allclose(sab(x), x * torch.sigmoid(x.amax(1, keepdim=True)), atol=1e-6)
+
+
+def test_replicate_padding_extends_the_edge_not_a_dark_frame():
+    """padding="replicate": a padded convolution equals an unpadded one on the edge-replicated input."""
+    import torch.nn.functional as F
+
+    torch.manual_seed(0)
+    net = M.DepthNet(padding="replicate")
+    conv = net.decoder.head
+    x = torch.rand(1, conv.in_channels, 8, 8)
+    ref = F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), conv.weight, conv.bias)
+    torch.testing.assert_close(conv(x), ref)
+    zeros = M.DepthNet(padding="zeros")
+    zeros.load_state_dict(net.state_dict())  # same parameters: padding is not a weight
+    img = torch.rand(1, 3, 64, 64)
+    net.eval(), zeros.eval()
+    with torch.no_grad():
+        assert not torch.allclose(net(img), zeros(img))
+        # a uniform image is seen as uniform up to the border with replicate padding, not with zeros
+        flat = torch.full((1, 3, 64, 64), 0.5)
+        rep, zer = net(flat)[0, 0], zeros(flat)[0, 0]
+        assert float(rep.std()) < float(zer.std())
+    with pytest.raises(ValueError, match="padding"):
+        M.DepthNet(padding="mirror")

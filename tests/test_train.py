@@ -185,6 +185,27 @@ def test_flip_augmentation_mirrors_the_3d_scene():
     assert color["image"].min() >= 0 and color["image"].max() <= 1
 
 
+def test_camera_augmentation_changes_the_image_only_and_repeats_under_the_same_seed():
+    """augment="camera": flips like "flip" (same K and depth), then camera effects on the image alone."""
+    torch.manual_seed(0)
+    B, H, W = 8, 16, 16
+    depth = torch.rand(B, 1, H, W) + 1
+    K = torch.tensor([[11.0, 0, 7.5], [0, 11.0, 7.5], [0, 0, 1]]).expand(B, 3, 3).clone()
+    batch = {"image": torch.rand(B, 3, H, W) * 0.5 + 0.25, "depth": depth, "K": K, "valid": depth > 0}
+    torch.manual_seed(3)
+    flip = train.augment_batch(batch, "flip")
+    torch.manual_seed(3)
+    cam = train.augment_batch(batch, "camera")
+    torch.manual_seed(3)
+    again = train.augment_batch(batch, "camera")
+    assert torch.equal(cam["depth"], flip["depth"]) and torch.equal(cam["K"], flip["K"])
+    assert torch.equal(cam["image"], again["image"])  # drawn from torch's RNG: resume repeats it
+    assert cam["image"].shape == (B, 3, H, W) and cam["image"].dtype == batch["image"].dtype
+    assert 0 <= float(cam["image"].min()) and float(cam["image"].max()) <= 1
+    changed = (cam["image"] - flip["image"]).abs().mean(dim=(1, 2, 3))
+    assert int((changed > 2 / 255).sum()) >= B // 2  # most frames visibly altered (exposure, cast, gamma ...)
+
+
 def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
     path = train.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
     stamp = path.stat().st_mtime_ns
