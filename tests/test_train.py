@@ -253,3 +253,17 @@ def test_ddp_two_cpu_processes_with_gloo(smoke_root, tmp_path):
     rows = json.loads((run / "log.json").read_text())["epochs"]
     assert len(rows) == 1 and np.isfinite(rows[0]["train_total"]) and np.isfinite(rows[0]["val_rmse"])
     assert proc.stdout.count("checkpoint:") == 1  # only rank 0 reports
+
+
+def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, smoke_root):
+    """The model of notebooks 04/06/07 and predict: the profile's predict_image_size, its own run folder."""
+    from geodepth_lite import config
+
+    monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], predict_image_size=32,
+                                                         dataset=str(smoke_root)))
+    path = train.predict_checkpoint("smoke", case=1, seed=0)
+    _, cfg = train.load_model(path)
+    assert cfg["image_size"] == 32 and cfg["case"] == 1
+    assert path.parent == train.checkpoint_dir("smoke", 1, 0, image_size=32)
+    assert path.parent != train.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
+    assert config.PROFILES["teach"]["predict_image_size"] % 32 == 0
