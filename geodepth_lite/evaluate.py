@@ -364,10 +364,7 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict]
             md.append("")
     utils.write_bytes_atomic(out / "tables.md", "\n".join(md).encode())
     if examples:
-        import matplotlib
-
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
+        import matplotlib.pyplot as plt  # no backend switch: a notebook's inline figures must keep showing
 
         for ex in examples:
             fig = error_map_figure([ex], min_depth=min_depth, max_depth=max_depth)
