@@ -6,7 +6,8 @@ Trains ``train.make_config("teach", case, seed, **settings)`` into ``runs/tune/N
 {name, case, seed, settings, val metrics on the whole validation split, minutes} to
 ``benchmarks/tuning_log.jsonl``. The test split is never read here: choices are made on
 validation (the tables in ``config.TEACH_EVIDENCE`` and notebook 04 come from this log).
-With ``--closeups`` the row also holds the model's and the shading prior's Abs Rel on the
+With ``--border`` it holds the validation split's border/centre error ratios
+(``evaluate.border_error_map``). With ``--closeups`` the row also holds the model's and the shading prior's Abs Rel on the
 teach profile's ``heldout_closeup`` set, for the record only (never used to choose).
 """
 
@@ -42,6 +43,8 @@ def main(argv=None) -> int:
                     help="a training setting (JSON value), e.g. lr=3e-4, lambdas=[1,0.1,0.1]")
     ap.add_argument("--log", default=str(LOG))
     ap.add_argument("--closeups", action="store_true", help="also score heldout_closeup (recorded, not for choosing)")
+    ap.add_argument("--border", action="store_true",
+                    help="also the validation split's border error map: each border band's mean |log error| / the centre's")
     args = ap.parse_args(argv)
     settings = {}
     for item in args.set:
@@ -71,6 +74,12 @@ def main(argv=None) -> int:
            "train_depth_last": round(hist[-1]["train_depth"], 4), "minutes": round(minutes, 2),
            "frames_per_s": round(hist[-1]["train_frames_per_s"], 1)}
     row["generator"] = synth.GENERATOR_VERSION
+    if args.border:
+        ds = evaluate.open_eval_dataset(str(root), split="val")
+        with torch.no_grad():
+            b = evaluate.border_error_map(lambda x: train.predict_depth(model, x, cfg["image_size"]), ds)
+        row["val_border"] = {k: round(v, 3) for k, v in b["ratios"].items()}
+        row["val_border_worst"] = round(max(b["ratios"].values()), 3)
     if args.closeups:
         prof = config.get_profile("teach")
         ds = evaluate.open_eval_dataset(str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"],
