@@ -2,13 +2,13 @@
 
     python benchmarks/tune_teach.py NAME --case 1 --seed 0 --set epochs=10 --set weight_decay=0 ...
 
-Trains ``train.make_config("teach", case, seed, **settings)`` into ``runs/tune/NAME`` and appends
+Trains ``config.make_config("teach", case, seed, **settings)`` into ``runs/tune/NAME`` and appends
 {name, case, seed, settings, val metrics on the whole validation split, minutes} to
 ``benchmarks/tuning_log.jsonl``. The test split is never read here: choices are made on
 validation (the tables in ``config.TEACH_EVIDENCE`` and notebook 04 come from this log).
 With ``--border`` it holds the validation split's border/centre error ratios
-(``evaluate.border_error_map``). With ``--closeups`` the row also holds the model's and the shading prior's Abs Rel on the
-teach profile's ``heldout_closeup`` set, for the record only (never used to choose).
+(``evaluate.border_error_map``). With ``--closeups`` the row also holds the model's and the shading prior's
+Abs Rel on the teach profile's ``heldout_closeup`` set, for the record only (never used to choose).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from geodepth_lite import baselines, config, evaluate, synth, train, utils
+from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, inference, synth, train, utils
 from geodepth_lite.metrics import compute_depth_metrics
 
 LOG = Path(__file__).with_name("tuning_log.jsonl")
@@ -44,21 +44,22 @@ def main(argv=None) -> int:
     ap.add_argument("--log", default=str(LOG))
     ap.add_argument("--closeups", action="store_true", help="also score heldout_closeup (recorded, not for choosing)")
     ap.add_argument("--border", action="store_true",
-                    help="also the validation split's border error map: each border band's mean |log error| / the centre's")
+                    help="also the validation split's border error map: "
+                         "each border band's mean |log error| / the centre's")
     args = ap.parse_args(argv)
     settings = {}
     for item in args.set:
         key, _, value = item.partition("=")
         settings[key] = parse_value(value)
-    cfg = train.make_config("teach", args.case, args.seed, **settings)
+    cfg = config.make_config("teach", args.case, args.seed, **settings)
     run_dir = utils.runs_dir() / "tune" / args.name
     t0 = time.perf_counter()
     ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
     minutes = (time.perf_counter() - t0) / 60
-    model, _ = train.load_model(ckpt)
+    model, _ = checkpoint.load_model(ckpt)
     torch.set_num_threads(cfg["threads"] or torch.get_num_threads())
-    root = train.resolve_dataset(cfg)
-    val = train.load_split(root, "val", cfg["image_size"])  # the whole validation split
+    root = dataset.resolve_dataset(cfg)
+    val = dataset.load_split(root, "val", cfg["image_size"])  # the whole validation split
     preds, gts = [], []
     with torch.no_grad():
         for i in range(0, len(val), 40):
@@ -67,7 +68,7 @@ def main(argv=None) -> int:
             preds.append(model(x)[:, 0])
             gts.append(torch.stack([it["depth"] for it in items])[:, 0])
     m = compute_depth_metrics(torch.cat(preds).numpy(), torch.cat(gts).numpy())
-    hist = train.read_log(run_dir)
+    hist = checkpoint.read_log(run_dir)
     row = {"name": args.name, "case": args.case, "seed": args.seed, "settings": settings,
            "val_abs_rel": round(m["abs_rel"], 4), "val_rmse": round(m["rmse"], 4),
            "val_rmse_log": round(m["rmse_log"], 4), "val_a1": round(m["a1"], 4),
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
     if args.border:
         ds = evaluate.open_eval_dataset(str(root), split="val")
         with torch.no_grad():
-            b = evaluate.border_error_map(lambda x: train.predict_depth(model, x, cfg["image_size"]), ds)
+            b = evaluate.border_error_map(lambda x: inference.predict_depth(model, x, cfg["image_size"]), ds)
         row["val_border"] = {k: round(v, 3) for k, v in b["ratios"].items()}
         row["val_border_worst"] = round(max(b["ratios"].values()), 3)
     if args.closeups:

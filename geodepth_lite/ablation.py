@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from geodepth_lite import baselines, config, evaluate, synth, train
+from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, synth
 
 CASE_NAMES = {1: "depth + smooth", 2: "+ grad + normal", 3: "+ SDF", 4: "all five"}
 # Section 4.3: the paper's reduction against Case 1, in percent (negative = better)
@@ -53,7 +53,7 @@ def evaluation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
 
 def baseline_scores(profile: str, sets: dict[str, Any]) -> dict[str, dict[str, dict]]:
     """{set: {baseline: overall metrics}}; the mean depth map is fitted on the profile's training split."""
-    root = train.resolve_dataset(train.make_config(profile, 1, 0))
+    root = dataset.resolve_dataset(config.make_config(profile, 1, 0))
     mean_map = baselines.fit_mean_depth_map(root, "train")
     return {name: {b: r["overall"] for b, r in baselines.evaluate_baselines(ds, mean_map).items()}
             for name, ds in sets.items()}
@@ -67,11 +67,11 @@ def run(profile: str, cases: list[int], seeds: list[int], *, workers: int | None
     "baselines": {set: {baseline: overall metrics}}, "frames": {set: n}, "checkpoints": {...}}.
     """
     runs = [(c, s) for c in cases for s in seeds]
-    paths = train.ensure_checkpoints(profile, runs, workers=workers)
+    paths = checkpoint.ensure_checkpoints(profile, runs, workers=workers)
     sets = evaluation_sets(profile, progress=progress)
     scores = {}
     for run_key, path in paths.items():
-        model, cfg = train.load_model(path)
+        model, cfg = checkpoint.load_model(path)
         scores[run_key] = {name: evaluate.evaluate_model(model, ds, image_size=cfg["image_size"])["overall"]
                            for name, ds in sets.items()}
     return {"profile": profile, "cases": list(cases), "seeds": list(seeds), "scores": scores,

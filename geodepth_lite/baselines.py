@@ -25,11 +25,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH
+
 # name -> what it predicts (one line; shown in the evaluate tables' notes)
 BASELINES: dict[str, str] = {
     "constant": "the same depth at every pixel (after per-frame median scaling any constant is the same)",
     "mean_depth_map": "the pixel-wise mean of the training depth maps, the same map for every frame",
-    "shading_prior": "1 / sqrt(luminance blurred with a 2 px Gaussian): a light at the lens falls off as 1 / distance^2",
+    "shading_prior": ("1 / sqrt(luminance blurred with a 2 px Gaussian): "
+                      "a light at the lens falls off as 1 / distance^2"),
 }
 
 LUMA_WEIGHTS = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma, as PIL's convert("L")
@@ -164,20 +167,22 @@ def mean_map_training_root(dataset, cfg: dict | None = None, progress: bool = Fa
             note += " (the evaluated frames themselves: an optimistic row)"
         return base.root, note
     if not (cfg or {}).get("dataset"):
-        return None, "mean depth map not fitted: the dataset has no train split and the checkpoint names no training dataset"
-    from geodepth_lite.train import resolve_dataset
+        return None, ("mean depth map not fitted: the dataset has no train split "
+                      "and the checkpoint names no training dataset")
+    from geodepth_lite.dataset import resolve_dataset
 
     try:
         root = resolve_dataset(cfg, progress=progress)
     except (FileNotFoundError, ValueError) as exc:
-        return None, f"mean depth map not fitted: the checkpoint's training dataset {cfg['dataset']!r} is unavailable ({exc})"
+        return None, (f"mean depth map not fitted: the checkpoint's training dataset {cfg['dataset']!r} "
+                      f"is unavailable ({exc})")
     return root, (f"mean depth map fitted on the checkpoint's training dataset {cfg['dataset']!r} (train split; "
                   "the evaluated dataset has no train split of its own)")
 
 
 def evaluate_baselines(dataset, train_root_or_mean_map: str | os.PathLike | np.ndarray | None, *,
                        names: Iterable[str] | None = None, sigma: float = 2.0, batch_size: int = 8,
-                       min_depth: float = 1e-3, max_depth: float = 100.0, progress: bool = False,
+                       min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, progress: bool = False,
                        mean_map_note: str | None = None) -> dict[str, dict]:
     """Score the baselines ``names`` (default: all of ``BASELINES``) on ``dataset`` in one pass.
 
@@ -214,7 +219,8 @@ def evaluate_baselines(dataset, train_root_or_mean_map: str | os.PathLike | np.n
                 root = Path(train_root_or_mean_map)
                 mean_map = fit_mean_depth_map(root, "train")
                 n_train = sum(1 for line in (root / "train" / "frames.jsonl").read_text().splitlines() if line.strip())
-                notes[name].append(f"fitted on the {n_train} frames of {root}/train at {mean_map.shape[0]}x{mean_map.shape[1]}")
+                notes[name].append(f"fitted on the {n_train} frames of {root}/train "
+                                   f"at {mean_map.shape[0]}x{mean_map.shape[1]}")
             else:
                 mean_map = np.asarray(train_root_or_mean_map, dtype=np.float32)
                 if mean_map.ndim != 2:

@@ -1,26 +1,33 @@
 """``python -m geodepth_lite <subcommand>``: the command-line entry point.
 
-Each subcommand lives in the module that does the work. That module defines
+Each subcommand lives in the module that does the work (``train``'s in ``train_cli.py``,
+so that ``train.py`` is the training loop alone). That module defines
 ``add_arguments_<name>(parser)`` and ``run_<name>(args) -> int``; this file only
 wires them together, so ``--help`` stays in one place and a module can be read
-on its own.
+on its own. Every failure is one line ``error: ...`` with exit status 2 (``--debug`` or
+GEODEPTH_DEBUG=1 add the traceback).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import traceback
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("geodepth_lite.synth", "generate a synthetic RGB-depth dataset from a manifest"),
     "verify": ("geodepth_lite.synth", "check a generated dataset against its checksums"),
-    "train": ("geodepth_lite.train", "train the depth network (a profile, or your own settings)"),
+    "train": ("geodepth_lite.train_cli", "train the depth network (a profile, or your own settings)"),
     "evaluate": ("geodepth_lite.evaluate", "evaluate a checkpoint with the seven depth metrics"),
     "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
     "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
 }
+
+
+DEBUG_ENV = "GEODEPTH_DEBUG"  # set to 1 for full tracebacks, as --debug does
 
 
 class UserError(Exception):
@@ -32,29 +39,60 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m geodepth_lite",
         description="geodepth-lite: reproduce Yang et al. (2023), geometry-aware depth in monocular endoscopy.",
     )
+    parser.add_argument("--debug", action="store_true",
+                        help=f"show the full traceback of an error (also: {DEBUG_ENV}=1)")
     sub = parser.add_subparsers(dest="command", metavar="<command>")
     for name, (module_name, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
+        p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help=f"show the full traceback of an error (also: {DEBUG_ENV}=1)")
         module = importlib.import_module(module_name)
         getattr(module, f"add_arguments_{name}")(p)
         p.set_defaults(_run=getattr(module, f"run_{name}"))
     return parser
 
 
+def error_line(exc: BaseException) -> str:
+    """One line saying what went wrong, and with which file where one is known.
+
+    ``utils.FileProblem`` already reads "cannot <action> <path>: <reason>"; another OSError
+    becomes "<reason>: <path>"; an error re-raised from a DataLoader worker keeps only its
+    original message (its last line).
+    """
+    from geodepth_lite.utils import FileProblem, os_reason
+
+    if isinstance(exc, FileProblem):
+        text = str(exc)
+    elif isinstance(exc, OSError) and exc.filename is not None:
+        target = f"{exc.filename} -> {exc.filename2}" if exc.filename2 else str(exc.filename)
+        text = f"{os_reason(exc)}: {target}"
+    else:
+        text = str(exc) or type(exc).__name__
+    lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+    if "Original Traceback" in text and lines:  # re-raised from a DataLoader worker: its last line
+        kind, _, message = lines[-1].partition(": ")
+        return message if message and kind.endswith(("Error", "Problem")) else lines[-1]
+    return " ".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    debug = args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0")
     if args.command is None:
         parser.print_help()
         return 2
     try:
         return int(args._run(args) or 0)
-    except (UserError, ValueError, FileNotFoundError, FileExistsError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
-        print("interrupted: everything written so far is complete; run the same command again to continue", file=sys.stderr)
+        print("interrupted: everything written so far is complete; run the same command again to continue",
+              file=sys.stderr)
         return 130
+    except (UserError, ValueError, OSError) as exc:  # OSError: FileNotFoundError, FileExistsError, FileProblem...
+        if debug:
+            traceback.print_exc()
+        print(f"error: {error_line(exc)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

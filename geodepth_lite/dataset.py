@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from . import camera as cam
+from .utils import read_npy, read_rgb
 
 
 def resize_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -59,7 +60,8 @@ def read_frames(root: str | Path, split: str) -> list[dict]:
     """The frames.jsonl records of a split (clear errors for a missing directory or split)."""
     root = Path(root)
     if not root.is_dir():
-        raise FileNotFoundError(f"dataset directory {root} does not exist (generate it with synth.ensure_dataset or `python -m geodepth_lite synth`)")
+        raise FileNotFoundError(f"dataset directory {root} does not exist "
+                                "(generate it with synth.ensure_dataset or `python -m geodepth_lite synth`)")
     path = root / split / "frames.jsonl"
     if not path.is_file():
         have = sorted(p.name for p in root.iterdir() if (p / "frames.jsonl").is_file())
@@ -93,11 +95,9 @@ class SyntheticDepthDataset(torch.utils.data.Dataset):
         return len(self.frames)
 
     def __getitem__(self, i: int) -> dict:
-        from PIL import Image
-
         rec = self.frames[i]
-        rgb = np.asarray(Image.open(self.root / rec["rgb"]).convert("RGB"))
-        depth = np.load(self.root / rec["depth"])
+        rgb = read_rgb(self.root / rec["rgb"])  # a damaged file is named (utils.FileProblem)
+        depth = read_npy(self.root / rec["depth"])
         image = torch.from_numpy(rgb.copy()).permute(2, 0, 1).float() / 255.0
         depth_t = torch.from_numpy(depth.astype(np.float32, copy=False))[None]
         K = np.asarray(rec["K"], dtype=np.float64)
@@ -105,3 +105,65 @@ class SyntheticDepthDataset(torch.utils.data.Dataset):
             image, depth_t, K = resize_frame(image, depth_t, K, self.size)
         return {"image": image, "depth": depth_t, "K": torch.from_numpy(K.astype(np.float32)),
                 "organ": rec["organ"], "group": rec["group"], "index": int(rec["index"])}
+
+
+# --------------------------------------------------------------------------- training splits
+# Datasets decoded at the network size stay in memory below this many bytes (per process).
+CACHE_LIMIT_BYTES = 2 * 1024**3
+
+
+def resolve_dataset(cfg: dict, progress: bool = False) -> Path:
+    """The dataset directory of ``cfg``: an existing directory as is, else a manifest built on demand."""
+    path = Path(cfg["dataset"]).expanduser()
+    if path.is_dir() and (path / "manifest.json").exists():
+        return path
+    from geodepth_lite import synth
+
+    return Path(synth.ensure_dataset(cfg["dataset"], overrides=cfg.get("dataset_overrides"), progress=progress))
+
+
+class MemoryDataset(torch.utils.data.Dataset):
+    """A split decoded and resized once: tensors in memory, the same item dicts as the source."""
+
+    def __init__(self, items: list[dict]):
+        self.image = torch.stack([it["image"] for it in items])
+        self.depth = torch.stack([it["depth"] for it in items])
+        self.K = torch.stack([torch.as_tensor(it["K"], dtype=torch.float32) for it in items])
+        self.valid = torch.stack([it["valid"] for it in items]) if items and "valid" in items[0] else None
+        self.organ = [it.get("organ", "") for it in items]
+        self.group = [it.get("group", "") for it in items]
+        self.index = [int(it.get("index", i)) for i, it in enumerate(items)]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, i: int) -> dict:
+        item = {"image": self.image[i], "depth": self.depth[i], "K": self.K[i],
+                "organ": self.organ[i], "group": self.group[i], "index": self.index[i]}
+        if self.valid is not None:
+            item["valid"] = self.valid[i]
+        return item
+
+
+MEMORY_CACHE: dict[tuple, MemoryDataset] = {}
+
+
+def load_split(root: Path, split: str, image_size: int | None, *, cache: str | bool = "auto",
+               limit: int | None = None):
+    """``SyntheticDepthDataset(root, split, image_size)`` (``limit``: that many evenly spaced
+    frames), decoded once and kept in memory when small (per process, reused across runs)."""
+    ds = SyntheticDepthDataset(root, split, image_size=image_size)
+    if limit is not None and limit < len(ds):
+        # evenly spaced frames, so a subset still covers every scene, organ and lighting
+        ds = torch.utils.data.Subset(ds, np.linspace(0, len(ds) - 1, limit).round().astype(int).tolist())
+    if cache == "auto":
+        n = len(ds)
+        side = image_size or 320
+        cache = n * 4 * side * side * 4 < CACHE_LIMIT_BYTES
+    if not cache:
+        return ds
+    stamp = (root / split / "frames.jsonl").stat().st_mtime_ns if (root / split / "frames.jsonl").exists() else 0
+    key = (str(Path(root).resolve()), split, image_size, limit, stamp)
+    if key not in MEMORY_CACHE:
+        MEMORY_CACHE[key] = MemoryDataset([ds[i] for i in range(len(ds))])
+    return MEMORY_CACHE[key]

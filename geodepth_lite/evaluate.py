@@ -21,6 +21,7 @@ import argparse
 import csv
 import io
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -28,11 +29,11 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
+from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
 
-METRIC_KEYS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.3, named once in metrics.py
 METRIC_LABELS = {"abs_rel": "Abs Rel", "sq_rel": "Sq Rel", "rmse": "RMSE", "rmse_log": "RMSE log",
                  "a1": "a1", "a2": "a2", "a3": "a3"}
-PUBLIC_DATASETS = ("endoslam", "colondepth", "simcol3d", "c3vd")
 
 
 # --------------------------------------------------------------------------- datasets
@@ -43,15 +44,16 @@ def open_eval_dataset(name: str, *, split: str = "test", root: str | os.PathLike
     """A dataset to evaluate on, at its native resolution.
 
     name: a synthetic manifest name (built on demand with ``synth.ensure_dataset``), a
-    synthetic dataset directory, or one of the public datasets (``PUBLIC_DATASETS``; needs
+    synthetic dataset directory, or one of the public datasets (``loaders.REGISTRY``; needs
     ``root``, read by ``loaders.open_dataset``, extra keywords such as ``group``/``organ``/
-    ``limit`` passed on). ``split`` applies to synthetic datasets.
+    ``limit`` passed on; its ``max_depth``, the largest depth its encoding holds, bounds the
+    evaluation mask). ``split`` applies to synthetic datasets.
     """
-    if name in PUBLIC_DATASETS:
+    from geodepth_lite import loaders
+
+    if name in loaders.REGISTRY:
         if root is None:
             raise ValueError(f"--root is required for the public dataset {name!r} (the folder you downloaded)")
-        from geodepth_lite import loaders
-
         return loaders.open_dataset(name, root, **kw)
     from geodepth_lite.dataset import SyntheticDepthDataset
 
@@ -109,7 +111,7 @@ def _as_depth_batch(pred: Any) -> np.ndarray:
 
 
 def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, error_maps: int = 0,
-              min_depth: float = 1e-3, max_depth: float = 100.0, progress: bool = False,
+              min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, progress: bool = False,
               desc: str = "evaluate") -> tuple[dict[str, dict], list[dict]]:
     """One pass over ``dataset`` scoring every predictor: ({name: result}, error-map examples of the first)."""
     from tqdm.auto import tqdm
@@ -117,6 +119,7 @@ def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, 
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
                                          collate_fn=_collate_eval)
     rows: dict[str, list[dict]] = {name: [] for name in predictors}
+    skipped: dict[str, list[dict]] = {name: [] for name in predictors}
     examples: list[dict] = []
     first = next(iter(predictors), None)
     for batch in tqdm(loader, desc=desc, disable=not progress, leave=False):
@@ -128,28 +131,69 @@ def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, 
                 raise ValueError(f"predictor {name!r} returned depth of shape {pred.shape} for ground truth "
                                  f"{gt.shape}: resize the prediction to the frame's size")
             for j in range(pred.shape[0]):
+                index = int(batch["index"][j])
+                if not np.isfinite(pred[j]).all():
+                    raise NonFiniteDepth(f"{name or 'the predictor'} gives non-finite depth (NaN or inf) for frame "
+                                     f"{frame_name(dataset, index)}: nothing written")
+                record = {"index": index, "organ": str(batch["organ"][j]), "group": str(batch["group"][j])}
+                frame_valid = np.isfinite(gt[j]) & (gt[j] > min_depth) & (gt[j] < max_depth)
+                if valid is not None:
+                    frame_valid &= valid[j]
+                if not frame_valid.any():  # skipped, named, counted; the other frames are still scored
+                    if name == first:
+                        warnings.warn(f"skipping frame {frame_name(dataset, index)}: no valid ground-truth pixel",
+                                      stacklevel=2)
+                    skipped[name].append({**record, **{k: float("nan") for k in (*METRIC_KEYS, "ratio")},
+                                          "skipped": "no valid ground-truth pixel"})
+                    continue
                 m = _frame_metrics(pred[j], gt[j], None if valid is None else valid[j], min_depth, max_depth)
-                rows[name].append({"index": int(batch["index"][j]), "organ": str(batch["organ"][j]),
-                                   "group": str(batch["group"][j]), **m})
+                rows[name].append({**record, **m, "skipped": ""})
                 if name == first and len(examples) < error_maps:
                     examples.append({"image": batch["image"][j].permute(1, 2, 0).numpy(), "gt": gt[j],
                                      "pred": pred[j] * m["ratio"], "index": rows[name][-1]["index"],
                                      "valid": None if valid is None else valid[j]})
-    results = {name: {"name": name, "n": len(rs), "overall": summarize(rs), "by_group": summarize(rs, "group"),
-                      "by_organ": summarize(rs, "organ"), "frames": rs} for name, rs in rows.items()}
+    if first is not None and not rows[first]:
+        n = len(skipped[first])
+        raise ValueError(f"no frame of the {n} evaluated has a valid ground-truth pixel (depth in "
+                         f"({min_depth:g}, {max_depth:g}), finite)" if n else "the dataset has no frame")
+    results = {}
+    for name, rs in rows.items():
+        frames = sorted(rs + skipped[name], key=_frame_order) if skipped[name] else rs
+        results[name] = {"name": name, "n": len(rs), "overall": summarize(rs), "by_group": summarize(rs, "group"),
+                         "by_organ": summarize(rs, "organ"), "frames": frames,
+                         "skipped": [frame_name(dataset, r["index"]) for r in skipped[name]]}
     return results, examples
 
 
-def evaluate_predictors(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, min_depth: float = 1e-3,
-                        max_depth: float = 100.0, progress: bool = False) -> dict[str, dict]:
+class NonFiniteDepth(ValueError):
+    """A predictor returned NaN or infinite depth: its numbers would be meaningless, so nothing is written."""
+
+
+def _frame_order(row: dict) -> int:
+    return row["index"]
+
+
+def frame_name(dataset, index: int) -> str:
+    """A frame as a reader finds it: its image file where the dataset records one, else its index."""
+    frames = getattr(dataset, "frames", None)
+    if isinstance(frames, list) and 0 <= index < len(frames) and isinstance(frames[index], dict):
+        rgb = frames[index].get("rgb")
+        if rgb:
+            return f"{index} ({rgb})"
+    return str(index)
+
+
+def evaluate_predictors(predictors: dict[str, Callable], dataset, *, batch_size: int = 8,
+                        min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
+                        progress: bool = False) -> dict[str, dict]:
     """``evaluate_predictor`` for several predictors in one pass over ``dataset``: {name: result}."""
     return _evaluate(predictors, dataset, batch_size=batch_size, min_depth=min_depth, max_depth=max_depth,
                      progress=progress, desc="evaluate " + ", ".join(predictors))[0]
 
 
 def evaluate_predictor(predict_fn: Callable, dataset, *, batch_size: int = 8,
-                       out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = 1e-3,
-                       max_depth: float = 100.0, progress: bool = False, name: str = "",
+                       out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = EVAL_MIN_DEPTH,
+                       max_depth: float = EVAL_MAX_DEPTH, progress: bool = False, name: str = "",
                        baselines: dict | None = None) -> dict:
     """Evaluate any depth predictor on ``dataset`` (items as ``SyntheticDepthDataset``'s; optional "valid").
 
@@ -175,12 +219,12 @@ def evaluate_predictor(predict_fn: Callable, dataset, *, batch_size: int = 8,
 
 
 def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size: int = 8,
-                   out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = 1e-3,
-                   max_depth: float = 100.0, progress: bool = False, name: str = "",
+                   out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = EVAL_MIN_DEPTH,
+                   max_depth: float = EVAL_MAX_DEPTH, progress: bool = False, name: str = "",
                    baselines: dict | None = None) -> dict:
     """``evaluate_predictor`` for a network: each batch resized to the network's ``image_size``,
-    predicted and resized back (``train.predict_depth``). Same result dict and files."""
-    from geodepth_lite.train import predict_depth
+    predicted and resized back (``inference.predict_depth``). Same result dict and files."""
+    from geodepth_lite.inference import predict_depth
 
     def predict_fn(images: torch.Tensor) -> torch.Tensor:
         return predict_depth(model, images, image_size).cpu()
@@ -194,7 +238,8 @@ BORDER_BANDS = ("top", "bottom", "left", "right")
 
 
 def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band: float = 0.1,
-                     min_depth: float = 1e-3, max_depth: float = 100.0, progress: bool = False) -> dict:
+                     min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
+                     progress: bool = False) -> dict:
     """Is a predictor biased near the image border? Per-pixel log errors averaged over ``dataset``.
 
     Each frame's prediction is median-scaled to its ground truth (as the metrics see it); then
@@ -270,9 +315,9 @@ def border_map_figure(maps: dict, title: str = ""):
 
 
 def _collate_eval(batch: list[dict]) -> dict:
-    from geodepth_lite.train import _collate
+    from geodepth_lite.inference import collate
 
-    return _collate(batch)
+    return collate(batch)
 
 
 def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_teach", *, split: str = "test",
@@ -285,18 +330,25 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_
     and add them to the result ("baselines") and the overall table. The mean depth map is fitted
     on the dataset's own train split, else on the checkpoint's training dataset (``cfg["dataset"]``).
     """
-    from geodepth_lite.train import load_model, pick_device
+    from geodepth_lite.checkpoint import load_model
+    from geodepth_lite.inference import pick_device
 
     model, cfg = load_model(checkpoint, pick_device(device))
     ds = open_eval_dataset(dataset, split=split, root=root, progress=progress, **kw)
+    max_depth = getattr(ds, "max_depth", EVAL_MAX_DEPTH)  # a public dataset's own encoding bounds the mask
     base = None
     if baselines:
         from geodepth_lite import baselines as bl
 
         train_root, note = bl.mean_map_training_root(ds, cfg, progress=progress)
-        base = bl.evaluate_baselines(ds, train_root, batch_size=batch_size, progress=progress, mean_map_note=note)
-    return evaluate_model(model, ds, image_size=cfg["image_size"], batch_size=batch_size, out_dir=out_dir,
-                          error_maps=error_maps, progress=progress, name=f"{dataset}/{split}", baselines=base)
+        base = bl.evaluate_baselines(ds, train_root, batch_size=batch_size, progress=progress, mean_map_note=note,
+                                     max_depth=max_depth)
+    try:
+        return evaluate_model(model, ds, image_size=cfg["image_size"], batch_size=batch_size, out_dir=out_dir,
+                              error_maps=error_maps, progress=progress, name=f"{dataset}/{split}", baselines=base,
+                              max_depth=max_depth)
+    except NonFiniteDepth as exc:
+        raise NonFiniteDepth(f"checkpoint {checkpoint} is unusable: {exc}") from None
 
 
 # --------------------------------------------------------------------------- tables and files
@@ -334,7 +386,7 @@ def metrics_table(result: dict, by: str | None = None) -> dict:
 
 
 def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict] = (), *,
-                  min_depth: float = 1e-3, max_depth: float = 100.0) -> None:
+                  min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH) -> None:
     """metrics.json, frames.csv, tables.md and error_maps/*.png in ``out_dir`` (each atomic)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -343,14 +395,16 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict]
         summary["baselines"] = {name: {k: v for k, v in b.items() if k != "frames"}
                                 for name, b in result["baselines"].items()}
     utils.write_json_atomic(out / "metrics.json", summary)
-    fields = ["index", "organ", "group", *METRIC_KEYS, "ratio"]
+    fields = ["index", "organ", "group", *METRIC_KEYS, "ratio", "skipped"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     w.writeheader()
     for r in result["frames"]:
-        w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]) for k in fields})
+        w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]) for k in fields if k in r})
     utils.write_bytes_atomic(out / "frames.csv", buf.getvalue().encode())
-    md = [f"# Evaluation {result.get('name', '')}".rstrip(), "", f"{result['n']} frames; median scaling per frame.", ""]
+    skipped = result.get("skipped", [])
+    md = [f"# Evaluation {result.get('name', '')}".rstrip(), "", f"{result['n']} frames; median scaling per frame."
+          + (f" {len(skipped)} skipped (no valid ground-truth pixel): {', '.join(skipped)}." if skipped else ""), ""]
     for by in (None, "organ", "group"):
         t = metrics_table(result, by)
         title = "Overall" if by is None else f"By {by}" + (" (model)" if result.get("baselines") else "")
@@ -373,8 +427,8 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict]
             plt.close(fig)
 
 
-def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, min_depth: float = 1e-3,
-                max_depth: float = 100.0) -> np.ndarray:
+def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, min_depth: float = EVAL_MIN_DEPTH,
+                max_depth: float = EVAL_MAX_DEPTH) -> np.ndarray:
     """Per-pixel |gt - pred| / gt (NaN outside the valid mask) of a median-scaled prediction."""
     mask = (gt > min_depth) & (gt < max_depth)
     if valid is not None:
@@ -384,7 +438,7 @@ def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = Non
 
 
 def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", "ground truth", "prediction", "error"),
-                     min_depth: float = 1e-3, max_depth: float = 100.0, err_max: float = 0.5,
+                     min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, err_max: float = 0.5,
                      row_labels: list[str] | None = None):
     """The paper's Fig. 7 layout: one row per frame, input | GT | (median-scaled) prediction | Abs Rel map.
 
@@ -423,10 +477,16 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
 
 
 def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", required=True, help="checkpoint.pt written by `train`")
+    from geodepth_lite import loaders
+
+    parser.add_argument("--checkpoint", default=None, help="checkpoint.pt written by `train` (not needed with --check)")
     parser.add_argument("--dataset", default="scenario_teach",
-                        help="synthetic manifest name or dataset folder, or one of " + ", ".join(PUBLIC_DATASETS))
+                        help="synthetic manifest name or dataset folder, or one of " + ", ".join(loaders.REGISTRY))
     parser.add_argument("--root", default=None, help="folder of a public dataset (its own layout)")
+    parser.add_argument("--check", nargs="?", const="", default=None, metavar="MANIFEST",
+                        help="public datasets: only count the frames of the paper's evaluation subsets under --root "
+                        "and print expected and found counts (exit 0 when all match, 1 otherwise); MANIFEST: a "
+                        "subset JSON (default: the dataset's own, data_manifests/eval_subsets/<dataset>.json)")
     parser.add_argument("--split", default="test", help="split of a synthetic dataset (default test)")
     parser.add_argument("--group", default=None, help="public datasets: keep one group (e.g. T1-L1)")
     parser.add_argument("--organ", default=None, help="public datasets: keep one organ (e.g. colon)")
@@ -438,15 +498,42 @@ def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-baselines", action="store_true",
                         help="skip the trivial baselines (constant, mean depth map, shading prior) in the tables")
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-verify", action="store_true",
+                        help="synthetic datasets: skip checking the files against checksums.sha256 first")
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
+    from geodepth_lite import loaders
+
+    public = args.dataset in loaders.REGISTRY
     kw = {k: getattr(args, k) for k in ("group", "organ", "limit") if getattr(args, k) is not None}
-    if kw and args.dataset not in PUBLIC_DATASETS:
+    if kw and not public:
         raise ValueError(f"--{', --'.join(kw)} apply to the public datasets only, not {args.dataset!r}")
+    if args.check is not None:  # the subset report only: no checkpoint, no metrics
+        if not public:
+            raise ValueError(f"--check applies to the public datasets ({', '.join(loaders.REGISTRY)}), "
+                             f"not {args.dataset!r}")
+        if kw:
+            raise ValueError(f"--{', --'.join(kw)} do not apply to --check, which counts every frame under --root")
+        if args.root is None:
+            raise ValueError(f"--check needs --root, the folder of your copy of {args.dataset}")
+        rows = loaders.dataset_class(args.dataset).check_eval_subsets(args.root, args.check or None)
+        print(loaders.format_check(rows))
+        return 0 if all(r["status"] == "ok" for r in rows) else 1
+    if args.checkpoint is None:
+        raise ValueError("--checkpoint is required (except with --check)")
     if args.error_maps < 0:
         raise ValueError(f"--error-maps must be >= 0, got {args.error_maps}")
     out = Path(args.out) if args.out else utils.runs_dir() / "eval" / f"{Path(args.dataset).name}-{args.split}"
+    if not public and not args.no_verify:  # a synthetic dataset: its checksums first, before any work
+        from geodepth_lite import synth
+
+        path = Path(args.dataset).expanduser()
+        ds_root = (path if path.is_dir() and (path / "manifest.json").exists()
+                   else synth.ensure_dataset(args.dataset, progress=not args.no_progress))
+        # the evaluated split, and the train split the mean-depth-map baseline is fitted on
+        own_train = not args.no_baselines and (Path(ds_root) / "train" / "frames.jsonl").is_file()
+        synth.check_dataset(ds_root, {args.split, "train"} if own_train else {args.split})
     result = evaluate_checkpoint(args.checkpoint, args.dataset, split=args.split, root=args.root, out_dir=out,
                                  device=args.device, batch_size=args.batch_size, error_maps=args.error_maps,
                                  progress=not args.no_progress, baselines=not args.no_baselines, **kw)
@@ -456,14 +543,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth: float = 1e-3,
-                        max_depth: float = 100.0) -> list[dict]:
+def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth: float = EVAL_MIN_DEPTH,
+                        max_depth: float = EVAL_MAX_DEPTH) -> list[dict]:
     """Examples for ``error_map_figure``: frames ``indices`` of ``dataset`` predicted by each model.
 
     models: {label: (model, image_size)}; each prediction is median-scaled to the frame's
     ground truth (as the metrics see it). One label gives "pred"; several give "preds".
     """
-    from geodepth_lite.train import predict_depth
+    from geodepth_lite.inference import predict_depth
 
     out = []
     for i in indices:

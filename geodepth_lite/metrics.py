@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+EVAL_MIN_DEPTH = 1e-3  # ground truth at or below this is invalid (the protocol's lower cap, scene units)
+EVAL_MAX_DEPTH = 100.0  # ... and at or above this (public datasets use their own encoding's maximum)
 METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 
 
@@ -50,7 +52,8 @@ def frame_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     }
 
 
-def compute_depth_metrics(pred, gt, *, min_depth: float = 1e-3, max_depth: float = 100.0, median_scaling: bool = True) -> dict:
+def compute_depth_metrics(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
+                          median_scaling: bool = True) -> dict:
     """Metrics of predicted depth against ground truth (shapes N x H x W or H x W, numpy or torch).
 
     ``pred`` must already be at the ground truth's resolution. Returns a dict with

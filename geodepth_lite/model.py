@@ -206,7 +206,8 @@ class DepthNet(nn.Module):
         if H % STRIDE or W % STRIDE or H == 0 or W == 0:
             raise ValueError(
                 f"image height and width must be positive multiples of {STRIDE}, got {H} x {W} "
-                f"(resize, e.g. to {max(STRIDE, round(H / STRIDE) * STRIDE)} x {max(STRIDE, round(W / STRIDE) * STRIDE)})"
+                f"(resize, e.g. to {max(STRIDE, round(H / STRIDE) * STRIDE)} x "
+                f"{max(STRIDE, round(W / STRIDE) * STRIDE)})"
             )
 
     def encode(self, image: torch.Tensor) -> list[torch.Tensor]:

@@ -10,7 +10,7 @@ For every frame this writes, into ``--out``:
 - ``<name>.ply``: the coloured back-projected point cloud (or mesh, ``--ply mesh``).
 
 Frames of any size are resized to the network's input and the prediction back to the
-frame (``train.predict_depth``). Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
+frame (``inference.predict_depth``). Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
 degrees). A file that cannot be read or written is reported by name, the others are
 still processed, and the exit status is 1 if any frame failed (2 for a usage error).
@@ -161,10 +161,10 @@ def predict_frames(model, frames: list[np.ndarray], image_size) -> list[np.ndarr
     """Depth (H x W float32, each frame's own size) for a list of H x W x 3 uint8 frames of any sizes.
 
     Each frame is resized to the network's ``image_size`` so that one batch holds frames of
-    different sizes; ``train.predict_depth`` runs the network; each prediction is resized
+    different sizes; ``inference.predict_depth`` runs the network; each prediction is resized
     back (bilinear) to its frame.
     """
-    from .train import predict_depth
+    from .inference import predict_depth
 
     size = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
     x = torch.stack([resize_image(torch.from_numpy(f).permute(2, 0, 1).float().div(255.0), size) for f in frames])
@@ -218,7 +218,8 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
 def run_predict(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from .train import load_model, pick_device
+    from .checkpoint import load_model
+    from .inference import pick_device
 
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
@@ -234,8 +235,7 @@ def run_predict(args: argparse.Namespace) -> int:
     if not ckpt.is_file():
         raise FileNotFoundError(f"--checkpoint not found: {ckpt}")
     model, cfg = load_model(ckpt, device=pick_device(args.device))
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = utils.make_dir(args.out)
 
     failures: list[str] = []
     done = 0
@@ -243,14 +243,15 @@ def run_predict(args: argparse.Namespace) -> int:
     bar = tqdm(total=total, unit="frame", desc="predict", disable=args.no_progress, file=sys.stderr)
     for batch in _batches(iter_frames(files, kind, failures), args.batch_size):
         depths = predict_frames(model, [rgb for _, rgb in batch], cfg["image_size"])
+        for (name, _), depth in zip(batch, depths):
+            if not np.isfinite(depth).all():  # refuse before writing anything of this batch
+                raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {name}: "
+                                 f"nothing written for it; the model is unusable")
         for (name, rgb), depth in zip(batch, depths):
             H, W = depth.shape
-            try:
-                write_outputs(out_dir, name, rgb, depth, frame_intrinsics(W, H, calib, args.fov),
-                              args.ply, args.ply_stride)
-                done += 1
-            except OSError as exc:
-                failures.append(f"{name}: cannot write outputs ({exc})")
+            # an output that cannot be written (read-only, disk full) stops the run: utils.FileProblem
+            write_outputs(out_dir, name, rgb, depth, frame_intrinsics(W, H, calib, args.fov), args.ply, args.ply_stride)
+            done += 1
         bar.update(len(batch))
     bar.close()
     for msg in failures:

@@ -228,8 +228,8 @@ VIEWS = {"front": (20.0, 25.0), "side": (-80.0, 15.0)}
 VIEW_NAMES = tuple(VIEWS)
 
 
-def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: float = 3.0,
-                 background="white", reference_pose=None, zoom: float = 1.0, color_by: str = "image") -> list[np.ndarray]:
+def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: float = 3.0, background="white",
+                 reference_pose=None, zoom: float = 1.0, color_by: str = "image") -> list[np.ndarray]:
     """Headless renders (H x W x 3 uint8) of a cloud or mesh, one per view in ``views`` (Fig. 9).
 
     Views are set in a camera frame: the points' own frame, or the frame of
@@ -259,8 +259,8 @@ def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: flo
         direction = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)])
         pl = pv.Plotter(off_screen=True, window_size=list(window_size))
         pl.set_background(background)
-        kw = dict(rgb=True, scalars="rgb") if color_by == "image" and "rgb" in poly.point_data else dict(scalars="depth", cmap="magma",
-                                                                                  show_scalar_bar=False)
+        kw = (dict(rgb=True, scalars="rgb") if color_by == "image" and "rgb" in poly.point_data
+              else dict(scalars="depth", cmap="magma", show_scalar_bar=False))
         if poly.n_cells and poly.n_faces:
             pl.add_mesh(poly, smooth_shading=True, ambient=0.45, diffuse=0.7, specular=0.0, **kw)
         else:
@@ -328,7 +328,8 @@ def synthetic_sequence(manifest: str = "heldout_T2L2", organ: str = "colon", n_f
     Returns {"images": list of H x W x 3 uint8, "depths": list of H x W float32,
     "K": 3x3, "poses": list of 4x4 T_world_cam, "tube": tube.TubeMesh}.
     """
-    from . import render, synth, tube as tube_mod
+    from . import render, synth
+    from . import tube as tube_mod
 
     if not isinstance(n_frames, int) or n_frames < 2:
         raise ValueError(f"n_frames must be an integer >= 2, got {n_frames!r}")
@@ -342,7 +343,8 @@ def synthetic_sequence(manifest: str = "heldout_T2L2", organ: str = "colon", n_f
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E0]))
     tb = tube_mod.build_tube(preset, int(rng.integers(2**31)), m["resolution"])
     if not 0.0 <= s_start * tb.length + step * (n_frames - 1) <= tb.length:
-        raise ValueError(f"{n_frames} frames of step {step} from s_start={s_start} leave the tube (length {tb.length:.1f})")
+        raise ValueError(f"{n_frames} frames of step {step} from s_start={s_start} leave the tube "
+                         f"(length {tb.length:.1f})")
     texture = render.make_texture(m["texture_sets"][m["textures"][0]], rng)
     lighting = m["lighting_sets"][m["lightings"][0]]
     lights, tint = render.sample_lighting(lighting, rng, R)

@@ -34,28 +34,54 @@ MATERIAL_KEYS = ("ambient", "diffuse", "specular", "specular_power")  # Phong ma
 
 # Texture families: base mucosa colour, mottling, vessel colour/density/width (all 0..1 RGB).
 TEXTURES: dict[str, dict] = {
-    "pink":   {"base_color": [0.86, 0.45, 0.40], "mottle": 0.18, "mottle_scale": 0.08, "vessel_color": [0.55, 0.08, 0.10], "vessel_density": 6.0, "vessel_width": 0.05, "vessel_strength": 0.7, "size": 512},
-    "red":    {"base_color": [0.80, 0.30, 0.25], "mottle": 0.22, "mottle_scale": 0.05, "vessel_color": [0.45, 0.05, 0.08], "vessel_density": 9.0, "vessel_width": 0.04, "vessel_strength": 0.6, "size": 512},
-    "pale":   {"base_color": [0.90, 0.62, 0.55], "mottle": 0.12, "mottle_scale": 0.12, "vessel_color": [0.65, 0.20, 0.22], "vessel_density": 4.0, "vessel_width": 0.06, "vessel_strength": 0.8, "size": 512},
-    "orange": {"base_color": [0.88, 0.52, 0.33], "mottle": 0.20, "mottle_scale": 0.06, "vessel_color": [0.60, 0.15, 0.10], "vessel_density": 7.0, "vessel_width": 0.035, "vessel_strength": 0.5, "size": 512},
+    "pink":   {"base_color": [0.86, 0.45, 0.40], "mottle": 0.18, "mottle_scale": 0.08,
+               "vessel_color": [0.55, 0.08, 0.10], "vessel_density": 6.0, "vessel_width": 0.05, "vessel_strength": 0.7,
+               "size": 512},
+    "red":    {"base_color": [0.80, 0.30, 0.25], "mottle": 0.22, "mottle_scale": 0.05,
+               "vessel_color": [0.45, 0.05, 0.08], "vessel_density": 9.0, "vessel_width": 0.04, "vessel_strength": 0.6,
+               "size": 512},
+    "pale":   {"base_color": [0.90, 0.62, 0.55], "mottle": 0.12, "mottle_scale": 0.12,
+               "vessel_color": [0.65, 0.20, 0.22], "vessel_density": 4.0, "vessel_width": 0.06, "vessel_strength": 0.8,
+               "size": 512},
+    "orange": {"base_color": [0.88, 0.52, 0.33], "mottle": 0.20, "mottle_scale": 0.06,
+               "vessel_color": [0.60, 0.15, 0.10], "vessel_density": 7.0, "vessel_width": 0.035, "vessel_strength": 0.5,
+               "size": 512},
     # held-out families (never in the training recipes), cf. ColonDepth's T1-T3 x L1-L3
-    "T1":     {"base_color": [0.93, 0.70, 0.52], "mottle": 0.10, "mottle_scale": 0.15, "vessel_color": [0.70, 0.25, 0.20], "vessel_density": 3.0, "vessel_width": 0.07, "vessel_strength": 0.6, "size": 512},
-    "T2":     {"base_color": [0.70, 0.22, 0.22], "mottle": 0.30, "mottle_scale": 0.04, "vessel_color": [0.35, 0.03, 0.06], "vessel_density": 12.0, "vessel_width": 0.03, "vessel_strength": 0.7, "size": 512},
-    "T3":     {"base_color": [0.82, 0.50, 0.55], "mottle": 0.25, "mottle_scale": 0.10, "vessel_color": [0.40, 0.10, 0.30], "vessel_density": 5.0, "vessel_width": 0.05, "vessel_strength": 0.9, "size": 512},
+    "T1":     {"base_color": [0.93, 0.70, 0.52], "mottle": 0.10, "mottle_scale": 0.15,
+               "vessel_color": [0.70, 0.25, 0.20], "vessel_density": 3.0, "vessel_width": 0.07, "vessel_strength": 0.6,
+               "size": 512},
+    "T2":     {"base_color": [0.70, 0.22, 0.22], "mottle": 0.30, "mottle_scale": 0.04,
+               "vessel_color": [0.35, 0.03, 0.06], "vessel_density": 12.0, "vessel_width": 0.03, "vessel_strength": 0.7,
+               "size": 512},
+    "T3":     {"base_color": [0.82, 0.50, 0.55], "mottle": 0.25, "mottle_scale": 0.10,
+               "vessel_color": [0.40, 0.10, 0.30], "vessel_density": 5.0, "vessel_width": 0.05, "vessel_strength": 0.9,
+               "size": 512},
     # held-out close-up family: yellowish duodenal mucosa with fine villous mottling, few vessels
-    "T4":     {"base_color": [0.92, 0.72, 0.48], "mottle": 0.28, "mottle_scale": 0.03, "vessel_color": [0.72, 0.35, 0.22], "vessel_density": 4.0, "vessel_width": 0.04, "vessel_strength": 0.35, "size": 512},
+    "T4":     {"base_color": [0.92, 0.72, 0.48], "mottle": 0.28, "mottle_scale": 0.03,
+               "vessel_color": [0.72, 0.35, 0.22], "vessel_density": 4.0, "vessel_width": 0.04, "vessel_strength": 0.35,
+               "size": 512},
 }
 # Lighting families: light guides (offset: fraction of the lumen radius), exposure range (intensity
 # = exposure x d_ref^2, see ``exposure_distance``), light colour and jitter, mucosa tint jitter, material.
 LIGHTINGS: dict[str, dict] = {
-    "warm_single": {"n_lights": 1, "offset": 0.08, "intensity": [1.1, 1.9], "color": [1.0, 0.93, 0.82], "color_jitter": 0.05, "tint_jitter": 0.08, "ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0},
-    "white_dual":  {"n_lights": 2, "offset": 0.10, "intensity": [1.0, 1.6], "color": [1.0, 1.0, 1.0], "color_jitter": 0.04, "tint_jitter": 0.08, "ambient": 0.03, "diffuse": 0.85, "specular": 0.6, "specular_power": 50.0},
-    "dim_dual":    {"n_lights": 2, "offset": 0.06, "intensity": [0.6, 1.0], "color": [1.0, 0.96, 0.9], "color_jitter": 0.06, "tint_jitter": 0.1, "ambient": 0.05, "diffuse": 0.9, "specular": 0.35, "specular_power": 25.0},
+    "warm_single": {"n_lights": 1, "offset": 0.08, "intensity": [1.1, 1.9], "color": [1.0, 0.93, 0.82],
+                    "color_jitter": 0.05, "tint_jitter": 0.08, "ambient": 0.04, "diffuse": 0.9, "specular": 0.45,
+                    "specular_power": 35.0},
+    "white_dual":  {"n_lights": 2, "offset": 0.10, "intensity": [1.0, 1.6], "color": [1.0, 1.0, 1.0],
+                    "color_jitter": 0.04, "tint_jitter": 0.08, "ambient": 0.03, "diffuse": 0.85, "specular": 0.6,
+                    "specular_power": 50.0},
+    "dim_dual":    {"n_lights": 2, "offset": 0.06, "intensity": [0.6, 1.0], "color": [1.0, 0.96, 0.9],
+                    "color_jitter": 0.06, "tint_jitter": 0.1, "ambient": 0.05, "diffuse": 0.9, "specular": 0.35,
+                    "specular_power": 25.0},
     # held-out families
-    "L1": {"n_lights": 1, "offset": 0.12, "intensity": [1.4, 2.2], "color": [1.0, 0.88, 0.70], "color_jitter": 0.05, "tint_jitter": 0.06, "ambient": 0.02, "diffuse": 0.95, "specular": 0.7, "specular_power": 60.0},
-    "L2": {"n_lights": 2, "offset": 0.15, "intensity": [0.8, 1.3], "color": [0.85, 0.92, 1.0], "color_jitter": 0.05, "tint_jitter": 0.1, "ambient": 0.06, "diffuse": 0.8, "specular": 0.25, "specular_power": 15.0},
-    "L3": {"n_lights": 1, "offset": 0.05, "intensity": [0.7, 1.1], "color": [1.0, 0.80, 0.60], "color_jitter": 0.08, "tint_jitter": 0.12, "ambient": 0.08, "diffuse": 0.85, "specular": 0.5, "specular_power": 40.0},
-    "L4": {"n_lights": 2, "offset": 0.2, "intensity": [1.6, 2.6], "color": [1.0, 0.92, 0.72], "color_jitter": 0.04, "tint_jitter": 0.06, "ambient": 0.05, "diffuse": 0.9, "specular": 0.8, "specular_power": 80.0},
+    "L1": {"n_lights": 1, "offset": 0.12, "intensity": [1.4, 2.2], "color": [1.0, 0.88, 0.70], "color_jitter": 0.05,
+           "tint_jitter": 0.06, "ambient": 0.02, "diffuse": 0.95, "specular": 0.7, "specular_power": 60.0},
+    "L2": {"n_lights": 2, "offset": 0.15, "intensity": [0.8, 1.3], "color": [0.85, 0.92, 1.0], "color_jitter": 0.05,
+           "tint_jitter": 0.1, "ambient": 0.06, "diffuse": 0.8, "specular": 0.25, "specular_power": 15.0},
+    "L3": {"n_lights": 1, "offset": 0.05, "intensity": [0.7, 1.1], "color": [1.0, 0.80, 0.60], "color_jitter": 0.08,
+           "tint_jitter": 0.12, "ambient": 0.08, "diffuse": 0.85, "specular": 0.5, "specular_power": 40.0},
+    "L4": {"n_lights": 2, "offset": 0.2, "intensity": [1.6, 2.6], "color": [1.0, 0.92, 0.72], "color_jitter": 0.04,
+           "tint_jitter": 0.06, "ambient": 0.05, "diffuse": 0.9, "specular": 0.8, "specular_power": 80.0},
 }
 
 
@@ -121,7 +147,8 @@ def exposure_distance(tube, T_world_cam, K, width: int, height: int, percentile:
     return float(np.percentile(dist, percentile)) if len(dist) else float(tube.preset["radius"])
 
 
-def sample_lighting(params: dict, rng: np.random.Generator, radius: float, distance: float | None = None) -> tuple[list[Light], tuple[float, float, float]]:
+def sample_lighting(params: dict, rng: np.random.Generator, radius: float,
+                    distance: float | None = None) -> tuple[list[Light], tuple[float, float, float]]:
     """Per-sample lights (1 or 2 beside the lens) and a per-sample mucosa tint from a lighting family.
 
     radius: lumen radius (scales the light-guide offset); distance: auto-exposure reference
@@ -280,7 +307,8 @@ def sample_pose(tube, rng: np.random.Generator, path: dict) -> tuple[np.ndarray,
         forward = math.cos(tilt) * t + math.sin(tilt) * (math.cos(az) * n + math.sin(az) * b)
     up = math.cos(roll) * n + math.sin(roll) * b
     up = up - (up @ forward) * forward
-    return look_pose(position, forward, up), {"s": s, "view": view, "tilt_deg": math.degrees(tilt), "distance": distance}
+    return look_pose(position, forward, up), {"s": s, "view": view, "tilt_deg": math.degrees(tilt),
+                                              "distance": distance}
 
 
 def _axis_pose(c, t, n, b) -> np.ndarray:
@@ -346,8 +374,8 @@ class Renderer:
     """
 
     def __init__(self, width: int, height: int, K=None, near: float = NEAR, far: float = FAR, fxaa: bool = False):
-        import vtk
         import pyvista as pv
+        import vtk
 
         vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
         self.width, self.height = int(width), int(height)

@@ -64,7 +64,8 @@ def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: 
              "notes": notes}
     path = Path(run_dir) / "tables" / f"{name}.json"
     utils.write_json_atomic(path, table)
-    md = (f"**{title}**\n\n" if title else "") + markdown_table(columns, rows, digits) + (f"\n\n{notes}" if notes else "")
+    md = ((f"**{title}**\n\n" if title else "") + markdown_table(columns, rows, digits)
+          + (f"\n\n{notes}" if notes else ""))
     utils.write_bytes_atomic(path.with_suffix(".md"), (md + "\n").encode())
     return path
 

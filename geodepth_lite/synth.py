@@ -14,7 +14,9 @@ Layout of a dataset directory ``DIR``::
     DIR/checksums.sha256                ``sha256sum -c`` format, written last
 
 Every file is written atomically; an interrupted run is finished by running the
-same command again (frames already on disk are kept).
+same command again (frames already on disk are kept; in a finished dataset, frames that
+no longer match checksums.sha256 are rendered again). ``train`` and ``evaluate`` check a
+dataset against its checksums first (``check_dataset``; ``--no-verify`` skips it).
 
 Commands: ``python -m geodepth_lite synth --manifest NAME|PATH --out DIR`` and
 ``python -m geodepth_lite verify DIR``.
@@ -36,7 +38,17 @@ from . import appearance as ap
 from . import camera as cam
 from . import render as rd
 from . import tube as tb
-from .utils import atomic_path, data_dir, manifests_dir, write_bytes_atomic, write_json_atomic
+from .utils import (
+    FileProblem,
+    data_dir,
+    make_dir,
+    manifests_dir,
+    os_reason,
+    read_npy,
+    remove_stale_temps,
+    write_bytes_atomic,
+    write_json_atomic,
+)
 
 GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files
 SPLITS = ("train", "val", "test")
@@ -88,7 +100,8 @@ LUMEN_RADII = 4.0  # a pixel deeper than this many lumen radii sees down the lum
 
 
 def _type_name(v) -> str:
-    return {bool: "boolean", int: "integer", float: "number", str: "string", list: "list", dict: "object"}.get(type(v), type(v).__name__)
+    return ({bool: "boolean", int: "integer", float: "number", str: "string", list: "list", dict: "object"}
+            .get(type(v), type(v).__name__))
 
 
 def _check_type(field: str, value, template) -> None:
@@ -106,7 +119,8 @@ def _check_type(field: str, value, template) -> None:
     else:
         ok = isinstance(value, type(template))
     if not ok:
-        raise ValueError(f"manifest field '{field}' must be a {_type_name(template)}, got {_type_name(value)} {value!r}")
+        raise ValueError(f"manifest field '{field}' must be a {_type_name(template)}, "
+                         f"got {_type_name(value)} {value!r}")
 
 
 _REPLACED = {"splits", "camera_path.views"}  # sections replaced as a whole, not merged key by key
@@ -130,11 +144,13 @@ def _merge(field: str, base: dict, update: dict) -> dict:
 
 
 def _range(field: str, value, lo=None, hi=None, lo_open=False, hi_open=False) -> None:
-    bad = (lo is not None and (value <= lo if lo_open else value < lo)) or (hi is not None and (value >= hi if hi_open else value > hi))
+    bad = ((lo is not None and (value <= lo if lo_open else value < lo))
+           or (hi is not None and (value >= hi if hi_open else value > hi)))
     if bad:
         lo_s = "" if lo is None else f"{'>' if lo_open else '>='} {lo}"
         hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi}"
-        raise ValueError(f"manifest field '{field}' must be {' and '.join(x for x in (lo_s, hi_s) if x)}, got {value!r}")
+        raise ValueError(f"manifest field '{field}' must be {' and '.join(x for x in (lo_s, hi_s) if x)}, "
+                         f"got {value!r}")
 
 
 def _pair(field: str, value, lo=None, hi=None, lo_open=False, integer=False) -> None:
@@ -149,7 +165,8 @@ def _pair(field: str, value, lo=None, hi=None, lo_open=False, integer=False) -> 
 
 
 def _rgb(field: str, value) -> None:
-    if len(value) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0 for v in value):
+    if len(value) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0
+                                  for v in value):
         raise ValueError(f"manifest field '{field}' must be an [r, g, b] list of numbers in [0, 1], got {value!r}")
 
 
@@ -162,7 +179,8 @@ def _check_preset(field: str, p: dict) -> None:
     _range(f"{field}.fold_depth", p["fold_depth"], hi=0.6)
     _range(f"{field}.teniae", p["teniae"], 0, 12)
     if p["fold_kind"] not in tb.FOLD_KINDS:
-        raise ValueError(f"manifest field '{field}.fold_kind' must be one of {', '.join(tb.FOLD_KINDS)}, got {p['fold_kind']!r}")
+        raise ValueError(f"manifest field '{field}.fold_kind' must be one of {', '.join(tb.FOLD_KINDS)}, "
+                         f"got {p['fold_kind']!r}")
     for key in ("polyps", "diverticula", "ridges", "papillae"):
         _pair(f"{field}.{key}", p[key], 0, 50, integer=True)
     for key in ("polyp_size", "diverticulum_size", "ridge_size", "papilla_size"):
@@ -179,14 +197,14 @@ def _check_texture(field: str, t: dict) -> None:
     _range(f"{field}.size", t["size"], 16, 4096)
 
 
-def _check_lighting(field: str, l: dict) -> None:
-    _range(f"{field}.n_lights", l["n_lights"], 1, 2)
-    _range(f"{field}.offset", l["offset"], 0.0, 1.0)
-    _pair(f"{field}.intensity", l["intensity"], 0.0)
-    _rgb(f"{field}.color", l["color"])
+def _check_lighting(field: str, lighting: dict) -> None:
+    _range(f"{field}.n_lights", lighting["n_lights"], 1, 2)
+    _range(f"{field}.offset", lighting["offset"], 0.0, 1.0)
+    _pair(f"{field}.intensity", lighting["intensity"], 0.0)
+    _rgb(f"{field}.color", lighting["color"])
     for key in ("color_jitter", "tint_jitter", "ambient", "diffuse", "specular"):
-        _range(f"{field}.{key}", l[key], 0.0, 1.0)
-    _range(f"{field}.specular_power", l["specular_power"], 0.0, lo_open=True)
+        _range(f"{field}.{key}", lighting[key], 0.0, 1.0)
+    _range(f"{field}.specular_power", lighting["specular_power"], 0.0, lo_open=True)
 
 
 def _check_views(field: str, shares) -> None:
@@ -194,7 +212,8 @@ def _check_views(field: str, shares) -> None:
         raise ValueError(f"manifest field '{field}' must be an object of view-kind shares, got {shares!r}")
     for kind, share in shares.items():
         if kind not in rd.VIEW_KINDS:
-            raise ValueError(f"manifest field '{field}' names an unknown view kind {kind!r} (choose from {', '.join(rd.VIEW_KINDS)})")
+            raise ValueError(f"manifest field '{field}' names an unknown view kind {kind!r} "
+                             f"(choose from {', '.join(rd.VIEW_KINDS)})")
         if not isinstance(share, (int, float)) or isinstance(share, bool) or share < 0:
             raise ValueError(f"manifest field '{field}.{kind}' must be a number >= 0, got {share!r}")
     if sum(shares.values()) <= 0:
@@ -219,7 +238,8 @@ def _library_entries(field: str, names: list, given: dict, library: dict, check)
         else:
             entry = _merge(f"{field}.{name}", template_keys, given[name]) if name in given else None
             if entry is None:
-                raise ValueError(f"manifest names an unknown {field[:-5] if field.endswith('_sets') else field} '{name}': define it under '{field}' or choose one of {', '.join(library)}")
+                raise ValueError(f"manifest names an unknown {field[:-5] if field.endswith('_sets') else field} "
+                                 f"'{name}': define it under '{field}' or choose one of {', '.join(library)}")
             missing = [k for k in template_keys if k not in given[name]]
             if missing:
                 raise ValueError(f"manifest field '{field}.{name}' is missing {', '.join(missing)}")
@@ -239,14 +259,16 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
     if overrides:
         m = _merge("", m, overrides)
     if m["generator_version"] != GENERATOR_VERSION:
-        raise ValueError(f"manifest field 'generator_version' is {m['generator_version']}, this generator is version {GENERATOR_VERSION}")
+        raise ValueError(f"manifest field 'generator_version' is {m['generator_version']}, "
+                         f"this generator is version {GENERATOR_VERSION}")
     c = m["camera"]
     _range("camera.width", c["width"], 8, 8192)
     _range("camera.height", c["height"], 8, 8192)
     _range("camera.fov_x_deg", c["fov_x_deg"], 0.0, 180.0, lo_open=True, hi_open=True)
     if c["principal_point"] is not None:
         pp = c["principal_point"]
-        if not isinstance(pp, list) or len(pp) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pp):
+        if (not isinstance(pp, list) or len(pp) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pp)):
             raise ValueError(f"manifest field 'camera.principal_point' must be null or [cx, cy] in pixels, got {pp!r}")
     _range("camera.near", c["near"], 0.0, lo_open=True)
     _range("camera.far", c["far"], c["near"], lo_open=True)
@@ -266,7 +288,8 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
         if allowed is not None:
             for v in m[key]:
                 if v not in allowed:
-                    raise ValueError(f"manifest field '{key}' names an unknown organ preset {v!r} (choose from {', '.join(allowed)})")
+                    raise ValueError(f"manifest field '{key}' names an unknown organ preset {v!r} "
+                                     f"(choose from {', '.join(allowed)})")
     r = m["resolution"]
     _range("resolution.n_theta", r["n_theta"], 8, 4096)
     _range("resolution.ring_step", r["ring_step"], 0.0, 2.0, lo_open=True)
@@ -279,7 +302,8 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
     _check_views("camera_path.views", p["views"])
     for split, shares in p["views_by_split"].items():
         if split not in SPLITS:
-            raise ValueError(f"manifest has an unknown split 'camera_path.views_by_split.{split}' (allowed: {', '.join(SPLITS)})")
+            raise ValueError(f"manifest has an unknown split 'camera_path.views_by_split.{split}' "
+                             f"(allowed: {', '.join(SPLITS)})")
         _check_views(f"camera_path.views_by_split.{split}", shares)
     _pair("camera_path.wall_angle_deg", p["wall_angle_deg"], 0.0, 89.0)
     _pair("camera_path.oblique_angle_deg", p["oblique_angle_deg"], 0.0, 89.0)
@@ -288,7 +312,8 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
     ap.check_appearance("appearance", m["appearance"])
     m["organ_presets"] = _library_entries("organ_presets", m["organs"], m["organ_presets"], tb.PRESETS, _check_preset)
     m["texture_sets"] = _library_entries("texture_sets", m["textures"], m["texture_sets"], rd.TEXTURES, _check_texture)
-    m["lighting_sets"] = _library_entries("lighting_sets", m["lightings"], m["lighting_sets"], rd.LIGHTINGS, _check_lighting)
+    m["lighting_sets"] = _library_entries("lighting_sets", m["lightings"], m["lighting_sets"], rd.LIGHTINGS,
+                                          _check_lighting)
     return m
 
 
@@ -312,6 +337,9 @@ def load_manifest(name_or_path: str | Path, overrides: dict | None = None) -> di
         raw = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"manifest {path.name} is not valid JSON: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = os_reason(exc) if isinstance(exc, OSError) else "not a text file"
+        raise FileProblem(f"cannot read {path}: {reason}", path) from exc
     return resolve_manifest(raw, overrides)
 
 
@@ -378,39 +406,93 @@ def _dataset_files(out: Path, m: dict) -> list[str]:
     return files
 
 
+def _frame_files(m: dict) -> set[str]:
+    """The rgb and depth files of every frame of manifest ``m`` (paths relative to the dataset directory)."""
+    return {f for f in _dataset_files(Path(), m) if f.endswith((".png", ".npy"))}
+
+
+def _read_json(path: Path):
+    """A JSON file's content, or None when it is missing, unreadable or not valid JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):  # ValueError: json.JSONDecodeError, UnicodeDecodeError
+        return None
+
+
+def _remove(path: Path, what: str = "remove") -> None:
+    """Delete a file or folder tree (nothing if it is missing); a FileProblem naming it otherwise."""
+    if not path.exists() and not path.is_symlink():  # (unlink would fail on a read-only disk even so)
+        return
+    try:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
+    except OSError as exc:
+        raise FileProblem(f"cannot {what} {path}: {os_reason(exc)}", path) from exc
+
+
 def _check_out_dir(out: Path, m: dict, overwrite: bool) -> None:
     """Refuse to mix two datasets in one directory unless ``overwrite`` (then remove the old one)."""
     mpath = out / "manifest.json"
     if mpath.exists():
-        try:
-            old = json.loads(mpath.read_text())
-        except (OSError, json.JSONDecodeError):
-            old = None
+        old = _read_json(mpath)
         if old == m:
             return
         if not overwrite:
-            raise FileExistsError(f"{out} already holds a different dataset ({old.get('name', '?') if isinstance(old, dict) else 'unreadable manifest'}); "
+            raise FileExistsError(f"{out} already holds a different dataset "
+                                  f"({old.get('name', '?') if isinstance(old, dict) else 'unreadable manifest'}); "
                                   "choose another --out or pass --overwrite")
         for split in SPLITS:
             if (out / split).is_dir():
-                shutil.rmtree(out / split)
+                _remove(out / split)
         for f in ("manifest.json", "checksums.sha256"):
-            (out / f).unlink(missing_ok=True)
-    elif out.exists() and any(out.iterdir()) and not overwrite:
-        raise FileExistsError(f"{out} is not empty and holds no dataset manifest; choose another --out or pass --overwrite")
+            _remove(out / f)
+        return
+    try:
+        not_empty = out.exists() and any(out.iterdir())
+    except OSError as exc:
+        raise FileProblem(f"cannot read folder {out}: {os_reason(exc)}", out) from exc
+    if not_empty and not overwrite:
+        raise FileExistsError(f"{out} is not empty and holds no dataset manifest; "
+                              "choose another --out or pass --overwrite")
 
 
-def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: bool = True) -> Path:
-    """Render the dataset of resolved manifest ``m`` into ``out`` (resuming any earlier partial run)."""
+def _remove_changed_frames(out: Path, m: dict) -> int:
+    """Delete the frame files that a finished dataset of ``m`` in ``out`` no longer matches its
+    checksums.sha256 with, so that this run renders them again (byte-identical). Returns how many."""
+    if not (out / "checksums.sha256").is_file() or _read_json(out / "manifest.json") != m:
+        return 0
+    frames = _frame_files(m)
+    changed = [rel for kind, _, rel in (p.partition(": ") for p in verify(out)) if kind == "changed" and rel in frames]
+    for rel in changed:
+        _remove(out / rel)
+    return len(changed)
+
+
+def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: bool = True,
+             counts: dict | None = None) -> Path:
+    """Render the dataset of resolved manifest ``m`` into ``out`` (resuming any earlier partial run).
+
+    Frames already on disk (both files) are kept; in a finished dataset, frame files that no
+    longer match its checksums.sha256 are rendered again. ``counts``, a dict, receives
+    "rendered" (frames rendered by this call), "kept" (frames reused from an earlier run) and
+    "replaced" (changed frame files rendered again). A file that cannot be read or written
+    raises ``utils.FileProblem`` naming it.
+    """
     from tqdm.auto import tqdm
 
     out = Path(out)
+    make_dir(out)  # a file in the way, or a folder that cannot be created: a FileProblem naming it
     _check_out_dir(out, m, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "checksums.sha256").unlink(missing_ok=True)  # re-written last: its presence marks completion
-    for stale in out.rglob(".*.tmp"):  # half-written files of a killed run (never under a final name)
-        stale.unlink()
+    replaced = _remove_changed_frames(out, m)
+    _remove(out / "checksums.sha256")  # re-written last: its presence marks completion
+    try:  # half-written files of a killed run (never under a final name)
+        remove_stale_temps(out, recursive=True)
+    except OSError as exc:
+        raise FileProblem(f"cannot remove temporary files in {out}: {os_reason(exc)}", out) from exc
     write_json_atomic(out / "manifest.json", m)
+    n_rendered = n_kept = 0
     c = m["camera"]
     W, H = c["width"], c["height"]
     K = intrinsics_of(m)
@@ -425,11 +507,15 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                 preset = m["organ_presets"][scene["organ"]]
                 tube = tb.build_tube(preset, scene["tube_seed"], m["resolution"])
                 todo = [i for i, _ in scene["frames"]
-                        if not ((out / split / "rgb" / f"{i:06d}.png").exists() and (out / split / "depth" / f"{i:06d}.npy").exists())]
+                        if not ((out / split / "rgb" / f"{i:06d}.png").exists()
+                                and (out / split / "depth" / f"{i:06d}.npy").exists())]
+                n_rendered += len(todo)
+                n_kept += len(scene["frames"]) - len(todo)
                 if todo:
                     if renderer is None:
                         renderer = rd.Renderer(W, H, K, near=c["near"], far=c["far"])
-                    tex_rng = np.random.default_rng(np.random.SeedSequence([m["seed"], SPLITS.index(split), scene["scene"], 2]))
+                    tex_rng = np.random.default_rng(
+                        np.random.SeedSequence([m["seed"], SPLITS.index(split), scene["scene"], 2]))
                     renderer.set_tube(tube, rd.make_texture(m["texture_sets"][scene["texture"]], tex_rng))
                 for i, lighting_name in scene["frames"]:
                     lighting = m["lighting_sets"][lighting_name]
@@ -446,7 +532,7 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                         write_bytes_atomic(out / split / "depth" / f"{i:06d}.npy", _npy_bytes(depth))
                         write_bytes_atomic(out / split / "rgb" / f"{i:06d}.png", _png_bytes(rgb))
                     else:
-                        depth = np.load(out / split / "depth" / f"{i:06d}.npy", allow_pickle=False)
+                        depth = read_npy(out / split / "depth" / f"{i:06d}.npy")
                     records.append({
                         "index": i, "rgb": f"{split}/rgb/{i:06d}.png", "depth": f"{split}/depth/{i:06d}.npy",
                         "width": W, "height": H, "K": _round(K), "T_world_cam": _round(T),
@@ -457,8 +543,9 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
                         "view_distance": None if info["distance"] is None else round(info["distance"], 10),
                         "lumen_share": lumen_share(depth, float(preset["radius"])),
                         "tint": _round(tint), "exposure_distance": round(d_ref, 10),
-                        "lights": [{"offset_cam": _round(l.offset), "color": _round(l.color), "intensity": round(l.intensity, 10),
-                                    "attenuation": [0.0, 0.0, 1.0]} for l in lights],
+                        "lights": [{"offset_cam": _round(light.offset), "color": _round(light.color),
+                                    "intensity": round(light.intensity, 10), "attenuation": [0.0, 0.0, 1.0]}
+                                   for light in lights],
                         "appearance": look,
                     })
                     bar.update(1)
@@ -469,6 +556,8 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
         if renderer is not None:
             renderer.close()
     write_checksums(out, m)
+    if counts is not None:
+        counts.update(rendered=n_rendered, kept=n_kept, replaced=replaced)
     return out
 
 
@@ -487,23 +576,90 @@ def _sha256(path: Path) -> str:
 
 
 def write_checksums(out: Path, m: dict) -> None:
-    lines = [f"{_sha256(out / rel)}  {rel}\n" for rel in _dataset_files(out, m)]
+    lines = []
+    for rel in _dataset_files(out, m):
+        try:
+            lines.append(f"{_sha256(out / rel)}  {rel}\n")
+        except OSError as exc:
+            raise FileProblem(f"cannot read {out / rel}: {os_reason(exc)}", out / rel) from exc
     write_bytes_atomic(out / "checksums.sha256", "".join(lines).encode())
+
+
+def frame_counts(root: str | Path, m: dict) -> dict[str, tuple[int, int]]:
+    """Per split of manifest ``m``: (complete frames in dataset directory ``root``, frames expected).
+
+    A frame is complete when both its files are there (``<split>/rgb/NNNNNN.png`` and
+    ``<split>/depth/NNNNNN.npy``; each is written atomically, so a present file is whole).
+    """
+    root = Path(root)
+    out = {}
+    for split, n in m["splits"].items():
+        names = {}
+        for kind in ("rgb", "depth"):
+            try:
+                names[kind] = set(p.name for p in (root / split / kind).iterdir())
+            except OSError:  # not there yet (or unreadable: counted as absent)
+                names[kind] = set()
+        out[split] = (sum(1 for i in range(n) if f"{i:06d}.png" in names["rgb"] and f"{i:06d}.npy" in names["depth"]),
+                      n)
+    return out
+
+
+def _dataset_manifest(root: Path) -> tuple[dict | None, str | None]:
+    """(DIR/manifest.json with a usable "splits", None), or (None, the problem line saying what is wrong)."""
+    mpath = root / "manifest.json"
+    if not mpath.exists():
+        return None, ("missing: manifest.json and checksums.sha256 (not a dataset written by synth, or synth "
+                      "stopped before it began: run synth again)")
+    try:
+        m = json.loads(mpath.read_text())
+    except OSError as exc:
+        reason = os_reason(exc)
+    except ValueError as exc:  # json.JSONDecodeError, UnicodeDecodeError
+        reason = f"not valid JSON: {exc}"
+    else:
+        splits = m.get("splits") if isinstance(m, dict) else None
+        ok = (isinstance(splits, dict) and splits
+              and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in splits.values()))
+        if ok:
+            return m, None
+        reason = "no 'splits' object of frame counts"
+    return None, (f"unreadable: manifest.json ({reason}); checksums.sha256 is missing too, so the frames cannot "
+                  "be counted: run synth again with --overwrite")
+
+
+def _incomplete(root: Path) -> list[str]:
+    """verify's report on a dataset directory without checksums.sha256: frames present and expected per split."""
+    m, problem = _dataset_manifest(root)
+    if m is None:
+        return [problem]
+    counts = frame_counts(root, m)
+    parts = [f"{split} {have}/{n}" for split, (have, n) in counts.items()]
+    parts[0] += " frames"
+    return [f"incomplete: {', '.join(parts)} (checksums.sha256 is written last; run synth again to finish)"]
 
 
 def verify(root: str | Path) -> list[str]:
     """Problems of a dataset directory against its checksums: 'missing: f', 'changed: f', 'unreadable: f'.
 
-    An empty list means every listed file is present and unchanged.
+    An empty list means every listed file is present and unchanged. Without checksums.sha256
+    (synth has not finished) the one problem is 'incomplete: ...' with the frames present and
+    expected per split of manifest.json (or what is wrong with manifest.json).
     """
     root = Path(root)
-    if not root.is_dir():
+    if not root.exists():
         raise FileNotFoundError(f"dataset directory {root} does not exist")
+    if not root.is_dir():
+        raise FileProblem(f"cannot verify {root}: it is a file, not a dataset folder", root)
     sums = root / "checksums.sha256"
     if not sums.is_file():
-        return ["missing: checksums.sha256 (generation incomplete: run synth again)"]
+        return _incomplete(root)
+    try:
+        text = sums.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        return [f"unreadable: checksums.sha256 ({os_reason(exc) if isinstance(exc, OSError) else 'not a text file'})"]
     problems = []
-    for line_no, line in enumerate(sums.read_text().splitlines(), 1):
+    for line_no, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
         digest, _, rel = line.partition("  ")
@@ -517,11 +673,52 @@ def verify(root: str | Path) -> list[str]:
         try:
             actual = _sha256(path)
         except OSError as exc:
-            problems.append(f"unreadable: {rel} ({exc.strerror or exc})")
+            problems.append(f"unreadable: {rel} ({os_reason(exc)})")
             continue
         if actual != digest:
             problems.append(f"changed: {rel}")
     return problems
+
+
+def _complete_splits(root: Path, splits) -> bool:
+    """Without checksums.sha256: whether every frame of ``splits`` (those in manifest.json) and
+    their frames.jsonl are on disk."""
+    m, _ = _dataset_manifest(root)
+    if m is None:
+        return False
+    counts = frame_counts(root, {"splits": {s: n for s, n in m["splits"].items() if s in splits}})
+    return all(have == n and (root / s / "frames.jsonl").is_file() for s, (have, n) in counts.items())
+
+
+def check_dataset(root: str | Path, splits=None, *, limit: int = 5) -> None:
+    """Check a synthetic dataset directory against its checksums.sha256 before it is used
+    (``train`` and ``evaluate`` call this unless ``--no-verify``).
+
+    splits: check only the files of these splits (and the top-level ones, manifest.json);
+    None: all. Without checksums.sha256 (synth did not finish, or a folder put together by
+    hand) there is nothing to compare with: the check passes only when ``splits`` (not None)
+    are complete on disk. Raises a one-line ValueError naming the problems (the first
+    ``limit``, then "and N more") and how to fix them: synth renders missing or changed frames again.
+    """
+    root = Path(root)
+    problems = verify(root)
+    if splits is not None:
+        if not (root / "checksums.sha256").is_file():
+            problems = [] if _complete_splits(root, set(splits)) else problems
+        else:
+            def split_of(problem: str) -> str | None:
+                rel = problem.partition(": ")[2]
+                return rel.split("/", 1)[0] if "/" in rel.split(" ", 1)[0] else None
+            problems = [p for p in problems if split_of(p) in (None, *splits)]
+    if not problems:
+        return
+    shown = "; ".join(problems[:limit])
+    if len(problems) > limit:
+        shown += f"; and {len(problems) - limit} more"
+    cmd = f"python -m geodepth_lite synth --manifest {root / 'manifest.json'} --out {root}"
+    raise ValueError(f"dataset {root} failed verification against checksums.sha256: {shown}. "
+                     f"Regenerate it with `{cmd}` (renders missing and changed frames again), "
+                     "or pass --no-verify to use it as it is")
 
 
 def is_complete(root: Path, m: dict) -> bool:
@@ -534,7 +731,8 @@ def is_complete(root: Path, m: dict) -> bool:
     return (root / "checksums.sha256").is_file() and all((root / f).is_file() for f in _dataset_files(root, m))
 
 
-def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path | None = None, progress: bool = True) -> Path:
+def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path | None = None,
+                   progress: bool = True) -> Path:
     """The dataset of manifest ``data_manifests/<name>.json``, generated if missing or incomplete.
 
     Goes to ``data_dir()/<name>`` (or ``<name>-<8 hex>`` of the overrides' hash when
@@ -586,7 +784,8 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
                           {k: light[k] for k in ("ambient", "diffuse", "specular", "specular_power")})
         for _ in range(n):
             T, info = rd.sample_pose(tube, rng, cam_path)
-            lights, tint = rd.sample_lighting(light, rng, float(preset["radius"]), rd.exposure_distance(tube, T, K, W, H))
+            lights, tint = rd.sample_lighting(light, rng, float(preset["radius"]),
+                                              rd.exposure_distance(tube, T, K, W, H))
             look = ap.sample_appearance(look_params, rng)
             renderer.set_tint(tint)
             rgb, depth = renderer.render(T, lights)
@@ -602,7 +801,8 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
 
 
 def add_arguments_synth(parser) -> None:
-    parser.add_argument("--manifest", required=True, help="manifest name in data_manifests/ (e.g. scenario_teach) or path to a .json")
+    parser.add_argument("--manifest", required=True,
+                        help="manifest name in data_manifests/ (e.g. scenario_teach) or path to a .json")
     parser.add_argument("--out", default=None, help="output directory (default: <workspace>/data/<manifest name>)")
     parser.add_argument("--overwrite", action="store_true", help="replace a different dataset already in --out")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
@@ -611,8 +811,14 @@ def add_arguments_synth(parser) -> None:
 def run_synth(args) -> int:
     m = load_manifest(args.manifest)
     out = Path(args.out) if args.out else data_dir() / Path(args.manifest).name.removesuffix(".json")
-    generate(m, out, overwrite=args.overwrite, progress=args.progress)
-    print(f"wrote {sum(m['splits'].values())} frames to {out}")
+    counts: dict = {}
+    generate(m, out, overwrite=args.overwrite, progress=args.progress, counts=counts)
+    line = f"synth: rendered {counts['rendered']} frame{'s' * (counts['rendered'] != 1)}"
+    if counts["kept"]:
+        line += f", kept {counts['kept']} from an earlier run"
+    if counts["replaced"]:
+        line += f" ({counts['replaced']} changed file{'s' * (counts['replaced'] != 1)} rendered again)"
+    print(f"{line} -> {out}")
     return 0
 
 

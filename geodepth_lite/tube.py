@@ -240,7 +240,8 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
     R, L = float(preset["radius"]), float(preset["length"])
     p = feats.base_phases
     var = float(preset["radius_var"])
-    r = R * (1.0 + var * (0.6 * np.sin(2 * np.pi * s / (0.45 * L) + p[0]) + 0.4 * np.sin(2 * np.pi * s / (0.17 * L) + p[1])))
+    r = R * (1.0 + var * (0.6 * np.sin(2 * np.pi * s / (0.45 * L) + p[0])
+                          + 0.4 * np.sin(2 * np.pi * s / (0.17 * L) + p[1])))
     depth, width = float(preset["fold_depth"]) * R, float(preset["fold_width"]) * R
     kind = preset["fold_kind"]
     if kind == "haustral" and depth > 0:
@@ -258,7 +259,8 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
             pos, strength = np.array([f[0] for f in fk]), np.array([f[1] for f in fk])
             j = np.clip(np.searchsorted(pos, s), 1, len(pos)) - 1
             near = np.maximum(strength[j] * _sech2((s - pos[j]) / width),
-                              strength[np.minimum(j + 1, len(pos) - 1)] * _sech2((s - pos[np.minimum(j + 1, len(pos) - 1)]) / width))
+                              strength[np.minimum(j + 1, len(pos) - 1)]
+                              * _sech2((s - pos[np.minimum(j + 1, len(pos) - 1)]) / width))
             fold = np.where(sector == k, near, fold)
         # haustra bulge outwards between folds; teniae are flat bands slightly inside
         r = r - depth * crescent * fold + 0.35 * depth * crescent * (1.0 - fold)
@@ -438,7 +440,8 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
         th_arr.append([0.0])
         ring_idx = idx[ring]
         j0, j1 = ring_idx[:-1], ring_idx[1:]
-        fan = np.stack([np.full_like(j0, centre), j0, j1], -1) if ring == 0 else np.stack([np.full_like(j0, centre), j1, j0], -1)
+        fan = (np.stack([np.full_like(j0, centre), j0, j1], -1) if ring == 0
+               else np.stack([np.full_like(j0, centre), j1, j0], -1))
         tris = np.concatenate([tris, fan])
 
     points = np.concatenate(verts).astype(np.float64)

@@ -126,7 +126,8 @@ def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: lis
     import matplotlib.pyplot as plt
 
     n_rows, n_cols = len(cells), len(cells[0])
-    fig, axes = plt.subplots(2 * n_rows, n_cols, figsize=(cell_inches * n_cols, 2 * cell_inches * n_rows), squeeze=False)
+    fig, axes = plt.subplots(2 * n_rows, n_cols, figsize=(cell_inches * n_cols, 2 * cell_inches * n_rows),
+                             squeeze=False)
     for r, row in enumerate(cells):
         for c, (rgb, depth) in enumerate(row):
             axes[2 * r, c].imshow(rgb)
@@ -200,7 +201,8 @@ def plot_shape_index(rgb, depth, si, axes=None):
     return fig
 
 
-def tube_view(tube, poses=(), size=(800, 320), frustum: float | None = None, camera_position=None, connect: bool = False) -> np.ndarray:
+def tube_view(tube, poses=(), size=(800, 320), frustum: float | None = None, camera_position=None,
+              connect: bool = False) -> np.ndarray:
     """Off-screen 3D view of a tube mesh (cut open) with the centerline and camera poses; H x W x 3 uint8.
 
     poses: T_world_cam matrices (OpenCV frame); each is drawn as a small frustum
@@ -236,8 +238,10 @@ def tube_view(tube, poses=(), size=(800, 320), frustum: float | None = None, cam
             for T in poses:
                 T = np.asarray(T)
                 o = T[:3, 3]
-                corners = [o + frustum * (T[:3, 2] + a * 0.6 * T[:3, 0] + b * 0.6 * T[:3, 1]) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-                lines = [np.array([o, c]) for c in corners] + [np.array([corners[k], corners[(k + 1) % 4]]) for k in range(4)]
+                corners = [o + frustum * (T[:3, 2] + a * 0.6 * T[:3, 0] + b * 0.6 * T[:3, 1])
+                           for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+                lines = ([np.array([o, c]) for c in corners]
+                         + [np.array([corners[k], corners[(k + 1) % 4]]) for k in range(4)])
                 for seg in lines:
                     pl.add_mesh(pv.lines_from_points(seg), color="navy", line_width=2)
         length = float(np.linalg.norm(pts[-1] - pts[0]))

@@ -15,7 +15,7 @@ import os
 import numpy as np
 import torch
 
-from . import camera, losses
+from . import losses
 
 # slider name -> (min, max, step, neutral value, what it imitates)
 PERTURBATIONS = {
@@ -27,7 +27,7 @@ PERTURBATIONS = {
     "noise": (0.0, 0.1, 0.005, 0.0, "per-pixel noise (fraction of depth): speckle"),
 }
 RIPPLE_PERIOD = 6.0  # pixels per ripple
-LOSS_NAMES = ("depth", "smooth", "grad", "normal", "sdf")
+MAP_TERMS = ("depth", "smooth", "grad", "normal")  # the terms drawn as per-pixel maps (the SDF is a 3D field)
 
 
 def example_frame(size: int = 128, index: int = 0, progress: bool = False) -> dict:
@@ -46,7 +46,8 @@ def example_frame(size: int = 128, index: int = 0, progress: bool = False) -> di
         raise ValueError(f"frame index must be between 0 and {n - 1}, got {index}")
     overrides = {"camera": {"width": size, "height": size}, "splits": {"train": n, "val": 1, "test": 1},
                  "seed": 1, "frames_per_scene": 2}  # pinned: the notebook's frames stay the same
-    item = SyntheticDepthDataset(ensure_dataset("scenario_smoke", overrides=overrides, progress=progress), "train")[index]
+    item = SyntheticDepthDataset(ensure_dataset("scenario_smoke", overrides=overrides, progress=progress),
+                                 "train")[index]
     return {"gt": item["depth"][0].numpy().astype(np.float64), "image": item["image"].numpy(),
             "K": item["K"].numpy().astype(np.float64), "organ": item["organ"]}
 
@@ -96,27 +97,19 @@ def loss_report(pred: np.ndarray, gt: np.ndarray, image: np.ndarray, K, grid: in
         image = image.transpose(2, 0, 1)
     p, g, img = _t(pred), _t(gt), torch.as_tensor(image)[None]
     H, W = gt.shape
-    out = {
-        "depth": float(losses.depth_loss(p, g)),
-        "smooth": float(losses.smoothness_loss(p, img)),
-        "grad": float(losses.gradient_loss(p, g)),
-        "normal": float(losses.normal_loss(p, g)),
-    }
+    r = (grid,) * 3 if isinstance(grid, int) else tuple(grid)
+    inputs = losses.LossInputs(g, img, torch.as_tensor(np.asarray(K, dtype=np.float64)), None, r)
+    out = {name: float(term.fn(p, inputs)) for name, term in losses.LOSS_TERMS.items()}  # every term, by name
     fields = losses.sdf_fields(p, g, K, grid=grid)[0]
-    out["sdf"] = float((fields["pred"] - fields["gt"]).abs().mean())
-    maps = {k: np.full((H, W), np.nan) for k in LOSS_NAMES[:4]}
+    # per-pixel maps from the losses' own map functions (the loss is their mean)
+    maps = {k: np.full((H, W), np.nan) for k in MAP_TERMS}
     maps["depth"] = np.abs(pred - gt)
-    wx = torch.exp(-losses.grad_x(img).abs().mean(1, keepdim=True))
-    wy = torch.exp(-losses.grad_y(img).abs().mean(1, keepdim=True))
-    sx = (wx * losses.grad_x(p)).pow(2)[0, 0, :-1, :]
-    sy = (wy * losses.grad_y(p)).pow(2)[0, 0, :, :-1]
-    maps["smooth"][:-1, :-1] = (sx + sy).numpy()
-    gx = (losses.grad_x(p) - losses.grad_x(g)).abs()[0, 0, :-1, :]
-    gy = (losses.grad_y(p) - losses.grad_y(g)).abs()[0, 0, :, :-1]
-    maps["grad"][:-1, :-1] = (gx + gy).numpy()
+    sx, sy = losses.smoothness_maps(p, img)  # (1, 1, H, W-1), (1, 1, H-1, W)
+    maps["smooth"][:-1, :-1] = (sx[0, 0, :-1, :] + sy[0, 0, :, :-1]).numpy()
+    (gx, _), (gy, _) = losses.gradient_maps(p, g)
+    maps["grad"][:-1, :-1] = (gx[0, 0, :-1, :] + gy[0, 0, :, :-1]).numpy()
     maps["normal"][:-1, :-1] = losses.normal_map(p, g)[0][0, 0].numpy()
     out["maps"] = maps
-    r = (grid,) * 3 if isinstance(grid, int) else tuple(grid)
     out["sdf_gt"] = fields["gt"].reshape(r).numpy()
     out["sdf_pred"] = fields["pred"].reshape(r).numpy()
     out["lower"], out["upper"] = fields["lower"].numpy(), fields["upper"].numpy()
@@ -131,7 +124,7 @@ def _vmax(a, floor: float = 1e-3) -> float:
 
 def format_losses(rep: dict) -> str:
     """One line with the five loss values."""
-    return "  ".join(f"{k} {rep[k]:.4f}" for k in LOSS_NAMES)
+    return "  ".join(f"{k} {rep[k]:.4f}" for k in losses.term_names())
 
 
 def draw(gt, image, K, settings: dict | None = None, grid: int = 16, fig=None, seed: int = 0):
@@ -258,7 +251,7 @@ def sensitivity_table(gt, image, K, settings: dict[str, dict], grid: int = 16, s
     table = {}
     for name, s in settings.items():
         rep = loss_report(perturb(gt, seed=seed, **{**neutral(), **s}), gt, image, K, grid)
-        table[name] = {k: rep[k] for k in LOSS_NAMES}
+        table[name] = {k: rep[k] for k in losses.term_names()}
     return table
 
 
@@ -267,8 +260,8 @@ def plot_loss_maps(gt, image, K, cases: dict[str, dict], loss: str, grid: int = 
     normal; for "sdf" the x-z slice of |SDF diff|), with the loss value in the title."""
     import matplotlib.pyplot as plt
 
-    if loss not in LOSS_NAMES:
-        raise ValueError(f"loss must be one of {', '.join(LOSS_NAMES)}, got {loss!r}")
+    if loss not in MAP_TERMS:
+        raise ValueError(f"loss must be one of {', '.join(MAP_TERMS)}, got {loss!r}")
     fig, axs = plt.subplots(2, len(cases), figsize=(3.2 * len(cases), 6.0), squeeze=False)
     vmin, vmax = float(np.min(gt)), float(np.max(gt))
     values = {}

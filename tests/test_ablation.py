@@ -2,7 +2,6 @@
 
 import math
 
-import numpy as np
 import pytest
 
 from geodepth_lite import ablation
@@ -61,4 +60,5 @@ def test_baselines_margin_and_record():
     assert rec[f"baselines | {ablation.IN_DOMAIN} | shading_prior | abs_rel"] == 0.16
     lines = ablation.claims(r)
     assert any("Case 2 vs Case 1 -> reproduced" in line for line in lines)
-    assert f"{ablation.IN_DOMAIN}: runs below every baseline in Abs Rel: 5 of 6; at least 20% below the best baseline: 4 of 6" in lines
+    assert (f"{ablation.IN_DOMAIN}: runs below every baseline in Abs Rel: 5 of 6; "
+            "at least 20% below the best baseline: 4 of 6") in lines

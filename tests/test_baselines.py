@@ -6,10 +6,10 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from conftest import save_untrained_checkpoint
 
 from geodepth_lite import baselines, evaluate
 from geodepth_lite.metrics import compute_depth_metrics
-from conftest import save_untrained_checkpoint
 
 
 def _frames(depths, images=None, organ="colon", group="pink-warm_single"):
@@ -148,9 +148,9 @@ def test_all_baselines_on_the_smoke_dataset(smoke_root):
 
 @pytest.fixture(scope="module")
 def smoke_ckpt(smoke_root, tmp_path_factory):
-    from geodepth_lite import train
+    from geodepth_lite import config
 
-    cfg = train.make_config("smoke", 4, 0, dataset=str(smoke_root), image_size=32)
+    cfg = config.make_config("smoke", 4, 0, dataset=str(smoke_root), image_size=32)
     return save_untrained_checkpoint(tmp_path_factory.mktemp("baseline_ckpt") / "checkpoint.pt", cfg)
 
 

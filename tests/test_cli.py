@@ -33,6 +33,7 @@ def test_unknown_subcommand_is_refused(capsys):
 
 
 def test_module_entry_point_runs_as_a_process():
-    proc = subprocess.run([sys.executable, "-m", "geodepth_lite", "--help"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-m", "geodepth_lite", "--help"], capture_output=True, text=True,
+                          timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "reproduce" in proc.stdout

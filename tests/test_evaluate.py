@@ -2,22 +2,20 @@
 
 import csv
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-
-from geodepth_lite import evaluate, train
-from geodepth_lite.metrics import compute_depth_metrics
 from conftest import save_untrained_checkpoint
+
+from geodepth_lite import checkpoint, config, evaluate, inference
+from geodepth_lite.metrics import compute_depth_metrics
 
 
 @pytest.fixture(scope="module")
 def smoke(smoke_root, tmp_path_factory):
     """The smoke dataset and an untrained checkpoint in train's format (network size 32)."""
-    cfg = train.make_config("smoke", 4, 0, dataset=str(smoke_root), image_size=32)
+    cfg = config.make_config("smoke", 4, 0, dataset=str(smoke_root), image_size=32)
     return smoke_root, save_untrained_checkpoint(tmp_path_factory.mktemp("eval_ckpt") / "checkpoint.pt", cfg)
 
 
@@ -52,12 +50,12 @@ def test_per_frame_means_equal_the_metric_on_the_whole_set(smoke):
     from geodepth_lite.dataset import SyntheticDepthDataset
 
     root, ckpt = smoke
-    model, cfg = train.load_model(ckpt)
+    model, cfg = checkpoint.load_model(ckpt)
     ds = SyntheticDepthDataset(root, "test")
     result = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"])
     images = torch.stack([ds[i]["image"] for i in range(len(ds))])
     gts = np.stack([ds[i]["depth"][0].numpy() for i in range(len(ds))])
-    preds = train.predict_depth(model, images, cfg["image_size"])[:, 0].numpy()
+    preds = inference.predict_depth(model, images, cfg["image_size"])[:, 0].numpy()
     whole = compute_depth_metrics(preds, gts)
     for k in evaluate.METRIC_KEYS:
         assert result["overall"][k] == pytest.approx(whole[k], rel=1e-5, abs=1e-7)
@@ -133,7 +131,10 @@ def test_border_error_map_known_answer():
     e = torch.zeros(H, W)
     e[:4] = 0.2                      # the top band: 10% of the rows
     e[10:30, 10:30] = 0.1            # the centre: the middle half in both directions
-    pred = lambda images: (2.0 * torch.exp(e)).expand(images.shape[0], 1, H, W)
+
+    def pred(images):
+        return (2.0 * torch.exp(e)).expand(images.shape[0], 1, H, W)
+
     out = evaluate.border_error_map(pred, ds, batch_size=2)
     np.testing.assert_allclose(out["signed"], e.numpy(), atol=1e-6)
     np.testing.assert_allclose(out["count"], np.full((H, W), 3.0))

@@ -1,6 +1,8 @@
 """Each public-dataset loader on a tiny fixture written in the dataset's own layout and encoding."""
 
+import argparse
 import json
+import re
 import subprocess
 import sys
 
@@ -10,7 +12,7 @@ import pytest
 import tifffile
 import torch
 
-from geodepth_lite import camera, loaders
+from geodepth_lite import camera, evaluate, loaders, utils
 
 H, W = 6, 8
 
@@ -71,9 +73,9 @@ def test_image_size_resizes_everything(tmp_path):
 
 def _write_colondepth(root, groups=((1, 1), (2, 2), (3, 3)), n=2, bits=8):
     truth = {}
-    for t, l in groups:
+    for t, light in groups:
         for k in (1, 2):
-            d = root / f"T{t}_L{l}_{k}_resized"
+            d = root / f"T{t}_L{light}_{k}_resized"
             d.mkdir(parents=True)
             for i in range(n):
                 iio.imwrite(d / f"FrameBuffer_{i:04d}.png", _rgb(t * 100 + k * 10 + i))
@@ -124,7 +126,8 @@ def test_simcol3d_16bit_divide_by_255_256_and_cam_txt(tmp_path):
     c = _write_simcol3d(tmp_path)
     for root in (tmp_path, c):
         ds = loaders.open_dataset("simcol3d", root)
-        assert len(ds) == 4 and ds.counts("sequence") == {"SyntheticColon_II/Frames_B4": 2, "SyntheticColon_II/Frames_S1": 2}
+        assert len(ds) == 4
+        assert ds.counts("sequence") == {"SyntheticColon_II/Frames_B4": 2, "SyntheticColon_II/Frames_S1": 2}
     item = ds[0]
     d = item["depth"][0].numpy()
     assert d[0, 0] == pytest.approx(10.0)
@@ -186,7 +189,8 @@ def test_missing_empty_and_wrong_layout_roots_say_what_was_expected(tmp_path, na
     other = tmp_path / "other"
     (other / "images").mkdir(parents=True)
     iio.imwrite(other / "images" / "a.png", _rgb(0))
-    with pytest.raises(ValueError, match=rf"holds no {name} frame/depth pairs.*expected .*{loaders.LAYOUTS[name][:20]}"):
+    layout = re.escape(loaders.REGISTRY[name].layout[:20])
+    with pytest.raises(ValueError, match=rf"holds no {name} frame/depth pairs.*expected .*{layout}"):
         loaders.open_dataset(name, other)
 
 
@@ -207,6 +211,8 @@ def test_bad_options_are_named(tmp_path):
 
 
 def test_check_subset_counts_and_reports_mismatches(tmp_path, capsys):
+    from geodepth_lite import cli
+
     _write_colondepth(tmp_path, groups=((1, 1), (2, 2)), n=2)
     manifest = loaders.load_subset_manifest("colondepth")
     assert [s["frames"] for s in manifest["subsets"]] == [364, 364, 364]
@@ -218,21 +224,72 @@ def test_check_subset_counts_and_reports_mismatches(tmp_path, capsys):
         ("T1-L1", 4, "ok"), ("T2-L2", 4, "more"), ("T3-L3", 0, "missing")]
     path = tmp_path / "m.json"
     path.write_text(json.dumps(dict(small, subsets=small["subsets"][:1])))
-    out = subprocess.run([sys.executable, "-m", "geodepth_lite.loaders", "--check", str(path), "--root", str(tmp_path)],
-                         capture_output=True, text=True)
-    assert out.returncode == 0 and "T1-L1" in out.stdout
-    assert loaders.main(["--check", "colondepth", "--root", str(tmp_path)]) == 1
+    # `evaluate --check`: the subset report without a checkpoint, exit 0 only when every subset matches
+    out = subprocess.run([sys.executable, "-m", "geodepth_lite", "evaluate", "--dataset", "colondepth",
+                          "--root", str(tmp_path), "--check", str(path)], capture_output=True, text=True)
+    assert out.returncode == 0 and "T1-L1" in out.stdout, out.stderr
+    assert cli.main(["evaluate", "--dataset", "colondepth", "--root", str(tmp_path), "--check"]) == 1
     report = capsys.readouterr().out
-    assert "fewer" in report and "missing" in report
+    assert "fewer" in report and "missing" in report and "364" in report
 
 
-WRITERS = {"endoslam": _write_endoslam, "colondepth": _write_colondepth, "simcol3d": _write_simcol3d, "c3vd": _write_c3vd}
+def test_evaluate_check_needs_a_public_dataset_with_subsets_and_a_root(tmp_path, capsys):
+    from geodepth_lite import cli
+
+    _write_c3vd(tmp_path)
+    assert cli.main(["evaluate", "--dataset", "c3vd", "--root", str(tmp_path), "--check"]) == 2
+    assert "c3vd has no evaluation subset manifest" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--dataset", "colondepth", "--root", str(tmp_path), "--check", "endoslam"]) == 2
+    assert "describes endoslam, not colondepth" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--dataset", "colondepth", "--check"]) == 2
+    assert "--check needs --root" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--dataset", "scenario_teach", "--check"]) == 2
+    assert "--check applies to the public datasets" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--dataset", "colondepth", "--root", str(tmp_path)]) == 2
+    assert "--checkpoint is required" in capsys.readouterr().err
+
+
+def test_the_registry_is_the_only_list_of_datasets():
+    assert loaders.DATASETS == tuple(loaders.REGISTRY) == ("endoslam", "colondepth", "simcol3d", "c3vd")
+    for name, cls in loaders.REGISTRY.items():
+        assert issubclass(cls, loaders.PublicDepthDataset) and cls is not loaders.PublicDepthDataset
+        assert cls.name == name and cls.layout.startswith("ROOT") and cls.__doc__
+        assert cls.depth_units in ("relative", "cm", "mm") and cls.max_depth > 0
+        for method in ("find_frames", "decode_depth", "intrinsics"):  # each dataset says how it is read
+            assert method in vars(cls), f"{cls.__name__} does not override {method}"
+        if cls.subset_manifest is not None:
+            assert loaders.load_subset_manifest(cls.subset_manifest)["dataset"] == name
+    manifests = sorted(p.stem for p in (utils.manifests_dir() / "eval_subsets").glob("*.json"))
+    assert manifests == sorted(c.subset_manifest for c in loaders.REGISTRY.values() if c.subset_manifest)
+    assert set(WRITERS) == set(loaders.REGISTRY)  # one fixture per registered dataset
+    assert not hasattr(evaluate, "PUBLIC_DATASETS")
+    parser = argparse.ArgumentParser()
+    evaluate.add_arguments_evaluate(parser)
+    listed = re.search(r"or one of (\w+(?:, \w+)*)", " ".join(parser.format_help().split())).group(1)
+    assert tuple(listed.split(", ")) == tuple(loaders.REGISTRY)
+    with pytest.raises(TypeError, match="abstract"):
+        loaders.PublicDepthDataset(".", [])
+
+
+WRITERS = {"endoslam": _write_endoslam, "colondepth": _write_colondepth, "simcol3d": _write_simcol3d,
+           "c3vd": _write_c3vd}
 
 
 @pytest.mark.parametrize("name", loaders.DATASETS)
-def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untrained_checkpoint, capsys):
-    from geodepth_lite import cli
+def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untrained_checkpoint, capsys,
+                                                        monkeypatch):
+    from geodepth_lite import baselines, cli
 
+    bounds = {}  # the mask's max_depth that the model's and the baselines' rows are scored with
+
+    def recording(fn):
+        def wrapper(*args, **kw):
+            bounds[fn.__name__] = kw.get("max_depth")
+            return fn(*args, **kw)
+        return wrapper
+
+    monkeypatch.setattr(evaluate, "evaluate_model", recording(evaluate.evaluate_model))
+    monkeypatch.setattr(baselines, "evaluate_baselines", recording(baselines.evaluate_baselines))
     root = tmp_path / "data"
     WRITERS[name](root)
     n = len(loaders.open_dataset(name, root))
@@ -243,6 +300,8 @@ def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untraine
     result = json.loads((out / "metrics.json").read_text())
     assert result["n"] == n
     assert 0.0 < result["overall"]["a3"] <= 1.0 and np.isfinite(result["overall"]["rmse"])
+    assert bounds == {"evaluate_model": loaders.REGISTRY[name].max_depth,
+                      "evaluate_baselines": loaders.REGISTRY[name].max_depth}
 
 
 def test_evaluate_as_a_process_and_a_wrong_root_is_named(tmp_path, untrained_checkpoint, capsys):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import camera, losses as L
+from geodepth_lite import camera, sdf
+from geodepth_lite import losses as L
 
 K32 = camera.intrinsics(32)
 
@@ -89,10 +90,10 @@ def test_signed_distance_sign_convention():
     X, Y = torch.meshgrid(xs, xs, indexing="ij")
     pts = torch.stack((X.flatten(), Y.flatten(), torch.full((441,), 2.0, dtype=torch.float64)), -1)
     q = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 3.5], [0.5, -0.5, 2.0], [0.3, 0.2, 1.75]], dtype=torch.float64)
-    sd = L.signed_distance(pts, q)
+    sd = sdf.signed_distance(pts, q)
     # in front of the surface (camera side) positive, behind negative, on it zero
     assert torch.allclose(sd, torch.tensor([1.0, -1.5, 0.0, 0.25], dtype=torch.float64), atol=1e-12)
-    assert torch.allclose(L.signed_distance(pts, q, signed=False), sd.abs())
+    assert torch.allclose(sdf.signed_distance(pts, q, signed=False), sd.abs())
 
 
 def reference_view_sign(D, K, q):
@@ -111,7 +112,7 @@ def reference_view_sign(D, K, q):
 
 
 def reference_sdf_loss(pred, gt, K, r, signed=True, sign="view"):
-    """Independent numpy brute force of Eq. 9 with the +X_lb grid; ``sign``: "view" (the paper's
+    """Independent numpy brute force of Eqs. 9-10 with the +X_lb grid; ``sign``: "view" (the paper's
     projection rule, nearest-direction fallback outside the image) or "nearest" (direction to the
     nearest point everywhere)."""
     out = []
@@ -167,8 +168,8 @@ def test_view_sign_differs_from_nearest_direction_behind_a_step_edge():
     D = step_depth(near=1.0, far=3.0)[0, 0]
     pts = camera.backproject(D, K16).reshape(-1, 3)
     q = torch.tensor([Q_BEHIND_NEAR, Q_AHEAD_FAR], dtype=torch.float64)
-    view = L.signed_distance(pts, q, depth=D, K=K16)
-    old = L.signed_distance(pts, q)
+    view = sdf.signed_distance(pts, q, depth=D, K=K16)
+    old = sdf.signed_distance(pts, q)
     # q1: nearest point (0, 0, 3) on the far wall, distance sqrt(0.2^2 + 0.6^2); the old rule
     # calls it ahead ((X_n - q) . X_n = 1.8 > 0), the paper's behind (q_z = 2.4 > D = 1)
     # q2: nearest point (-1/fx, 0, 1), the near step's edge; (X_n - q) . X_n < 0 but q_z = 1.2 < D = 3
@@ -179,7 +180,7 @@ def test_view_sign_differs_from_nearest_direction_behind_a_step_edge():
     # the numpy reference rule agrees; unsigned magnitudes are unchanged
     sign, known = reference_view_sign(D.numpy(), K16, q.numpy())
     assert known.all() and (sign == [-1.0, 1.0]).all()
-    assert torch.allclose(L.signed_distance(pts, q, signed=False, depth=D, K=K16), view.abs())
+    assert torch.allclose(sdf.signed_distance(pts, q, signed=False, depth=D, K=K16), view.abs())
 
 
 def test_view_sign_falls_back_to_nearest_direction_off_the_image():
@@ -189,8 +190,8 @@ def test_view_sign_falls_back_to_nearest_direction_off_the_image():
     q = torch.tensor([[5.0, 0.0, 2.0], [0.0, 0.0, -1.0], Q_BEHIND_NEAR], dtype=torch.float64)
     valid = torch.ones(16, 16, dtype=torch.bool)
     valid[8, 7] = False
-    view = L.signed_distance(pts, q, depth=D, K=K16, valid=valid)
-    assert torch.equal(view, L.signed_distance(pts, q))  # all three: the nearest-direction sign
+    view = sdf.signed_distance(pts, q, depth=D, K=K16, valid=valid)
+    assert torch.equal(view, sdf.signed_distance(pts, q))  # all three: the nearest-direction sign
     # q1's nearest point is the far wall's last column (3 * 7/fx, 0, 3): (X_n - q) . X_n < 0
     x15 = 3 * 7 / K16[0, 0]
     assert math.isclose(float(view[0]), -math.hypot(5.0 - x15, 1.0), rel_tol=1e-12)
@@ -213,7 +214,7 @@ def test_sdf_loss_between_step_edges_follows_the_view_sign():
         assert math.isclose(old, reference_sdf_loss(pred, gt, K, 6, sign="nearest"), rel_tol=1e-9)
         assert abs(view - old) > 0.05
     # the two rules key different cached ground-truth fields
-    cache = L.GTFieldCache()
+    cache = sdf.GTFieldCache()
     L.sdf_loss(pred, gt, K, grid=6, cache=cache)
     L.sdf_loss(pred, gt, K, grid=6, cache=cache, sign_rule="nearest")
     assert (cache.misses, cache.hits, len(cache)) == (2, 0, 2)
@@ -236,11 +237,11 @@ def test_nearest_neighbour_search_equals_brute_force(seed):
     pts = torch.from_numpy(rng.normal(size=(3000, 3)))
     q = torch.from_numpy(rng.uniform(-3, 3, size=(700, 3)))
     brute = torch.from_numpy(np.linalg.norm(pts.numpy()[None] - q.numpy()[:, None], axis=-1).argmin(1))
-    kd = L.nearest_indices(pts, q, "kdtree")
-    ch = L.nearest_indices_chunked(pts, q, chunk_elements=50_000)  # many chunks
+    kd = sdf.nearest_indices(pts, q, "kdtree")
+    ch = sdf.nearest_indices_chunked(pts, q, chunk_elements=50_000)  # many chunks
     assert torch.equal(kd, brute) and torch.equal(ch, brute)
     # float32 on the device path: distances agree with brute force to rounding
-    ch32 = L.nearest_indices(pts.float(), q.float(), "chunked")
+    ch32 = sdf.nearest_indices(pts.float(), q.float(), "chunked")
     d = (pts[ch32] - q).norm(dim=1) - (pts[brute] - q).norm(dim=1)
     assert d.abs().max() < 1e-5
 
@@ -328,7 +329,7 @@ def test_ground_truth_field_cache_returns_the_same_loss_and_gradient():
     K = camera.intrinsics(16)
     gt = smooth_depth(2, 16, 16, seed=7).reshape(2, 1, 16, 16)
     pred0 = (gt * 1.07 + 0.01).detach()
-    cache = L.GTFieldCache()
+    cache = sdf.GTFieldCache()
 
     def run(c):
         p = pred0.clone().requires_grad_()

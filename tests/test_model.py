@@ -1,11 +1,11 @@
 """DepthNet (Sec. 3.B): shapes, output range, input errors, torchvision resnet18 weight mapping."""
 
-import math
 
 import pytest
 import torch
 
 from geodepth_lite import model as M
+
 
 def torchvision_resnet18_shapes() -> dict[str, tuple]:
     """Names and shapes of torchvision's resnet18 state dict, written out from its definition."""

@@ -5,7 +5,6 @@ import json
 import imageio.v3 as iio
 import numpy as np
 import pytest
-import torch
 
 from geodepth_lite import camera, cli, predict, recon
 
@@ -46,14 +45,15 @@ def test_folder_with_a_corrupt_file_processes_the_others_and_names_it(tmp_path, 
         assert ply.n_points == h * w
         # the PLY is the depth back-projected with the default intrinsics (about 84 degrees)
         K = camera.intrinsics_from_fov(w, h, predict.DEFAULT_FOV_DEG)
-        np.testing.assert_allclose(np.asarray(ply.points), camera.backproject(depth.astype(np.float64), K).reshape(-1, 3),
+        np.testing.assert_allclose(np.asarray(ply.points),
+                                   camera.backproject(depth.astype(np.float64), K).reshape(-1, 3),
                                    rtol=1e-5, atol=1e-6)
     assert not (out / "broken_depth.npy").exists()
     assert not list(out.glob(".*.tmp"))
 
 
 def test_batching_does_not_change_the_prediction(checkpoint):
-    from geodepth_lite.train import load_model
+    from geodepth_lite.checkpoint import load_model
 
     model, cfg = load_model(checkpoint)
     frames = [_frame(40, 56, 0), _frame(33, 47, 1), _frame(64, 64, 2)]
@@ -76,7 +76,8 @@ def test_video_and_intrinsics_file(tmp_path, checkpoint):
     depth = np.load(out / "clip_000001_depth.npy")
     K = camera.scale_intrinsics(np.array([[100.0, 0, 63.5], [0, 110.0, 47.5], [0, 0, 1]]), 0.5)
     pts = np.asarray(recon.load_ply(out / "clip_000001.ply").points)
-    np.testing.assert_allclose(pts, camera.backproject(depth.astype(np.float64), K).reshape(-1, 3), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(pts, camera.backproject(depth.astype(np.float64), K).reshape(-1, 3),
+                               rtol=1e-5, atol=1e-6)
 
 
 def test_bad_input_gets_a_one_line_error(tmp_path, checkpoint, capsys):

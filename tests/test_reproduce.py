@@ -25,7 +25,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 out = reproduce.resolve_run_dir(profile, run_dir)
-reproduce.save_table(out, f"{NAME}_numbers", ["what", "value"], [["scale", scale], ["profile", profile]], title="T{NAME}")
+reproduce.save_table(out, f"{NAME}_numbers", ["what", "value"], [["scale", scale], ["profile", profile]], \
+title="T{NAME}")
 fig = plt.figure(); plt.plot([0, scale]); reproduce.save_figure(fig, out, f"{NAME}_line")
 (out / f"ran_{NAME}.txt").open("a").write("x")
 """
@@ -35,9 +36,11 @@ fig = plt.figure(); plt.plot([0, scale]); reproduce.save_figure(fig, out, f"{NAM
 def fake_notebooks(tmp_path, monkeypatch):
     d = tmp_path / "nbs"
     d.mkdir()
-    _notebook(d / "01_first.ipynb", 'profile = "teach"  # smoke | teach | paper\nrun_dir = ""  # out\nscale = 2.0  # a float',
+    _notebook(d / "01_first.ipynb",
+              'profile = "teach"  # smoke | teach | paper\nrun_dir = ""  # out\nscale = 2.0  # a float',
               BODY.replace("{NAME}", "01"))
-    _notebook(d / "02_second.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out\nscale = 1.0  # a float\nlabel = "a"  # text',
+    _notebook(d / "02_second.ipynb",
+              'profile = "teach"  # p\nrun_dir = ""  # out\nscale = 1.0  # a float\nlabel = "a"  # text',
               BODY.replace("{NAME}", "02"))
     (d / "scratch.ipynb").write_text("{}")  # not numbered: never run
     monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)

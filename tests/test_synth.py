@@ -1,7 +1,6 @@
 """Dataset generation: byte-identical regeneration, verify, bad manifests, refusal to overwrite, resume."""
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -140,7 +139,8 @@ def test_killed_process_is_finished_by_the_same_command(tmp_path):
     manifest.write_text(json.dumps(dict(json.loads(synth.manifest_path("scenario_smoke").read_text()),
                                         camera={"width": 48, "height": 48}, splits={"train": 60}, frames_per_scene=30)))
     out = tmp_path / "ds"
-    cmd = [sys.executable, "-m", "geodepth_lite", "synth", "--manifest", str(manifest), "--out", str(out), "--no-progress"]
+    cmd = [sys.executable, "-m", "geodepth_lite", "synth", "--manifest", str(manifest), "--out", str(out),
+           "--no-progress"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 60
     while time.time() < deadline and len(list((out / "train" / "rgb").glob("*.png"))) < 5:

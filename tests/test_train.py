@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import train
+from geodepth_lite import augment, checkpoint, config, dataset, inference, metrics, train, utils
 
 
 def _cfg(root, case=4, seed=0, **kw):
@@ -19,12 +19,12 @@ def _cfg(root, case=4, seed=0, **kw):
     kw.setdefault("epochs", 3)
     kw.setdefault("batch_size", 4)
     kw.setdefault("image_size", 32)
-    return train.make_config("smoke", case, seed, dataset=str(root), **kw)
+    return config.make_config("smoke", case, seed, dataset=str(root), **kw)
 
 
 def _scramble_process_state():
     """What a fresh process would look like: no cached data, unrelated RNG states."""
-    train._MEMORY_CACHE.clear()
+    dataset.MEMORY_CACHE.clear()
     torch.manual_seed(12345)
     np.random.seed(999)
 
@@ -69,9 +69,9 @@ def test_logs_hold_every_epoch_and_every_term(smoke_root, tmp_path):
     csv_lines = (tmp_path / "run" / "log.csv").read_text().strip().splitlines()
     assert [r["epoch"] for r in rows] == [1, 2] and len(csv_lines) == 3
     header = csv_lines[0].split(",")
-    for term in train.LOSS_KEYS:
+    for term in train.log_keys():
         assert f"train_{term}" in header and f"val_{term}" in header
-    for m in train.METRIC_KEYS:
+    for m in metrics.METRIC_NAMES:
         assert f"val_{m}" in header
     for r in rows:
         assert 0.0 <= r["data_wait_share"] <= 1.0
@@ -121,27 +121,28 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one_whole(smoke_root, t
 
 def test_bad_settings_are_named():
     with pytest.raises(ValueError, match="image_size"):
-        train.make_config("smoke", image_size=100)
+        config.make_config("smoke", image_size=100)
     with pytest.raises(ValueError, match="case"):
-        train.make_config("smoke", case=5)
+        config.make_config("smoke", case=5)
     with pytest.raises(ValueError, match="profile"):
-        train.make_config("laptop")
+        config.make_config("laptop")
     with pytest.raises(ValueError, match="unknown training setting 'epoch'"):
-        train.make_config("smoke", epoch=3)
+        config.make_config("smoke", epoch=3)
     with pytest.raises(ValueError, match="batch_size"):
-        train.make_config("smoke", batch_size=0)
+        config.make_config("smoke", batch_size=0)
     with pytest.raises(ValueError, match="lr_schedule"):
-        train.make_config("smoke", lr_schedule="linear")
+        config.make_config("smoke", lr_schedule="linear")
     with pytest.raises(FileNotFoundError, match="encoder_weights"):
-        train.make_config("smoke", encoder_weights="/nonexistent/resnet18.pth")
+        config.make_config("smoke", encoder_weights="/nonexistent/resnet18.pth")
     for key in ("optimizer", "depth_term", "augment"):
         with pytest.raises(ValueError, match=key):
-            train.make_config("smoke", **{key: "nonsense"})
+            config.make_config("smoke", **{key: "nonsense"})
 
 
 def test_paper_profile_has_the_papers_settings():
-    cfg = train.make_config("paper")
-    assert (cfg["image_size"], cfg["epochs"], cfg["batch_size"], cfg["lr"], cfg["weight_decay"]) == (320, 18, 20, 1e-4, 0.01)
+    cfg = config.make_config("paper")
+    assert ((cfg["image_size"], cfg["epochs"], cfg["batch_size"], cfg["lr"], cfg["weight_decay"])
+            == (320, 18, 20, 1e-4, 0.01))
     assert cfg["betas"] == [0.9, 0.999] and cfg["sdf_grid"] == 32 and cfg["lambdas"] == [1.0, 1.0, 1.0]
     assert cfg["lr_schedule"] == "constant"
     assert (cfg["optimizer"], cfg["depth_term"], cfg["augment"]) == ("adam", "l1", "none")
@@ -151,9 +152,9 @@ def test_case_lambdas_switch_terms_on_with_the_profiles_weights():
     from geodepth_lite import config
 
     w2, w3 = config.PROFILES["teach"]["geo_weights"]
-    assert [train.make_config("teach", c)["lambdas"] for c in (1, 2, 3, 4)] == [
+    assert [config.make_config("teach", c)["lambdas"] for c in (1, 2, 3, 4)] == [
         [1.0, 0.0, 0.0], [1.0, w2, 0.0], [1.0, 0.0, w3], [1.0, w2, w3]]
-    assert train.make_config("paper", 4)["lambdas"] == [1.0, 1.0, 1.0]  # the paper states no weights
+    assert config.make_config("paper", 4)["lambdas"] == [1.0, 1.0, 1.0]  # the paper states no weights
 
 
 def test_flip_augmentation_mirrors_the_3d_scene():
@@ -166,7 +167,7 @@ def test_flip_augmentation_mirrors_the_3d_scene():
     K = torch.tensor([[7.0, 0, 4.3], [0, 7.0, 3.9], [0, 0, 1]]).expand(B, 3, 3).clone()
     batch = {"image": torch.rand(B, 3, H, W), "depth": depth, "K": K, "valid": depth > 1.5}
     torch.manual_seed(1)
-    out = train.augment_batch(batch, "flip")
+    out = augment.augment_batch(batch, "flip")
     torch.manual_seed(1)
     flipped = torch.rand(B) < 0.5  # the same draw
     assert 0 < int(flipped.sum()) < B
@@ -180,8 +181,8 @@ def test_flip_augmentation_mirrors_the_3d_scene():
             assert torch.equal(out["image"][b], batch["image"][b].flip(-1))
         else:
             torch.testing.assert_close(Q[b], P[b])
-    assert train.augment_batch(batch, "none") is batch
-    color = train.augment_batch(batch, "flip_color")
+    assert augment.augment_batch(batch, "none") is batch
+    color = augment.augment_batch(batch, "flip_color")
     assert color["image"].min() >= 0 and color["image"].max() <= 1
 
 
@@ -193,11 +194,11 @@ def test_camera_augmentation_changes_the_image_only_and_repeats_under_the_same_s
     K = torch.tensor([[11.0, 0, 7.5], [0, 11.0, 7.5], [0, 0, 1]]).expand(B, 3, 3).clone()
     batch = {"image": torch.rand(B, 3, H, W) * 0.5 + 0.25, "depth": depth, "K": K, "valid": depth > 0}
     torch.manual_seed(3)
-    flip = train.augment_batch(batch, "flip")
+    flip = augment.augment_batch(batch, "flip")
     torch.manual_seed(3)
-    cam = train.augment_batch(batch, "camera")
+    cam = augment.augment_batch(batch, "camera")
     torch.manual_seed(3)
-    again = train.augment_batch(batch, "camera")
+    again = augment.augment_batch(batch, "camera")
     assert torch.equal(cam["depth"], flip["depth"]) and torch.equal(cam["K"], flip["K"])
     assert torch.equal(cam["image"], again["image"])  # drawn from torch's RNG: resume repeats it
     assert cam["image"].shape == (B, 3, H, W) and cam["image"].dtype == batch["image"].dtype
@@ -207,12 +208,12 @@ def test_camera_augmentation_changes_the_image_only_and_repeats_under_the_same_s
 
 
 def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
-    path = train.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    path = checkpoint.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
     stamp = path.stat().st_mtime_ns
-    again = train.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    again = checkpoint.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
     assert again == path and path.stat().st_mtime_ns == stamp
-    assert path.parent.parent == train.utils.runs_dir() / "smoke" / "checkpoints"
-    model, cfg = train.load_model(path)
+    assert path.parent.parent == utils.runs_dir() / "smoke" / "checkpoints"
+    model, cfg = checkpoint.load_model(path)
     assert cfg["lambdas"] == [1.0, 0.0, 0.0] and not model.training
 
 
@@ -222,14 +223,14 @@ def test_predict_depth_resizes_to_the_network_and_back(smoke_root):
     torch.manual_seed(0)
     model = DepthNet().eval()
     images = torch.rand(2, 3, 50, 70)
-    out = train.predict_depth(model, images, 64)
+    out = inference.predict_depth(model, images, 64)
     assert out.shape == (2, 1, 50, 70) and torch.isfinite(out).all() and (out > 0).all()
     # at the network size nothing is resized: the same as calling the model
     x = torch.rand(1, 3, 64, 64)
     with torch.no_grad():
-        assert torch.allclose(train.predict_depth(model, x, 64), model(x))
+        assert torch.allclose(inference.predict_depth(model, x, 64), model(x))
     with pytest.raises(ValueError, match="B x 3"):
-        train.predict_depth(model, torch.rand(2, 1, 64, 64), 64)
+        inference.predict_depth(model, torch.rand(2, 1, 64, 64), 64)
 
 
 def _free_port() -> int:
@@ -261,9 +262,71 @@ def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, sm
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], predict_image_size=32,
                                                          dataset=str(smoke_root)))
-    path = train.predict_checkpoint("smoke", case=1, seed=0)
-    _, cfg = train.load_model(path)
+    path = checkpoint.predict_checkpoint("smoke", case=1, seed=0)
+    _, cfg = checkpoint.load_model(path)
     assert cfg["image_size"] == 32 and cfg["case"] == 1
-    assert path.parent == train.checkpoint_dir("smoke", 1, 0, image_size=32)
-    assert path.parent != train.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
+    assert path.parent == checkpoint.checkpoint_dir("smoke", 1, 0, image_size=32)
+    assert path.parent != checkpoint.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
     assert config.PROFILES["teach"]["predict_image_size"] % 32 == 0
+
+
+def test_a_sixth_loss_term_is_one_table_entry(monkeypatch, smoke_root, tmp_path):
+    """A dummy term (total variation of the prediction, in a new weight group) added to
+    losses.LOSS_TERMS: total_loss weights it by name, and one smoke epoch trains and logs it."""
+    from geodepth_lite import losses
+
+    def tv(pred, x):
+        return (pred[..., :, 1:] - pred[..., :, :-1]).abs().mean()
+
+    monkeypatch.setitem(losses.LOSS_TERMS, "tv", losses.LossTerm(tv, "lambda4", "test"))
+    assert losses.term_names()[-1] == "tv" and losses.group_names()[-1] == "lambda4"
+    # known answer: a ramp of slope 0.5 along x has TV 0.5; equal pred and gt zero every other term
+    ramp = 2.0 + 0.5 * torch.arange(8.0).expand(1, 1, 8, 8)
+    K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]])
+    image = torch.full((1, 3, 8, 8), 0.5)
+    loss, terms = losses.total_loss(ramp, ramp, image, K, lambdas={"lambda1": 1.0, "lambda4": 0.25})
+    assert terms["tv"] == pytest.approx(0.5) and terms["depth"] == 0.0 and terms["sdf"] == 0.0
+    assert float(loss) == pytest.approx(terms["smooth"] + 0.25 * 0.5)
+    with pytest.raises(ValueError, match="lambdas must be 4"):
+        losses.total_loss(ramp, ramp, image, K, lambdas=(1.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="unknown loss weight group 'lambda9'"):
+        config.make_config("smoke", 1, 0, lambdas={"lambda9": 1.0})
+    cfg = config.make_config("smoke", 1, 0, dataset=str(smoke_root), image_size=32,
+                             lambdas={"lambda1": 1.0, "lambda4": 0.5})
+    assert cfg["lambdas"] == [1.0, 0.0, 0.0, 0.5]
+    row = checkpoint.read_log(train.fit(cfg, tmp_path / "run", progress=False))[-1]
+    assert row["train_tv"] > 0 and row["val_tv"] > 0 and row["gradnorm_tv"] > 0
+    assert row["train_sdf"] == 0.0  # lambda3 = 0: not computed
+
+
+def test_lambdas_by_group_name_are_the_papers_three_weights():
+    by_name = config.make_config("smoke", 4, 0, lambdas={"lambda1": 1.0, "lambda2": 0.5, "lambda3": 0.01})
+    by_order = config.make_config("smoke", 4, 0, lambdas=[1.0, 0.5, 0.01])
+    assert by_name["lambdas"] == by_order["lambdas"] == [1.0, 0.5, 0.01]
+    assert config.config_hash(by_name) == config.config_hash(by_order)
+
+
+def test_crop_augmentation_keeps_every_ray():
+    """augment="crop": the image encodes each pixel's source coordinates (linear, so bilinear
+    resampling is exact inside the crop); the new K must give every pixel the ray of the frame
+    pixel it came from (mirrored in x where flipped). Nearest-exact sampling never invents a depth."""
+    B, H, W = 6, 32, 32
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    image = torch.stack((u / (W - 1), v / (H - 1), torch.full_like(u, 0.5))).expand(B, 3, H, W).clone()
+    depth = (2.0 + 0.05 * u + 0.03 * v).float().expand(B, 1, H, W).clone()
+    K = torch.tensor([[30.0, 0, 14.0], [0, 28.0, 16.5], [0, 0, 1]], dtype=torch.float64).expand(B, 3, 3).clone()
+    torch.manual_seed(3)
+    out = augment.augment_batch({"image": image, "depth": depth, "K": K}, "crop")
+    assert set(out["depth"].flatten().tolist()) <= set(depth.flatten().tolist())
+    inner = (slice(1, -1), slice(1, -1))
+    cropped = 0
+    for b in range(B):
+        Kb = out["K"][b]
+        u_src, v_src = out["image"][b, 0][inner] * (W - 1), out["image"][b, 1][inner] * (H - 1)
+        x_new = (u[inner] - Kb[0, 2]) / Kb[0, 0]
+        x_old = (u_src - K[b, 0, 2]) / K[b, 0, 0]
+        torch.testing.assert_close((v[inner] - Kb[1, 2]) / Kb[1, 1], (v_src - K[b, 1, 2]) / K[b, 1, 1],
+                                   atol=1e-5, rtol=0)
+        assert min(float((x_new - x_old).abs().max()), float((x_new + x_old).abs().max())) < 1e-5
+        cropped += int(float(Kb[0, 0]) > 30.0 + 1e-6)  # zoomed in
+    assert cropped >= 4  # most frames are really cropped (scale uniform in CROP_SCALE)

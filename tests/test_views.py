@@ -24,7 +24,10 @@ def test_closeup_share_gives_frames_with_no_lumen_in_view(tmp_path):
     lumen = _records(synth.generate(_manifest({"lumen": 1.0}), tmp_path / "lumen", progress=False))
     close = _records(synth.generate(_manifest({"closeup": 1.0}), tmp_path / "close", progress=False))
     assert {r["view"] for r in lumen} == {"lumen"} and {r["view"] for r in close} == {"closeup"}
-    no_lumen = lambda recs: np.mean([r["lumen_share"] == 0 for r in recs])
+
+    def no_lumen(recs):
+        return np.mean([r["lumen_share"] == 0 for r in recs])
+
     assert no_lumen(lumen) <= 0.25  # looking down the lumen nearly always sees far pixels (bends hide some)
     assert no_lumen(close) >= 0.75  # facing the wall at 0.2-1 radius: the lumen is (nearly) never in view
     # lumen_share is recomputed from the depth files (the record is not decorative)
@@ -69,7 +72,10 @@ def test_papilla_is_a_mound_with_a_pit_and_papilla_views_face_it():
     (s, th, size), = tm.features.papillae
     plain = tube.WallFeatures(**{**tm.features.__dict__, "papillae": []})
     base = tube.radius_field(s, th, preset, plain)
-    r = lambda ds: float(tm.radius(s + ds, th))
+
+    def r(ds):
+        return float(tm.radius(s + ds, th))
+
     # a mound: the top stands PAPILLA_HEIGHT - PAPILLA_PIT_DEPTH radii of the mound into the lumen ...
     assert base - r(0.0) == pytest.approx((tube.PAPILLA_HEIGHT - tube.PAPILLA_PIT_DEPTH) * size, rel=1e-6)
     # ... with a pit: the rim around the centre is higher (nearer the axis) than the centre itself

@@ -1,4 +1,4 @@
-"""Benchmark of the SDF loss (Sec. 3.C) at the paper's scale: ``python -m geodepth_lite.bench_sdf``.
+"""Benchmark of the SDF loss (Sec. 3.C) at the paper's scale: ``python benchmarks/bench_sdf.py``.
 
 In one run, on the same depth maps (rendered frames of the synthetic dataset) and medians
 of repeats, it times:
@@ -20,15 +20,14 @@ surfaces are realistic endoscopic depth maps.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import time
 
 import torch
 
-from . import losses, utils
-from .model import DepthNet
+from geodepth_lite import losses, sdf, utils
+from geodepth_lite.model import DepthNet
 
 
 def _sync(device):
@@ -46,8 +45,8 @@ def _timed(fn, device) -> float:
 
 def load_batch(batch: int, size: int, device) -> dict:
     """``batch`` rendered frames (image, depth, K) at size x size from a small synthetic dataset."""
-    from .dataset import SyntheticDepthDataset
-    from .synth import ensure_dataset
+    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.synth import ensure_dataset
 
     overrides = {"camera": {"width": size, "height": size}, "splits": {"train": batch, "val": 1, "test": 1}}
     root = ensure_dataset("scenario_smoke", overrides=overrides, progress=False)
@@ -75,7 +74,7 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
 
     The SDF loss and the training step are timed twice: without the ground-truth field cache
     (every field searched: the first epoch) and with it warm (later epochs: only the
-    prediction's field is searched; :class:`geodepth_lite.losses.GTFieldCache`).
+    prediction's field is searched; :class:`geodepth_lite.sdf.GTFieldCache`).
     """
     dev = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
     utils.seed_everything(seed)
@@ -86,8 +85,10 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     index = "chunked" if dev.type == "cuda" else "kdtree"
     res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "repeats": repeats,
            "index_method": index, "bf_images": bf_images, "torch_threads": torch.get_num_threads()}
-    cache = losses.GTFieldCache()
-    saved_cache = losses.GT_FIELD_CACHE
+    cache = sdf.GTFieldCache()
+    # total_loss reads sdf.GT_FIELD_CACHE (sdf_loss's default argument, bound when losses is imported):
+    # rebinding the name would not reach it, so the uncached step switches that object off instead
+    gt_cache = sdf.GT_FIELD_CACHE
 
     model = opt = None
     if train_step:
@@ -95,7 +96,8 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
         opt = torch.optim.Adam(model.parameters(), lr=1e-4, betas=(0.9, 0.999), weight_decay=0.01)
 
     def train_once(use_cache):
-        losses.GT_FIELD_CACHE = cache if use_cache else losses.GTFieldCache(0)
+        saved_max_bytes = gt_cache.max_bytes
+        gt_cache.max_bytes = saved_max_bytes if use_cache else 0
         try:
             model.train()
             p = model(image)
@@ -104,12 +106,13 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
             loss.backward()
             opt.step()
         finally:
-            losses.GT_FIELD_CACHE = saved_cache
+            gt_cache.max_bytes = saved_max_bytes
 
     t = {k: [] for k in ("sdf", "sdf_cached", "bf", "step", "step_cached")}
     sdf_step(pred, gt, K, g3, index, cache)  # warm-ups (this also fills the cache)
     if train_step:
         train_once(False)
+        train_once(True)  # fills the ground-truth field cache for the cached steps
     for _ in range(repeats):  # interleaved, so machine load affects all alike
         t["sdf"].append(_timed(lambda: sdf_step(pred, gt, K, g3, index, None), dev))
         t["sdf_cached"].append(_timed(lambda: sdf_step(pred, gt, K, g3, index, cache), dev))
@@ -137,27 +140,30 @@ def report(res: dict) -> str:
     b, s, g = res["batch"], res["size"], res["grid"]
     lines = [
         f"SDF loss benchmark on {res['device']} ({res['torch_threads']} torch threads, cKDTree workers "
-        f"{losses.KDTREE_WORKERS}), batch {b}, {s}x{s}, "
+        f"{sdf.KDTREE_WORKERS}), batch {b}, {s}x{s}, "
         f"{g}^3 grid, medians of {res['repeats']} repeats",
         f"  SDF loss fwd+bwd, exact spatial index ({res['index_method']}):        {res['sdf_s']:8.2f} s",
         f"  SDF loss fwd+bwd, ground-truth fields cached (epoch >= 2): {res['sdf_cached_s']:8.2f} s",
         f"  SDF loss fwd+bwd, chunked brute force (cdist):         {res['brute_force_s']:8.2f} s "
         f"(measured {res['brute_force_measured_s']:.2f} s on {res['bf_images']} image(s), scaled linearly to {b})",
-        f"  speed-up over brute force (no cache):                  {res['speedup_vs_brute_force']:8.1f} x   (goal >= 50 x)",
+        f"  speed-up over brute force (no cache):                  {res['speedup_vs_brute_force']:8.1f} x   "
+        "(goal >= 50 x)",
     ]
     if "train_step_s" in res:
         lines += [
             f"  DepthNet training step (fwd, all losses, bwd, Adam):   {res['train_step_s']:8.2f} s "
             f"(ground-truth fields cached: {res['train_step_cached_s']:.2f} s)",
-            f"  SDF share of a training step, first epoch:             {100 * res['sdf_fraction_of_step']:8.1f} %   (goal <= 15 %)",
-            f"  SDF share of a training step, later epochs (cached):   {100 * res['sdf_cached_fraction_of_step']:8.1f} %",
+            f"  SDF share of a training step, first epoch:             {100 * res['sdf_fraction_of_step']:8.1f} %   "
+            "(goal <= 15 %)",
+            f"  SDF share of a training step, later epochs (cached):   "
+            f"{100 * res['sdf_cached_fraction_of_step']:8.1f} %",
             f"  DepthNet inference at {s}x{s}:                        {res['inference_fps']:8.1f} frames/s (batch {b})",
         ]
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m geodepth_lite.bench_sdf", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python benchmarks/bench_sdf.py", description=__doc__.split("\n")[0])
     ap.add_argument("--batch", type=int, default=20, help="images per batch (paper: 20)")
     ap.add_argument("--size", type=int, default=320, help="image height = width (paper: 320)")
     ap.add_argument("--grid", type=int, default=32, help="SDF samples per axis (paper: 32)")
@@ -166,7 +172,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="auto", help="auto | cpu | cuda")
     ap.add_argument("--no-train-step", action="store_true", help="skip the training-step and inference timing")
     ap.add_argument("--threads", type=int, default=0,
-                    help="torch threads and cKDTree workers (0: torch's default; 1 gives stable figures on a busy machine)")
+                    help="torch threads and cKDTree workers "
+                         "(0: torch's default; 1 gives stable figures on a busy machine)")
     ap.add_argument("--json", default="", help="also write the figures to this JSON file")
     a = ap.parse_args(argv)
     for name in ("batch", "size", "grid", "repeats", "bf_images"):
@@ -180,11 +187,12 @@ def main(argv=None) -> int:
         raise SystemExit("error: --threads must be >= 0")
     if a.threads:
         torch.set_num_threads(a.threads)
-        losses.KDTREE_WORKERS = a.threads
+        sdf.KDTREE_WORKERS = a.threads
     res = run(a.batch, a.size, a.grid, a.repeats, a.bf_images, a.device, not a.no_train_step)
     print(report(res))
     if a.json:
-        utils.write_json_atomic(a.json, {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in res.items()})
+        finite = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in res.items()}
+        utils.write_json_atomic(a.json, finite)
     return 0
 
 

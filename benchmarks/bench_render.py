@@ -1,4 +1,4 @@
-"""Renderer benchmark: frames/s at 320x320 for the colon preset (``python -m geodepth_lite.bench_render``).
+"""Renderer benchmark: frames/s at 320x320 for the colon preset (``python benchmarks/bench_render.py``).
 
 Times what dataset generation does per frame once a scene is set up: sample a pose,
 auto-exposure rays, lights, render, read back RGB + depth, and the appearance
@@ -23,10 +23,10 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
     Uses the ``scenario_paper`` recipe (the one that renders 320x320 frames) at ``size``;
     ``resolution`` ({"n_theta", "ring_step"}) overrides its mesh resolution.
     """
-    from . import appearance as ap
-    from . import render as rd
-    from . import synth
-    from . import tube as tb
+    from geodepth_lite import appearance as ap
+    from geodepth_lite import render as rd
+    from geodepth_lite import synth
+    from geodepth_lite import tube as tb
 
     overrides = {"camera": {"width": size, "height": size}}
     if resolution:
@@ -62,7 +62,7 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m geodepth_lite.bench_render", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python benchmarks/bench_render.py", description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=320, help="image width = height (pixels)")
     p.add_argument("--frames", type=int, default=60, help="frames per repeat")
     p.add_argument("--repeats", type=int, default=5, help="timed repeats (median reported)")
@@ -72,9 +72,11 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     res = {k: v for k, v in (("n_theta", args.n_theta), ("ring_step", args.ring_step)) if v is not None}
     r = run(args.size, args.frames, args.repeats, args.organ, resolution=res or None)
-    print(f"{args.organ} {args.size}x{args.size}, mesh {r['resolution']['n_theta']} x {r['resolution']['ring_step']} R, "
+    mesh = r["resolution"]
+    print(f"{args.organ} {args.size}x{args.size}, mesh {mesh['n_theta']} x {mesh['ring_step']} R, "
           f"{r['triangles']} triangles: {r['fps']:.1f} frames/s "
-          f"(median of {args.repeats} x {args.frames} frames; range {min(r['fps_all']):.1f}-{max(r['fps_all']):.1f}); "
+          f"(median of {args.repeats} x {args.frames} frames; "
+          f"range {min(r['fps_all']):.1f}-{max(r['fps_all']):.1f}); "
           f"scene set-up {r['setup_s']:.2f} s")
     return 0
 

@@ -1,0 +1,82 @@
+"""Running a trained network: device choice, batching, and depth for any image size (Section 4.3).
+
+``predict_depth`` is what evaluation (``evaluate``), ``predict`` and the notebooks call: the
+images are resized the way the training frames were made (``dataset.resize_image``),
+predicted at the network's input size and resized back to the frame's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from geodepth_lite.dataset import resize_image
+from geodepth_lite.distributed import dist_env
+
+
+def pick_device(device: str | torch.device | None = None) -> torch.device:
+    """``device`` as given; else CUDA when available (one GPU per torchrun process), else the CPU."""
+    if device is not None:
+        return torch.device(device)
+    if torch.cuda.is_available():
+        return torch.device("cuda", dist_env()[2] % torch.cuda.device_count())
+    return torch.device("cpu")
+
+
+def autocast(device: torch.device):
+    """Mixed precision on CUDA (bfloat16 where supported, else float16); nothing on the CPU."""
+    if device.type == "cuda":
+        dtype = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+        return torch.autocast("cuda", dtype=dtype)
+    return contextlib.nullcontext()
+
+
+def collate(batch: list[dict]) -> dict:
+    """Item dicts to one batch dict: tensors and arrays stacked, numbers to a tensor, the rest as lists."""
+    out = {}
+    for key in batch[0]:
+        values = [b[key] for b in batch]
+        if isinstance(values[0], torch.Tensor):
+            out[key] = torch.stack(values)
+        elif isinstance(values[0], np.ndarray):
+            out[key] = torch.from_numpy(np.stack(values))
+        elif isinstance(values[0], (int, float)):
+            out[key] = torch.tensor(values)
+        else:
+            out[key] = values
+    return out
+
+
+def to_device(batch: dict, device: torch.device) -> dict:
+    """The batch's tensors on ``device`` (other entries unchanged)."""
+    return {k: (v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+
+
+@torch.no_grad()
+def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int] | None = None) -> torch.Tensor:
+    """Depth B x 1 x H x W for images B x 3 x H x W in [0, 1]: resized (dataset.resize_image) to the
+    network's ``image_size`` (int or (h, w), multiples of 32), predicted, resized back."""
+    if images.dim() == 3:
+        images = images[None]
+    if images.dim() != 4 or images.shape[1] != 3:
+        raise ValueError(f"images must be B x 3 x H x W, got shape {tuple(images.shape)}")
+    H, W = images.shape[-2:]
+    if image_size is None:
+        size = (H, W)
+    elif isinstance(image_size, int):
+        size = (image_size, image_size)
+    else:
+        size = tuple(int(s) for s in image_size)
+    device = next(model.parameters()).device
+    x = images.to(device=device, dtype=torch.float32)
+    x = resize_image(x, size)  # (B, 3, h, w), as the training frames were made (antialiased)
+    was_training = model.training
+    model.eval()
+    pred = model(x).float()  # (B, 1, h, w)
+    model.train(was_training)
+    if pred.shape[-2:] != (H, W):
+        pred = F.interpolate(pred, size=(H, W), mode="bilinear", align_corners=False)  # (B, 1, H, W)
+    return pred

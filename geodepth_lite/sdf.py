@@ -1,0 +1,379 @@
+"""Signed distance fields of depth maps, for the SDF geometric consistency loss (Sec. 3.C).
+
+The paper's geometric consistency loss compares two surfaces through their signed distance
+fields sampled on a regular 3D grid (equations numbered by counting those of the paper's text,
+shared/paper/):
+
+- Eq. 5: phi(q, S) = min_{X in S} ||X - q||_2, the distance from a point q to the surface S,
+  signed: positive ahead of the surface from the camera viewpoint, negative behind it;
+- Eqs. 6-8: S = pi^-1(I, D), the depth map D back-projected through the camera, one point per
+  valid pixel (:func:`geodepth_lite.camera.backproject`);
+- Eq. 9: the sample grid X_ijk, r_x x r_y x r_z points spanning the ground truth's bounding
+  box [X_lb, X_ub] (:func:`grid_points`, with the + X_lb offset the paper's formula drops);
+- Eq. 10: L_sdf = mean over the grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)|, the loss term
+  itself, in :func:`geodepth_lite.losses.sdf_loss`.
+
+This module holds what that term is built from, in three layers:
+
+- search: the exact nearest neighbour of each grid point (:func:`nearest_indices`: scipy's
+  cKDTree on the CPU, a chunked exact ``torch.cdist`` on CUDA; the paper uses PyTorch3D's KNN).
+  Indices are searched without gradient; distances are then recomputed in torch from the
+  nearest points, so gradients reach the prediction through them;
+- fields: phi of one point set at given queries (:func:`signed_distance`), and the fields of a
+  batch of predicted and ground-truth depth maps on the grid (:func:`sdf_fields`);
+- cache: ground-truth fields, which do not depend on the network, kept per frame
+  (:class:`GTFieldCache`, :data:`GT_FIELD_CACHE`).
+
+It also holds the depth-map input checks (:func:`check_depths`, :func:`valid_mask`) that
+:mod:`geodepth_lite.losses` shares: that module imports this one, not the other way round.
+
+Sign (no gradient; :data:`SIGN_RULES`). The "view" rule, the paper's and the default: a sample
+point q is projected with K, (u, v) = (fx q_x/q_z + cx, fy q_y/q_z + cy) rounded to the nearest
+pixel (``torch.round``, halves to even), and signed by sign(D(v, u) - q_z) with D the depth map
+whose surface is measured: +1 in front of the depth map along its own ray, -1 beyond it, 0 on
+it. Fallback, where q_z <= 0, q projects outside the image, or onto a pixel that is not valid
+(masked, non-finite or <= 0): the nearest-point rule sign((X_n - q) . X_n), X_n the nearest
+surface point, i.e. whether q lies on the camera's side of the surface at X_n (the local
+estimate of the same thing: for q near a front-facing smooth surface both rules agree). The
+two rules differ behind occluding edges, e.g. a point behind a near step, nearest to the far
+wall. The "nearest" rule uses the nearest-point sign everywhere (the former rule, for
+comparison). The magnitude is always the exact Euclidean nearest distance.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+
+import numpy as np
+import torch
+
+from geodepth_lite import camera
+
+DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
+CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
+KDTREE_LEAFSIZE = 32  # points per cKDTree leaf (tuned on 320x320 depth maps)
+KDTREE_WORKERS = -1  # threads of each cKDTree query (-1: all cores)
+SIGN_RULES = {  # SDF sign rules, with the tag that keys cached ground-truth fields
+    "view": "sign:view-ray-projection,fallback:nearest-direction",  # the paper's (default)
+    "nearest": "sign:nearest-direction",  # sign((X_n - q) . X_n) everywhere (the former rule)
+}
+
+
+# ----------------------------------------------------------------------------- depth-map inputs
+def valid_mask(gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Pixels usable as ground truth: finite, > 0, and in ``mask`` when given (B x 1 x H x W bool)."""
+    valid = torch.isfinite(gt) & (gt > 0)
+    if mask is not None:
+        if mask.shape != gt.shape:
+            raise ValueError(f"mask must have the depth's shape {tuple(gt.shape)}, got {tuple(mask.shape)}")
+        valid = valid & mask.to(torch.bool)
+    return valid
+
+
+def check_depths(pred: torch.Tensor, gt: torch.Tensor) -> None:
+    """Raise ValueError unless ``pred`` and ``gt`` are B x 1 x H x W tensors of the same shape."""
+    for name, t in (("pred", pred), ("gt", gt)):
+        if not isinstance(t, torch.Tensor) or t.dim() != 4 or t.shape[1] != 1:
+            shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+            raise ValueError(f"{name} must be a B x 1 x H x W tensor, got {shape}")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred and gt must have the same shape, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+
+
+# ----------------------------------------------------------------------------- nearest neighbours
+@torch.no_grad()
+def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers: int | None = None) -> torch.Tensor:
+    """Exact nearest neighbour of each query among ``points`` with scipy's cKDTree (CPU).
+
+    points: N x 3, queries: M x 3 (any device; searched in float64 on the CPU) -> M indices (int64,
+    on the queries' device).
+    """
+    from scipy.spatial import cKDTree
+
+    p = points.detach().cpu().double().numpy()  # (N, 3)
+    q = queries.detach().cpu().double().numpy()  # (M, 3)
+    # an unbalanced, non-compact tree builds and searches about 2x faster on depth-map surfaces
+    tree = cKDTree(p, leafsize=KDTREE_LEAFSIZE, balanced_tree=False, compact_nodes=False)
+    _, idx = tree.query(q, k=1, workers=KDTREE_WORKERS if workers is None else workers)
+    return torch.from_numpy(np.asarray(idx, dtype=np.int64)).to(queries.device)  # (M,)
+
+
+@torch.no_grad()
+def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_elements: int = CHUNK_ELEMENTS,
+                            exact: bool = True) -> torch.Tensor:
+    """Nearest neighbour by brute force in blocks of queries, on the tensors' device (CUDA path).
+
+    With ``exact`` (default) distances are computed as differences, so the result is the exact
+    argmin up to floating-point ties; ``exact=False`` uses the faster matrix-product expansion
+    |q|^2 - 2 q.x + |x|^2, which can pick a near-tie wrongly (used only as a speed baseline).
+    points: N x 3, queries: M x 3 -> M indices (int64).
+    """
+    n = points.shape[0]
+    step = max(1, chunk_elements // max(n, 1))
+    mode = "donot_use_mm_for_euclid_dist" if exact else "use_mm_for_euclid_dist"
+    out = []
+    for s in range(0, queries.shape[0], step):
+        d = torch.cdist(queries[s:s + step], points, compute_mode=mode)  # (step, N)
+        out.append(d.argmin(dim=1))
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.int64, device=queries.device)
+
+
+def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "auto") -> torch.Tensor:
+    """Nearest-neighbour indices: "kdtree" (exact, CPU), "chunked" (exact, on the device), "auto"
+    (kdtree for CPU tensors, chunked otherwise) or "brute_mm" (matrix-product brute force, a
+    speed baseline only)."""
+    if method == "auto":
+        method = "kdtree" if points.device.type == "cpu" else "chunked"
+    if method == "kdtree":
+        return nearest_indices_kdtree(points, queries)
+    if method == "chunked":
+        return nearest_indices_chunked(points, queries)
+    if method == "brute_mm":
+        return nearest_indices_chunked(points, queries, exact=False)
+    raise ValueError(f"unknown nearest-neighbour method {method!r}: use 'auto', 'kdtree' or 'chunked'")
+
+
+# ----------------------------------------------------------------------------- fields
+def _grid_shape(grid) -> tuple[int, int, int]:
+    g = (grid,) * 3 if isinstance(grid, (int, np.integer)) else tuple(grid)
+    if len(g) != 3 or not all(isinstance(r, (int, np.integer)) and r >= 2 for r in g):
+        raise ValueError(f"sdf grid must be an int >= 2 or three of them (r_x, r_y, r_z), got {grid!r}")
+    return tuple(int(r) for r in g)
+
+
+def grid_points(lower: torch.Tensor, upper: torch.Tensor, grid=DEFAULT_SDF_GRID) -> torch.Tensor:
+    """The paper's sample grid with the offset put back (Sec. 3.C, Eq. 9):
+
+    X_ijk = X_lb + (i/(r_x-1), j/(r_y-1), k/(r_z-1)) * (X_ub - X_lb),  i < r_x, j < r_y, k < r_z.
+    lower, upper: 3-vectors -> (r_x r_y r_z) x 3 points, i slowest (x), k fastest (z).
+    """
+    rx, ry, rz = _grid_shape(grid)
+    axes = [torch.linspace(0.0, 1.0, r, dtype=lower.dtype, device=lower.device) for r in (rx, ry, rz)]
+    t = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)  # (M, 3), M = rx ry rz
+    return lower + t * (upper - lower)  # (M, 3)
+
+
+def _check_sign_rule(sign_rule: str) -> None:
+    if sign_rule not in SIGN_RULES:
+        raise ValueError(f"sign_rule must be one of {', '.join(SIGN_RULES)}, got {sign_rule!r}")
+
+
+@torch.no_grad()
+def _view_sign(queries: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, valid: torch.Tensor):
+    """The view rule's sign of each query and whether it applies (batched, no gradient).
+
+    queries: B x M x 3 (camera frame); depth: B x H x W; K: B x 3 x 3; valid: B x H x W bool ->
+    (sign, known), both B x M: sign = sign(D(v, u) - q_z) in the queries' dtype at the rounded
+    projection (u, v), known = q_z > 0, (u, v) inside the image, valid there and D finite > 0.
+    """
+    B, H, W = depth.shape
+    K = K.to(dtype=queries.dtype, device=queries.device)  # (B, 3, 3)
+    x, y, z = queries.unbind(-1)  # (B, M) each
+    front = z > 0
+    zs = torch.where(front, z, torch.ones_like(z))  # no division by zero behind the camera
+    u = torch.round(K[:, 0, 0, None] * x / zs + K[:, 0, 2, None])  # (B, M)
+    v = torch.round(K[:, 1, 1, None] * y / zs + K[:, 1, 2, None])  # (B, M)
+    known = front & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)  # False for NaN/inf too
+    lin = torch.where(known, v * W + u, torch.zeros_like(u)).long()  # (B, M) pixel indices
+    D = torch.gather(depth.detach().reshape(B, H * W), 1, lin).to(queries.dtype)  # (B, M)
+    ok = torch.gather(valid.reshape(B, H * W).to(torch.bool), 1, lin)  # (B, M)
+    known = known & ok & torch.isfinite(D) & (D > 0)
+    return torch.where(known, torch.sign(D - z), torch.zeros_like(z)), known
+
+
+def _signed_from_nearest(nearest: torch.Tensor, queries: torch.Tensor, signed: bool = True,
+                         view=None) -> torch.Tensor:
+    """phi(q) from the nearest surface points X_n (... x 3, differentiable) and queries q (... x 3).
+
+    ``view``: None (nearest-point sign everywhere) or the (sign, known) pair of :func:`_view_sign`
+    (... each): the view sign where known, the nearest-point sign elsewhere (the fallback).
+    """
+    diff = nearest - queries  # (..., 3)
+    d2 = (diff * diff).sum(-1)  # (...)
+    pos = d2 > 0  # the distance's gradient is set to 0 on the surface instead of NaN
+    dist = torch.where(pos, torch.sqrt(torch.where(pos, d2, torch.ones_like(d2))), torch.zeros_like(d2))
+    if not signed:
+        return dist
+    with torch.no_grad():
+        sign = torch.sign((diff * nearest).sum(-1))  # (...)
+        if view is not None:
+            sign = torch.where(view[1], view[0].to(sign), sign)
+    return sign * dist
+
+
+def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "auto", signed: bool = True,
+                    depth=None, K=None, valid=None) -> torch.Tensor:
+    """Signed distance from each query q to the point set S = {X} (camera frame, Sec. 3.C, Eq. 5).
+
+    phi(q) = ||X_n - q||_2 with X_n the exact nearest point of S (index searched without
+    gradient, distance recomputed in torch so gradients reach ``points`` through X_n).
+
+    Sign (the paper: positive ahead of the surface as seen from the camera, negative behind),
+    computed without gradient:
+    - with ``depth`` (H x W, torch or numpy) and ``K`` (3 x 3), the view rule: q projects to the
+      nearest pixel (u, v) = round(fx q_x/q_z + cx, fy q_y/q_z + cy) and the sign is
+      sign(D(v, u) - q_z) (+1 in front of the depth map along q's ray, -1 beyond, 0 on it).
+      Where q_z <= 0, (u, v) is outside the image, or the pixel is not usable (``valid``, H x W
+      bool, False there, or D not finite or <= 0), the fallback is the nearest-point rule below.
+      ``points`` should be the back-projection of ``depth``'s usable pixels (not checked);
+    - without them, the nearest-point rule everywhere: sign((X_n - q) . X_n), positive when q
+      lies on the camera's side of the surface at X_n, negative beyond, 0 on it. For a
+      fronto-parallel plane z = d both rules give sign(d - q_z); they differ behind occluding
+      edges (a point behind a near step whose nearest surface point is on the far wall).
+    points: N x 3, queries: M x 3 -> M signed distances (unsigned when ``signed=False``).
+    """
+    idx = nearest_indices(points, queries, method)  # (M,)
+    view = None
+    if depth is not None and signed:
+        if K is None:
+            raise ValueError("signed_distance: the view rule needs K with depth")
+        d = torch.as_tensor(depth).to(device=queries.device)  # (H, W)
+        if d.dim() != 2:
+            raise ValueError(f"depth must be H x W, got shape {tuple(d.shape)}")
+        Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K).to(queries.device)
+        v = torch.ones_like(d, dtype=torch.bool) if valid is None else torch.as_tensor(valid).to(d.device)
+        if v.shape != d.shape:
+            raise ValueError(f"valid must have the depth's shape {tuple(d.shape)}, got {tuple(v.shape)}")
+        view = tuple(t[0] for t in _view_sign(queries[None], d[None], Kt.reshape(1, 3, 3), v[None]))  # (M,) each
+    # X_n by gather, not points[idx]: gather's backward sums the gradients of a point's queries in
+    # query order at any thread count (indexing's accumulating backward does not, on the CPU)
+    nearest = torch.gather(points, 0, idx[:, None].expand(-1, 3))  # (M, 3)
+    return _signed_from_nearest(nearest, queries, signed, view)  # (M,)
+
+
+# ----------------------------------------------------------------------------- cache
+class GTFieldCache:
+    """LRU cache of ground-truth SDF fields, keyed by the bytes of the frame (depth, validity, K),
+    the grid, ``signed`` and the sign rule's tag (:data:`SIGN_RULES`; fields signed under another
+    rule, such as the former nearest-point-only sign, never match).
+
+    The ground truth's field does not depend on the network, and training sees every frame once
+    per epoch, so from the second epoch on only the prediction's field has to be searched. A
+    hit returns exactly what the search would (same inputs, same exact search). Fields are kept
+    on the CPU in their dtype (128 KiB per frame at 32^3 in float32); the least recently used
+    are dropped beyond ``max_bytes`` (512 MiB: about 4000 frames at 32^3); ``max_bytes = 0``
+    disables the cache.
+    """
+
+    def __init__(self, max_bytes: int = 512 * 2**20):
+        self.max_bytes = int(max_bytes)
+        self._d: OrderedDict = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    @staticmethod
+    def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, grid, signed: bool,
+            sign_rule: str = "view") -> str:
+        h = hashlib.blake2b(digest_size=20)
+        for t in (gt_b, valid_b, K_b):
+            t = t.detach().cpu().contiguous()
+            h.update(str((t.dtype, tuple(t.shape))).encode())
+            h.update(t.numpy().tobytes())
+        h.update(repr((tuple(grid), bool(signed), SIGN_RULES[sign_rule])).encode())
+        return h.hexdigest()
+
+    def get(self, key: str):
+        if self.max_bytes <= 0:
+            return None
+        with self._lock:
+            item = self._d.get(key)
+            if item is None:
+                self.misses += 1
+                return None
+            self._d.move_to_end(key)
+            self.hits += 1
+            return item
+
+    def put(self, key: str, lower: torch.Tensor, upper: torch.Tensor, field: torch.Tensor) -> None:
+        if self.max_bytes <= 0:
+            return
+        item = (lower.detach().cpu(), upper.detach().cpu(), field.detach().cpu())
+        size = item[2].numel() * item[2].element_size() + 64
+        with self._lock:
+            if key in self._d:
+                return
+            self._d[key] = item
+            self._bytes += size
+            while self._bytes > self.max_bytes and self._d:
+                _, old = self._d.popitem(last=False)
+                self._bytes -= old[2].numel() * old[2].element_size() + 64
+
+    def clear(self) -> None:
+        with self._lock:
+            self._d.clear()
+            self._bytes = 0
+            self.hits = self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+
+GT_FIELD_CACHE = GTFieldCache()  # used by losses.sdf_loss / losses.total_loss unless cache=None is passed
+
+
+# ----------------------------------------------------------------------------- fields of a batch
+def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
+               cache: GTFieldCache | None = None, sign_rule: str = "view"):
+    """Per image: the sample grid and the signed fields of prediction and ground truth.
+
+    Returns a list (one entry per image; None when the image has no valid pixel) of dicts
+    {"grid": M x 3, "lower", "upper": 3-vectors, "pred": M, "gt": M}, M = r_x r_y r_z; fields are
+    ordered as :func:`grid_points` (reshape to r_x x r_y x r_z). Each field is
+    :func:`signed_distance` of one surface, the depth map back-projected with K at the ground
+    truth's valid pixels, on the grid over the ground truth's bounding box; the prediction's is
+    differentiable in ``pred``, the ground truth's is not. With a ``cache``
+    (:class:`GTFieldCache`), ground-truth fields already computed for an identical frame are reused.
+
+    Sign (``sign_rule``, no gradient): "view" (default, the paper's) projects each grid point
+    with K to its nearest pixel and compares q_z with each map's own depth there: the
+    prediction's field uses ``pred``, the ground truth's ``gt`` (+1 where q_z < D, -1 where
+    q_z > D, 0 on it), both at the ground truth's valid pixels (where ``pred`` is also finite and
+    > 0 for the prediction's). Fallback, for points with q_z <= 0, projecting outside the image
+    or onto an unusable pixel: the nearest-point sign sign((X_n - q) . X_n). "nearest" uses the
+    nearest-point sign everywhere (the former rule, for comparison). See :func:`signed_distance`.
+    """
+    _check_sign_rule(sign_rule)
+    check_depths(pred, gt)
+    B = pred.shape[0]
+    valid = valid_mask(gt, mask)  # (B, 1, H, W) bool
+    gt_safe = torch.where(valid, gt, torch.ones_like(gt))  # (B, 1, H, W), no NaN/inf can reach autograd
+    Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K)  # (3, 3) or (B, 3, 3)
+    if not (Kt.shape == (3, 3) or (Kt.dim() == 3 and Kt.shape[0] == B and Kt.shape[1:] == (3, 3))):
+        raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {B}, got {tuple(Kt.shape)}")
+    Kb = Kt.expand(B, 3, 3)  # (B, 3, 3)
+    shape = _grid_shape(grid)
+    view = signed and sign_rule == "view"  # else no depth map is passed: the nearest-point sign
+    S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
+    S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
+    out: list = []
+    for b in range(B):
+        vb = valid[b].reshape(-1)  # (H*W,)
+        if not bool(vb.any()):
+            out.append(None)
+            continue
+        sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
+        p_pts = S_pred[b] if sel is None else S_pred[b, sel]  # (N, 3)
+        g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
+        key = hit = None
+        if cache is not None and cache.max_bytes > 0:
+            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule)
+            hit = cache.get(key)
+        if hit is not None:
+            lower, upper = hit[0].to(S_gt), hit[1].to(S_gt)  # (3,) each
+        else:
+            lower, upper = g_pts.min(0).values, g_pts.max(0).values  # (3,) each: X_lb, X_ub of the ground truth
+        q = grid_points(lower, upper, shape)  # (M, 3)
+        phi_pred = signed_distance(p_pts, q, method, signed, pred[b, 0].detach() if view else None, Kb[b],
+                                   valid[b, 0])  # (M,)
+        if hit is not None:
+            phi_gt = hit[2].to(phi_pred)  # (M,)
+        else:
+            phi_gt = signed_distance(g_pts, q, method, signed, gt_safe[b, 0] if view else None, Kb[b],
+                                     valid[b, 0]).to(phi_pred)  # (M,)
+            if key is not None:
+                cache.put(key, lower, upper, phi_gt)
+        out.append({"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt})
+    return out
