@@ -155,7 +155,7 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
 
     try:
         with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
+            return np.array(im.convert("RGB"))
     except Image.UnidentifiedImageError as exc:
         raise FileProblem(f"cannot read {path}: not an image file, or a damaged one", path) from exc
     except OSError as exc:  # missing, unreadable, truncated ("image file is truncated")
