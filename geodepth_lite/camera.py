@@ -18,6 +18,13 @@ import torch
 # The authors' Blender set (Section 3.A; shared/DATASETS.md): fx = fy = 0.5556 W, cx = cy = 0.5 W.
 DEFAULT_FOCAL_RATIO = 0.5556  # fx / W, about 84 degrees horizontal field of view
 
+# The scene's depth range (z-depth, scene units), as in the paper's set (Sec. 3.A): depths 0.01 to 100.
+# The one definition: the renderer's valid depth (render.NEAR, render.FAR, its near/far planes) and the
+# range the network's head can output (model.MIN_DEPTH, model.MAX_DEPTH) are these. Not the evaluation
+# protocol's limits (metrics.EVAL_MIN_DEPTH, EVAL_MAX_DEPTH), which are another matter.
+MIN_DEPTH, MAX_DEPTH = 0.01, 100.0
+DEPTH_RANGE = (MIN_DEPTH, MAX_DEPTH)
+
 
 def intrinsics(width: int, height: int | None = None, focal_ratio: float = DEFAULT_FOCAL_RATIO) -> np.ndarray:
     """3x3 pinhole K in pixels: fx = fy = focal_ratio * W, cx = 0.5 W, cy = 0.5 H."""

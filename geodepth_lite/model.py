@@ -32,8 +32,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-MIN_DEPTH = 0.01  # smallest depth the head can output (scene units; Sec. 3.A)
-MAX_DEPTH = 100.0  # largest depth the head can output
+from .camera import DEPTH_RANGE
+
+# smallest and largest depth the head can output: the scene's depth range, camera.py's (scene units; Sec. 3.A)
+MIN_DEPTH, MAX_DEPTH = DEPTH_RANGE
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # RGB mean of ImageNet, for images in [0, 1]
 IMAGENET_STD = (0.229, 0.224, 0.225)  # RGB standard deviation of ImageNet
 ENCODER_CHANNELS = (64, 64, 128, 256, 512)  # f0..f4

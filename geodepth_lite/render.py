@@ -26,8 +26,32 @@ import numpy as np
 
 from . import camera as cam
 
-NEAR, FAR = 0.01, 100.0  # valid depth range (scene units), as in the paper's set
+NEAR, FAR = cam.DEPTH_RANGE  # valid rendered depth range (scene units): camera.py's, the paper's set
 MATERIAL_KEYS = ("ambient", "diffuse", "specular", "specular_power")  # Phong material, part of a lighting family
+
+# ----------------------------------------------------------------------------- fixed coefficients
+# What the texture and lighting families (below) and the camera_path settings leave fixed.
+
+# texture (``make_texture``): a second, finer vessel network imitating the capillaries
+CAPILLARY_DENSITY_FACTOR = 2.5  # capillary density, x the family's vessel_density
+CAPILLARY_WIDTH_FACTOR = 0.8  # capillary width, x the family's vessel_width
+CAPILLARY_WEIGHT = 0.45  # capillary opacity relative to the large vessels
+VESSEL_PROFILE_SCALE = 2.0  # a vessel is exp(-(n / (scale x width))^2) of band-limited noise n (unit std)
+
+# lighting (``sample_lighting``, ``exposure_distance``): mucosa tint and auto-exposure
+MUCOSA_TINT = 0.9  # mean per-sample tint of the mucosa (all channels), jittered by the family's tint_jitter
+EXPOSURE_GRID_SPAN = (0.1, 0.9)  # auto-exposure rays: a grid over this span of the image (fractions of W, H)
+EXPOSURE_GRID_SIZE = 5  # ... of this many rays per side
+EXPOSURE_PERCENTILE = 20.0  # reference distance: this percentile of the wall distances along those rays
+# untextured scenes (``Renderer.set_tube`` without texture/material): the warm_single family's material
+DEFAULT_MATERIAL = {"ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0}
+DEFAULT_MUCOSA_COLOR = (0.85, 0.45, 0.4)  # plain pink mucosa (RGB 0..1)
+
+# camera poses (``sample_pose``): distances are fractions of the local lumen radius unless noted
+OFF_AXIS_RANGE = (0.3, 0.6)  # wall and oblique views: camera offset from the centerline, x local minimum radius
+CLOSEUP_WALL_MARGIN = 0.05  # closeups: the camera keeps at least this x R (preset radius) from the wall ...
+CLOSEUP_BACKOFF, CLOSEUP_BACKOFF_STEPS = 0.7, 8  # ... moved closer by this factor, up to this many times
+WALL_FACING_STANDOFF = 0.3  # ``wall_facing_pose``: camera beyond the centre, x the wall-to-centre distance
 
 
 # ----------------------------------------------------------------------------- appearance
@@ -111,9 +135,11 @@ def make_texture(params: dict, rng: np.random.Generator) -> np.ndarray:
     img = base[None, None, :] * (1.0 + float(params["mottle"]) * mottle[..., None])
     density, width = float(params["vessel_density"]), float(params["vessel_width"])
     vessels = np.zeros((size, size))
-    for level, (dens, wid, weight) in enumerate(((density, width, 1.0), (2.5 * density, 0.8 * width, 0.45))):
+    scales = ((density, width, 1.0),
+              (CAPILLARY_DENSITY_FACTOR * density, CAPILLARY_WIDTH_FACTOR * width, CAPILLARY_WEIGHT))
+    for level, (dens, wid, weight) in enumerate(scales):
         n = _periodic_noise(rng, size, 1.0 / dens)
-        vessels = np.maximum(vessels, weight * np.exp(-((n / (wid * 2.0)) ** 2)))
+        vessels = np.maximum(vessels, weight * np.exp(-((n / (wid * VESSEL_PROFILE_SCALE)) ** 2)))
     vessels *= float(params["vessel_strength"])
     img = img * (1.0 - vessels[..., None]) + np.asarray(params["vessel_color"])[None, None, :] * vessels[..., None]
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
@@ -128,7 +154,8 @@ class Light:
     intensity: float
 
 
-def exposure_distance(tube, T_world_cam, K, width: int, height: int, percentile: float = 20.0) -> float:
+def exposure_distance(tube, T_world_cam, K, width: int, height: int,
+                      percentile: float = EXPOSURE_PERCENTILE) -> float:
     """Auto-exposure reference distance: a low percentile of the wall distances along a 5 x 5 grid of rays.
 
     An endoscope's processor adjusts gain to the scene; here the light intensity is
@@ -136,8 +163,8 @@ def exposure_distance(tube, T_world_cam, K, width: int, height: int, percentile:
     down the lumen are not black, while inverse-square falloff within a frame stays.
     """
     K = np.asarray(K, dtype=np.float64)
-    u = np.linspace(0.1, 0.9, 5) * (width - 1)
-    v = np.linspace(0.1, 0.9, 5) * (height - 1)
+    u = np.linspace(*EXPOSURE_GRID_SPAN, EXPOSURE_GRID_SIZE) * (width - 1)
+    v = np.linspace(*EXPOSURE_GRID_SPAN, EXPOSURE_GRID_SIZE) * (height - 1)
     uu, vv = np.meshgrid(u, v)
     rays = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(uu)], -1).reshape(-1, 3)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -166,7 +193,7 @@ def sample_lighting(params: dict, rng: np.random.Generator, radius: float,
         a = angle + np.pi * k
         color = np.clip(base * (1.0 + float(params["color_jitter"]) * rng.uniform(-1, 1, 3)), 0.0, 1.0)
         lights.append(Light((off * math.cos(a), off * math.sin(a), 0.0), tuple(float(c) for c in color), intensity / n))
-    tint = np.clip(0.9 * (1.0 + float(params["tint_jitter"]) * rng.uniform(-1, 1, 3)), 0.0, 1.0)
+    tint = np.clip(MUCOSA_TINT * (1.0 + float(params["tint_jitter"]) * rng.uniform(-1, 1, 3)), 0.0, 1.0)
     return lights, tuple(float(t) for t in tint)
 
 
@@ -231,8 +258,8 @@ def _facing_pose(tube, rng, path: dict, s: float, theta: float) -> tuple[np.ndar
     """Close-up facing the wall point (s, theta): position, forward, tilt from the normal (deg), distance.
 
     The camera sits at ``closeup_distance`` x local radius from the point, along the wall's
-    inward normal tilted by up to ``closeup_tilt_deg``; moved closer (x0.7, up to 8 times)
-    if that position would be outside the lumen (behind a fold).
+    inward normal tilted by up to ``closeup_tilt_deg``; moved closer (x CLOSEUP_BACKOFF, up to
+    CLOSEUP_BACKOFF_STEPS times) if that position would be outside the lumen (behind a fold).
     """
     target = tube.wall_point(s, theta)
     m = wall_normal(tube, s, theta)
@@ -243,11 +270,11 @@ def _facing_pose(tube, rng, path: dict, s: float, theta: float) -> tuple[np.ndar
     az = rng.uniform(0, 2 * np.pi)
     v = math.cos(tilt) * m + math.sin(tilt) * (math.cos(az) * e1 + math.sin(az) * e2)
     dist = float(rng.uniform(*path["closeup_distance"])) * float(tube.radius(s, theta))
-    margin = 0.05 * float(tube.preset["radius"])
-    for _ in range(8):
+    margin = CLOSEUP_WALL_MARGIN * float(tube.preset["radius"])
+    for _ in range(CLOSEUP_BACKOFF_STEPS):
         if inside_tube(tube, target + dist * v, margin):
             break
-        dist *= 0.7
+        dist *= CLOSEUP_BACKOFF
     return target + dist * v, -v, math.degrees(tilt), dist
 
 
@@ -278,12 +305,12 @@ def sample_pose(tube, rng: np.random.Generator, path: dict) -> tuple[np.ndarray,
     radial = math.cos(phi) * n + math.sin(phi) * b
     distance = None
     if view == "wall":
-        rho = rng.uniform(0.3, 0.6) * r_min
+        rho = rng.uniform(*OFF_AXIS_RANGE) * r_min
         tilt = math.radians(rng.uniform(*path["wall_angle_deg"]))
         forward = math.cos(tilt) * t + math.sin(tilt) * radial
         position = c + rho * radial
     elif view == "oblique":
-        rho = rng.uniform(0.3, 0.6) * r_min
+        rho = rng.uniform(*OFF_AXIS_RANGE) * r_min
         tilt = math.radians(rng.uniform(*path["oblique_angle_deg"]))
         forward = math.cos(tilt) * t + math.sin(tilt) * radial  # across the lumen to the far wall
         position = c - rho * radial
@@ -317,7 +344,7 @@ def _axis_pose(c, t, n, b) -> np.ndarray:
     return T
 
 
-def wall_facing_pose(tube, s: float, theta: float, standoff: float = 0.3) -> np.ndarray:
+def wall_facing_pose(tube, s: float, theta: float, standoff: float = WALL_FACING_STANDOFF) -> np.ndarray:
     """T_world_cam looking straight at the wall point (s, theta) from across the lumen.
 
     The camera sits on the line from that wall point through the centerline, ``standoff``
@@ -410,7 +437,7 @@ class Renderer:
 
         if self.actor is not None:
             self.plotter.remove_actor(self.actor, render=False)
-        mat = {"ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0}
+        mat = dict(DEFAULT_MATERIAL)
         mat.update(material or {})
         kwargs = dict(smooth_shading=True, ambient=mat["ambient"], diffuse=mat["diffuse"], specular=mat["specular"],
                       specular_power=mat["specular_power"], scalars=None, render=False, reset_camera=False)
@@ -420,7 +447,7 @@ class Renderer:
             tex.interpolate = True
             kwargs["texture"] = tex
         else:
-            kwargs["color"] = (0.85, 0.45, 0.4)
+            kwargs["color"] = DEFAULT_MUCOSA_COLOR
         self.actor = self.plotter.add_mesh(tube.mesh, **kwargs)
         self.actor.GetProperty().SetSpecularColor(1.0, 1.0, 1.0)
         self.tube = tube

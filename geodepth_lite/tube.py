@@ -111,6 +111,55 @@ PRESETS: dict[str, dict] = {
     },
 }
 FOLD_KINDS = ("haustral", "circular", "longitudinal", "none")
+
+# ----------------------------------------------------------------------------- shape coefficients
+# The fixed coefficients of every tube (PRESETS holds what differs between organs). Lengths are
+# fractions of the lumen radius R, of the tube length L or of a preset value, as noted; angles in
+# radians; a (lo, hi) pair bounds a uniform draw from the tube's random stream.
+
+TUBE_RNG_TAG = 0x7B  # second word of the tube's SeedSequence([seed, tag]): its own random stream
+
+# centerline: per side axis, sinusoidal bends (frequency x 1 / bend_wavelength, amplitude x bend)
+CENTERLINE_HARMONICS = ((1.0, 1.0), (1.7, 0.35))  # (frequency, weight): a main bend and a smaller, faster one
+CENTERLINE_AMPLITUDE_RANGE = (0.5, 1.0)  # random scale of each bend's amplitude
+CENTERLINE_OVERSHOOT = 1.3  # the curve is sampled over 1.3 L of its parameter so its arc length covers L
+
+# base radius: slow variation along s (relative amplitude radius_var), two sines; and its floor
+RADIUS_WAVE_AMPLITUDE = (0.6, 0.4)  # weights of the two sines
+RADIUS_WAVE_PERIOD = (0.45, 0.17)  # their periods, x L
+MIN_RADIUS_FRACTION = 0.3  # the wall radius is clamped to at least this x R: the lumen never pinches shut
+
+# colon: semilunar haustral folds in the sectors between the teniae coli, haustra bulging between folds
+HAUSTRAL_FOLD_STRENGTH_RANGE = (0.7, 1.15)  # height of each fold, x fold_depth
+HAUSTRAL_SPACING_JITTER = (0.8, 1.2)  # distance to the next fold, x fold_spacing
+FOLD_CRESCENT_EXPONENT = 0.7  # fold height across a sector ~ sin(pi u)^p: highest mid-sector, 0 at the teniae
+HAUSTRUM_BULGE = 0.35  # outward bulge of the haustra between folds, x fold depth
+TENIA_WIDTH = 0.08  # angular width of a tenia band (radians, Gaussian)
+TENIA_DEPTH = 0.08  # inward offset of the teniae (flat bands slightly inside), x fold depth
+
+# small intestine: circular folds (plicae circulares), often not full circles
+CIRCULAR_FOLD_STRENGTH_RANGE = (0.6, 1.2)  # height of each fold, x fold_depth
+CIRCULAR_SPACING_JITTER = (0.75, 1.25)  # distance to the next fold, x fold_spacing
+CIRCULAR_FOLD_AROUND = (0.55, 0.45)  # (a, b): height around the lumen ~ a + b cos(theta - fold's theta)
+
+# stomach: longitudinal rugae, wandering sideways and varying in height along s
+MIN_RUGAE = 3  # fewest rugae around the lumen
+RUGA_ANGLE_JITTER = (-0.25, 0.25)  # offset of each ruga from even spacing, x the angular spacing
+RUGA_WANDER_RANGE = (0.1, 0.35)  # sideways wander amplitude (radians)
+RUGA_STRENGTH_RANGE = (0.6, 1.3)  # height of each ruga, x fold_depth
+RUGA_WANDER_PERIOD = 0.3  # period of the wander along s, x L
+RUGA_HEIGHT_MODULATION = (0.6, 0.4)  # (a, b): height along s ~ a + b sin(...)
+RUGA_HEIGHT_PERIOD = 0.21  # period of that height modulation, x L
+RUGA_PHASE_RATIO = 1.3  # phase of the height modulation, x the wander's phase
+
+# local structures of the shape-index discussion (Sec. 3.C, Fig. 5): caps, cups, ridges, papillae.
+# Polyps, diverticula and papillae are domes of height h x size: h * size * max(1 - d^2, 0)^p.
+FEATURE_MARGIN = 0.05  # local structures keep this x L away from both ends of the tube
+DOME_PROFILE_EXPONENT = 1.5  # p above: a smooth dome
+POLYP_HEIGHT = 0.8  # polyps (caps): inward dome height, x polyp radius
+DIVERTICULUM_DEPTH = 0.9  # diverticula (cups): outward pocket depth, x diverticulum radius
+RIDGE_HEIGHT_RANGE = (0.1, 0.2)  # ridges (short folds at any orientation): height, x R
+RIDGE_WIDTH = 0.12  # across-ridge width of the sech^2 profile, x R
 # papilla shape (fractions of the mound radius): dome height, pit depth and pit radius
 PAPILLA_HEIGHT, PAPILLA_PIT_DEPTH, PAPILLA_PIT_RADIUS = 0.6, 0.2, 0.3
 
@@ -157,9 +206,9 @@ def _centerline_points(t: np.ndarray, preset: dict, rng: np.random.Generator) ->
     pts[:, 2] = t
     bend, lam = float(preset["bend"]), float(preset["bend_wavelength"])
     for axis in (0, 1):
-        for harmonic, weight in ((1.0, 1.0), (1.7, 0.35)):
+        for harmonic, weight in CENTERLINE_HARMONICS:
             phase = rng.uniform(0, 2 * np.pi)
-            amp = bend * weight * rng.uniform(0.5, 1.0)
+            amp = bend * weight * rng.uniform(*CENTERLINE_AMPLITUDE_RANGE)
             pts[:, axis] += amp * (np.sin(2 * np.pi * harmonic * t / lam + phase) - np.sin(phase))
     return pts
 
@@ -200,19 +249,20 @@ def _draw_features(preset: dict, rng: np.random.Generator) -> WallFeatures:
         for sector in range(n_sectors):
             s = rng.uniform(0, spacing)  # folds of neighbouring sectors are staggered
             while s < L:
-                feats.folds.append((s, 0.0, sector, rng.uniform(0.7, 1.15)))
-                s += spacing * rng.uniform(0.8, 1.2)
+                feats.folds.append((s, 0.0, sector, rng.uniform(*HAUSTRAL_FOLD_STRENGTH_RANGE)))
+                s += spacing * rng.uniform(*HAUSTRAL_SPACING_JITTER)
     elif kind == "circular":
         s = rng.uniform(0, spacing)
         while s < L:
-            feats.folds.append((s, rng.uniform(0, 2 * np.pi), -1, rng.uniform(0.6, 1.2)))
-            s += spacing * rng.uniform(0.75, 1.25)
+            feats.folds.append((s, rng.uniform(0, 2 * np.pi), -1, rng.uniform(*CIRCULAR_FOLD_STRENGTH_RANGE)))
+            s += spacing * rng.uniform(*CIRCULAR_SPACING_JITTER)
     elif kind == "longitudinal":
-        n_rugae = max(3, int(round(2 * np.pi / spacing)))
+        n_rugae = max(MIN_RUGAE, int(round(2 * np.pi / spacing)))
         for j in range(n_rugae):
-            theta0 = 2 * np.pi * (j + rng.uniform(-0.25, 0.25)) / n_rugae
-            feats.rugae.append((theta0, rng.uniform(0.1, 0.35), rng.uniform(0, 2 * np.pi), rng.uniform(0.6, 1.3)))
-    margin = 0.05 * L
+            theta0 = 2 * np.pi * (j + rng.uniform(*RUGA_ANGLE_JITTER)) / n_rugae
+            feats.rugae.append((theta0, rng.uniform(*RUGA_WANDER_RANGE), rng.uniform(0, 2 * np.pi),
+                                rng.uniform(*RUGA_STRENGTH_RANGE)))
+    margin = FEATURE_MARGIN * L
 
     def place(count_range, size_range):
         lo, hi = (int(v) for v in count_range)
@@ -224,7 +274,7 @@ def _draw_features(preset: dict, rng: np.random.Generator) -> WallFeatures:
     feats.polyps = place(preset["polyps"], preset["polyp_size"])
     feats.diverticula = place(preset["diverticula"], preset["diverticulum_size"])
     for s, theta, length in place(preset["ridges"], preset["ridge_size"]):
-        feats.ridges.append((s, theta, length, rng.uniform(0, np.pi), rng.uniform(0.1, 0.2) * R))
+        feats.ridges.append((s, theta, length, rng.uniform(0, np.pi), rng.uniform(*RIDGE_HEIGHT_RANGE) * R))
     feats.papillae = place(preset["papillae"], preset["papilla_size"])  # drawn last: older draws unchanged
     return feats
 
@@ -234,14 +284,14 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
 
     Folds and ridges are ridge-shaped (sech^2 profiles, pointing into the lumen);
     polyps are caps (inward bumps, positive shape index seen from the lumen);
-    diverticula are cups (outward pockets). Clamped to at least 0.3 x radius.
+    diverticula are cups (outward pockets). Clamped to at least MIN_RADIUS_FRACTION x radius.
     """
     s, theta = np.broadcast_arrays(np.asarray(s, dtype=np.float64), np.asarray(theta, dtype=np.float64))
     R, L = float(preset["radius"]), float(preset["length"])
     p = feats.base_phases
     var = float(preset["radius_var"])
-    r = R * (1.0 + var * (0.6 * np.sin(2 * np.pi * s / (0.45 * L) + p[0])
-                          + 0.4 * np.sin(2 * np.pi * s / (0.17 * L) + p[1])))
+    r = R * (1.0 + var * (RADIUS_WAVE_AMPLITUDE[0] * np.sin(2 * np.pi * s / (RADIUS_WAVE_PERIOD[0] * L) + p[0])
+                          + RADIUS_WAVE_AMPLITUDE[1] * np.sin(2 * np.pi * s / (RADIUS_WAVE_PERIOD[1] * L) + p[1])))
     depth, width = float(preset["fold_depth"]) * R, float(preset["fold_width"]) * R
     kind = preset["fold_kind"]
     if kind == "haustral" and depth > 0:
@@ -250,7 +300,7 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
         local = (theta - feats.tenia_offset) % (2 * np.pi)
         sector = np.minimum((local // sector_w).astype(int), n_sec - 1)
         u = (local - sector * sector_w) / sector_w  # 0..1 across the sector between two teniae
-        crescent = np.sin(np.pi * u) ** 0.7  # semilunar: highest mid-sector, vanishing at the teniae
+        crescent = np.sin(np.pi * u) ** FOLD_CRESCENT_EXPONENT  # semilunar: highest mid-sector, vanishing at the teniae
         fold = np.zeros_like(r)
         for k in range(n_sec):  # per sector only the two nearest folds matter (spacing >> width)
             fk = sorted((fs, st) for fs, _, fsec, st in feats.folds if fsec == k)
@@ -263,39 +313,42 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
                               * _sech2((s - pos[np.minimum(j + 1, len(pos) - 1)]) / width))
             fold = np.where(sector == k, near, fold)
         # haustra bulge outwards between folds; teniae are flat bands slightly inside
-        r = r - depth * crescent * fold + 0.35 * depth * crescent * (1.0 - fold)
-        tenia = np.exp(-((u * sector_w) ** 2) / (0.08**2)) + np.exp(-(((1 - u) * sector_w) ** 2) / (0.08**2))
-        r = r - 0.08 * depth * tenia
+        r = r - depth * crescent * fold + HAUSTRUM_BULGE * depth * crescent * (1.0 - fold)
+        tenia = (np.exp(-((u * sector_w) ** 2) / (TENIA_WIDTH**2))
+                 + np.exp(-(((1 - u) * sector_w) ** 2) / (TENIA_WIDTH**2)))
+        r = r - TENIA_DEPTH * depth * tenia
     elif kind == "circular" and depth > 0:
         fold = np.zeros_like(r)
         for fs, ftheta, _, strength in feats.folds:
-            around = 0.55 + 0.45 * np.cos(theta - ftheta)  # plicae are often not full circles
+            # plicae are often not full circles
+            around = CIRCULAR_FOLD_AROUND[0] + CIRCULAR_FOLD_AROUND[1] * np.cos(theta - ftheta)
             fold = np.maximum(fold, strength * around * _sech2((s - fs) / width))
         r = r - depth * fold
     elif kind == "longitudinal" and depth > 0:
         fold = np.zeros_like(r)
         for theta0, wander, phase, strength in feats.rugae:
-            centre = theta0 + wander * np.sin(2 * np.pi * s / (0.3 * L) + phase)
-            along = 0.6 + 0.4 * np.sin(2 * np.pi * s / (0.21 * L) + phase * 1.3)
+            centre = theta0 + wander * np.sin(2 * np.pi * s / (RUGA_WANDER_PERIOD * L) + phase)
+            along = RUGA_HEIGHT_MODULATION[0] + RUGA_HEIGHT_MODULATION[1] * np.sin(
+                2 * np.pi * s / (RUGA_HEIGHT_PERIOD * L) + phase * RUGA_PHASE_RATIO)
             fold = np.maximum(fold, strength * along * _sech2(R * _wrap(theta - centre) / width))
         r = r - depth * fold
     for ps, pth, size in feats.polyps:  # caps: inward, smooth dome
         d2 = ((s - ps) ** 2 + (R * _wrap(theta - pth)) ** 2) / size**2
-        r = r - 0.8 * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+        r = r - POLYP_HEIGHT * size * np.clip(1.0 - d2, 0.0, None) ** DOME_PROFILE_EXPONENT
     for ds_, dth, size in feats.diverticula:  # cups: outward pockets
         d2 = ((s - ds_) ** 2 + (R * _wrap(theta - dth)) ** 2) / size**2
-        r = r + 0.9 * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+        r = r + DIVERTICULUM_DEPTH * size * np.clip(1.0 - d2, 0.0, None) ** DOME_PROFILE_EXPONENT
     for ps, pth, size in feats.papillae:  # papilla: a low dome with a small pit at its top (the orifice)
         d2 = ((s - ps) ** 2 + (R * _wrap(theta - pth)) ** 2) / size**2
-        r = r - PAPILLA_HEIGHT * size * np.clip(1.0 - d2, 0.0, None) ** 1.5
+        r = r - PAPILLA_HEIGHT * size * np.clip(1.0 - d2, 0.0, None) ** DOME_PROFILE_EXPONENT
         r = r + PAPILLA_PIT_DEPTH * size * np.exp(-d2 / PAPILLA_PIT_RADIUS**2)
     for rs, rth, length, angle, height in feats.ridges:  # ridges: a short fold at any orientation
         ds_, dt = s - rs, R * _wrap(theta - rth)
         along = ds_ * np.cos(angle) + dt * np.sin(angle)
         across = -ds_ * np.sin(angle) + dt * np.cos(angle)
         envelope = np.clip(1.0 - (along / (0.5 * length)) ** 2, 0.0, None)
-        r = r - height * envelope * _sech2(across / (0.12 * R))
-    return np.maximum(r, 0.3 * R)
+        r = r - height * envelope * _sech2(across / (RIDGE_WIDTH * R))
+    return np.maximum(r, MIN_RADIUS_FRACTION * R)
 
 
 # ----------------------------------------------------------------------------- the mesh
@@ -390,10 +443,10 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     res = dict(DEFAULT_RESOLUTION, **(resolution or {}))
     n_theta = int(res["n_theta"])
     R, L = float(preset["radius"]), float(preset["length"])
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x7B]))
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), TUBE_RNG_TAG]))
 
     # centerline: sample densely, re-parametrize by arc length
-    t_dense = np.linspace(0.0, L * 1.3, 4000)
+    t_dense = np.linspace(0.0, L * CENTERLINE_OVERSHOOT, 4000)
     dense = _centerline_points(t_dense, preset, rng)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
     n_rings = max(int(math.ceil(L / (float(res["ring_step"]) * R))) + 1, 2)
