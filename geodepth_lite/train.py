@@ -137,6 +137,7 @@ class Trainer:
     def train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
         cfg = self.cfg
         if self.is_main:  # half-written checkpoint/log files of a run killed while saving (never a final name)
+            utils.make_dir(self.run_dir)  # a file in the way is named now, not after an epoch of work
             stale = utils.remove_stale_temps(self.run_dir)
             if stale:
                 print(f"removed {stale} half-written temporary file(s) of an interrupted save in {self.run_dir}")

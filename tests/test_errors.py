@@ -77,6 +77,16 @@ def test_train_on_a_read_only_or_full_disk(smoke_root, tmp_path, monkeypatch, ca
     assert not (run / "checkpoint.pt").exists()
 
 
+def test_train_into_a_run_dir_that_is_a_file_stops_before_training(smoke_root, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.write_text("keep me")
+    argv = ["train", "--profile", "smoke", "--dataset", str(smoke_root), "--image-size", "32", "--run-dir", str(run),
+            "--no-progress", "--no-verify"]
+    assert cli.main(argv) == 2
+    _one_line_error(capsys, "cannot create folder", str(run), "a file of that name exists")
+    assert run.read_text() == "keep me"
+
+
 def test_predict_on_a_read_only_disk_and_into_a_file(smoke_root, tmp_path, monkeypatch, capsys, untrained_checkpoint):
     images = smoke_root / "test" / "rgb"
     not_a_folder = tmp_path / "out.txt"
