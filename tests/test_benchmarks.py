@@ -33,3 +33,30 @@ def test_bench_render_runs(capsys):
     main = load("bench_render.py")["main"]
     assert main(["--size", "32", "--frames", "1", "--repeats", "1"]) == 0
     assert "frames/s" in capsys.readouterr().out
+
+
+def test_symmetric_downsampling_samples_both_edges_alike():
+    """The experiment's encoder has DepthNet's parameters; with left-right symmetric kernels it
+    maps a mirrored image to mirrored features (known answer), which the package's stride-2
+    encoder does not: its windows sit at columns 0, 2, ..., W-2."""
+    import torch
+
+    from geodepth_lite import model
+
+    def mirror_symmetric(net):
+        for m in net.modules():
+            if isinstance(m, torch.nn.Conv2d):
+                m.weight.data = (m.weight.data + m.weight.data.flip(-1)) / 2
+        return net.eval()
+
+    torch.manual_seed(0)
+    sym = mirror_symmetric(load("exp_symmetric_downsampling.py")["SymmetricDepthNet"]())
+    base = mirror_symmetric(model.DepthNet())
+    assert sum(p.numel() for p in sym.parameters()) == sum(p.numel() for p in base.parameters())
+    x = torch.rand(1, 3, 64, 64, dtype=torch.float64)
+    sym, base = sym.double(), base.double()
+    with torch.no_grad():
+        for net, equivariant in ((sym, True), (base, False)):
+            f, f_mirror = net.encode(x)[-1], net.encode(x.flip(-1))[-1]
+            gap = float((f_mirror - f.flip(-1)).abs().max()) / float(f.abs().max())
+            assert (gap < 1e-9) if equivariant else (gap > 1e-3), gap
