@@ -7,26 +7,22 @@ encoder centre their windows on columns 0, 2, ..., W-2: they see the zero paddin
 and top edges and never at the right and bottom, and the 1x1 stride-2 shortcuts skip the last
 column. Here every stride-2 operation becomes its stride-1 version followed by 2x2 average
 pooling (windows centred at 0.5, 2.5, ..., W-1.5: both edges alike), the same number of
-parameters. The model is trained with the teach recipe into ``runs/tune/NAME`` and scored on
-the validation split (Abs Rel, and the border error map's band / centre ratios and per-column
-error); the row is appended to ``benchmarks/tuning_log.jsonl``. The package's network is not
+parameters. Trained and scored as in ``network_experiment.py``; the package's network is not
 changed: this is the measurement a change would start from.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import time
+import sys
 from pathlib import Path
 
-import numpy as np
-import torch
 from torch import nn
 
-from geodepth_lite import checkpoint, config, dataset, evaluate, inference, model, synth, train, utils
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import network_experiment  # noqa: E402
 
-LOG = Path(__file__).with_name("tuning_log.jsonl")
+from geodepth_lite import model  # noqa: E402
+
 BaseDepthNet = model.DepthNet
 
 
@@ -53,42 +49,9 @@ class SymmetricDepthNet(BaseDepthNet):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("name")
-    ap.add_argument("--case", type=int, default=4)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a training setting (JSON value)")
-    ap.add_argument("--log", default=str(LOG))
-    args = ap.parse_args(argv)
-    settings = {k: json.loads(v) for k, _, v in (s.partition("=") for s in args.set)}
-    model.DepthNet = SymmetricDepthNet  # train.fit and checkpoint.load_model build the network from here
-    cfg = config.make_config("teach", args.case, args.seed, **settings)
-    run_dir = utils.runs_dir() / "tune" / args.name
-    t0 = time.perf_counter()
-    ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
-    minutes = (time.perf_counter() - t0) / 60
-    net, _ = checkpoint.load_model(ckpt)
-    torch.set_num_threads(cfg["threads"] or torch.get_num_threads())
-    val = evaluate.open_eval_dataset(str(dataset.resolve_dataset(cfg)), split="val")
-    with torch.no_grad():
-        def predict(x):
-            return inference.predict_depth(net, x, cfg["image_size"])
-
-        result = evaluate.evaluate_predictor(predict, val, error_maps=0)
-        border = evaluate.border_error_map(predict, val)
-    columns = np.nanmean(border["abs"], axis=0)
-    row = {"name": args.name, "case": args.case, "seed": args.seed, "settings": settings,
-           "network": "encoder downsampling: stride-1 operations + 2x2 average pooling (symmetric edges)",
-           "val_abs_rel": round(result["overall"]["abs_rel"], 4), "val_rmse": round(result["overall"]["rmse"], 4),
-           "val_border": {k: round(v, 3) for k, v in border["ratios"].items()},
-           "val_border_worst": round(max(border["ratios"].values()), 3),
-           "val_abs_first_cols": round(float(columns[:3].mean()), 3),
-           "val_abs_last_cols": round(float(columns[-3:].mean()), 3),
-           "minutes": round(minutes, 2), "generator": synth.GENERATOR_VERSION}
-    with open(args.log, "a") as f:
-        f.write(json.dumps(row) + "\n")
-    print(json.dumps(row))
-    return 0
+    return network_experiment.run(SymmetricDepthNet,
+                                  "encoder downsampling: stride-1 operations + 2x2 average pooling (symmetric edges)",
+                                  argv, __doc__)
 
 
 if __name__ == "__main__":

@@ -16,15 +16,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import network_experiment  # noqa: E402
+
 from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, inference, synth, train, utils
 from geodepth_lite.metrics import compute_depth_metrics
 
-LOG = Path(__file__).with_name("tuning_log.jsonl")
+LOG = network_experiment.LOG
 
 
 def parse_value(text: str):
@@ -78,9 +82,7 @@ def main(argv=None) -> int:
     if args.border:
         ds = evaluate.open_eval_dataset(str(root), split="val")
         with torch.no_grad():
-            b = evaluate.border_error_map(lambda x: inference.predict_depth(model, x, cfg["image_size"]), ds)
-        row["val_border"] = {k: round(v, 3) for k, v in b["ratios"].items()}
-        row["val_border_worst"] = round(max(b["ratios"].values()), 3)
+            row |= network_experiment.border_scores(lambda x: inference.predict_depth(model, x, cfg["image_size"]), ds)
     if args.closeups:
         prof = config.get_profile("teach")
         ds = evaluate.open_eval_dataset(str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"],
@@ -92,9 +94,7 @@ def main(argv=None) -> int:
     env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
     if env:  # a kernel cap changes the trained weights: say so
         row["env"] = env
-    with open(args.log, "a") as f:
-        f.write(json.dumps(row) + "\n")
-    print(json.dumps(row))
+    network_experiment.append_row(row, args.log)
     return 0
 
 

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
+from geodepth_lite.inference import collate
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
 
 METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.3, named once in metrics.py
@@ -117,7 +118,7 @@ def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, 
     from tqdm.auto import tqdm
 
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False,
-                                         collate_fn=_collate_eval)
+                                         collate_fn=collate)
     rows: dict[str, list[dict]] = {name: [] for name in predictors}
     skipped: dict[str, list[dict]] = {name: [] for name in predictors}
     examples: list[dict] = []
@@ -239,7 +240,7 @@ BORDER_BANDS = ("top", "bottom", "left", "right")
 
 def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band: float = 0.1,
                      min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
-                     progress: bool = False) -> dict:
+                     groups: list[str] | None = None, progress: bool = False) -> dict:
     """Is a predictor biased near the image border? Per-pixel log errors averaged over ``dataset``.
 
     Each frame's prediction is median-scaled to its ground truth (as the metrics see it); then
@@ -247,11 +248,19 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
     |e|, "count": H x W valid frames per pixel, "bands": mean |e| over the outer ``band``
     fraction of rows/columns on each side and over the centre (the middle half in both axes),
     "ratios": each border band's mean |e| over the centre's}. Frames must share one size.
+
+    groups: one label per frame (in dataset order), e.g. the view kind of each synthetic frame;
+    then out["groups"] = {label: {"frames", "bands", "ratios", "signed"}} holds the same region
+    means per label, "signed" being the mean e per region (negative: too near).
     """
     from tqdm.auto import tqdm
 
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=_collate_eval)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=collate)
+    if groups is not None and len(groups) != len(dataset):
+        raise ValueError(f"border_error_map: {len(groups)} group labels for {len(dataset)} frames")
     signed = absolute = count = None
+    per_group: dict[str, list] = {}  # label -> [signed sum, |e| sum, count, frames]
+    seen = 0
     for batch in tqdm(loader, desc="border error map", disable=not progress, leave=False):
         gt = batch["depth"].numpy()[:, 0].astype(np.float64)  # (B, H, W)
         valid = (gt > min_depth) & (gt < max_depth)
@@ -273,11 +282,24 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
             signed += e
             absolute += np.abs(e)
             count += v
+            if groups is not None:
+                acc = per_group.setdefault(groups[seen + j], [np.zeros_like(e), np.zeros_like(e), np.zeros_like(e), 0])
+                acc[0] += e
+                acc[1] += np.abs(e)
+                acc[2] += v
+                acc[3] += 1
+        seen += gt.shape[0]
     if signed is None:
         raise ValueError("border_error_map: the dataset has no frame")
     with np.errstate(invalid="ignore", divide="ignore"):
         out = {"signed": signed / count, "abs": absolute / count, "count": count}
     out["bands"], out["ratios"] = border_bands(absolute, count, band)
+    if groups is not None:
+        out["groups"] = {}
+        for label, (g_signed, g_abs, g_count, frames) in sorted(per_group.items()):
+            bands, ratios = border_bands(g_abs, g_count, band)
+            out["groups"][label] = {"frames": frames, "bands": bands, "ratios": ratios,
+                                    "signed": border_bands(g_signed, g_count, band)[0]}
     return out
 
 
@@ -312,12 +334,6 @@ def border_map_figure(maps: dict, title: str = ""):
         fig.suptitle(title)
     fig.tight_layout()
     return fig
-
-
-def _collate_eval(batch: list[dict]) -> dict:
-    from geodepth_lite.inference import collate
-
-    return collate(batch)
 
 
 def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_teach", *, split: str = "test",
