@@ -60,3 +60,32 @@ def test_symmetric_downsampling_samples_both_edges_alike():
             f, f_mirror = net.encode(x)[-1], net.encode(x.flip(-1))[-1]
             gap = float((f_mirror - f.flip(-1)).abs().max()) / float(f.abs().max())
             assert (gap < 1e-9) if equivariant else (gap > 1e-3), gap
+
+
+def test_partial_padding_gives_a_constant_image_the_same_response_at_the_border():
+    """Known answer: a 3x3 all-ones kernel on a constant image c sums 9c under every window once the
+    border outputs are rescaled (zero padding gives 4c at the corners, 6c on the edges). The
+    network variant keeps DepthNet's parameters and rescales every zero-padded convolution."""
+    import torch
+
+    from geodepth_lite import model
+
+    g = load("exp_partial_padding.py")
+    conv = g["PartialConv2d"](1, 1, 3, padding=1, bias=False)
+    plain = torch.nn.Conv2d(1, 1, 3, padding=1, bias=False)
+    conv.weight.data.fill_(1.0)
+    plain.weight.data.fill_(1.0)
+    x = torch.full((1, 1, 6, 5), 2.0)
+    with torch.no_grad():
+        assert torch.equal(conv(x), torch.full((1, 1, 6, 5), 18.0))
+        edge = plain(x)[0, 0]
+        assert edge[0, 0] == 8.0 and edge[0, 2] == 12.0 and edge[2, 2] == 18.0
+        # stride 2 with the 7x7 stem's padding: windows over the top-left corner see 16 of 49 inputs
+        stem = g["PartialConv2d"](1, 1, 7, stride=2, padding=3, bias=True)
+        stem.weight.data.fill_(1.0)
+        stem.bias.data.fill_(0.5)
+        assert torch.allclose(stem(torch.ones(1, 1, 8, 8)), torch.full((1, 1, 4, 4), 49.5))
+    net, base = g["PartialPaddingDepthNet"](), model.DepthNet()
+    assert sum(p.numel() for p in net.parameters()) == sum(p.numel() for p in base.parameters())
+    padded = [m for m in base.modules() if isinstance(m, torch.nn.Conv2d) and any(p > 0 for p in m.padding)]
+    assert sum(type(m).__name__ == "PartialConv2d" for m in net.modules()) == len(padded) > 20
