@@ -144,3 +144,37 @@ def test_border_error_map_known_answer():
     # a prediction right up to scale has no error anywhere
     scaled = evaluate.border_error_map(lambda images: torch.full((images.shape[0], 1, H, W), 7.0), ds)
     assert np.abs(scaled["abs"]).max() == pytest.approx(0.0, abs=1e-6)
+
+
+class _NumberedFrames(_ConstantFrames):
+    """_ConstantFrames whose image holds its index (so a predictor can tell the frames apart)."""
+
+    def __getitem__(self, i):
+        return super().__getitem__(i) | {"image": torch.full((3, self.H, self.W), float(i))}
+
+
+def test_border_error_map_by_group_known_answer():
+    """Frames 0 and 2 ("wall"): too near by log 0.3 on the left band; frame 1 ("lumen") exact;
+    frame 3 ("lumen"): too far by 0.1 in the centre. Each group's region means are its own."""
+    ds = _NumberedFrames(n=4)
+    H = W = 40
+    near_left = torch.zeros(H, W)
+    near_left[:, :4] = -0.3
+    far_centre = torch.zeros(H, W)
+    far_centre[10:30, 10:30] = 0.1
+    errors = [near_left, torch.zeros(H, W), near_left, far_centre]
+
+    def pred(images):
+        return torch.stack([2.0 * torch.exp(errors[int(x[0, 0, 0])])[None] for x in images])
+
+    out = evaluate.border_error_map(pred, ds, batch_size=3, groups=["wall", "lumen", "wall", "lumen"])
+    wall, lumen = out["groups"]["wall"], out["groups"]["lumen"]
+    assert wall["frames"] == 2 and lumen["frames"] == 2
+    assert wall["signed"]["left"] == pytest.approx(-0.3) and wall["bands"]["left"] == pytest.approx(0.3)
+    assert wall["signed"]["centre"] == pytest.approx(0.0, abs=1e-9) and wall["bands"]["right"] == pytest.approx(0.0)
+    assert lumen["signed"]["centre"] == pytest.approx(0.05) and lumen["bands"]["centre"] == pytest.approx(0.05)
+    assert lumen["ratios"]["top"] == pytest.approx(0.0, abs=1e-9)
+    # the pooled map is the frame-weighted mean of the groups'
+    assert out["bands"]["left"] == pytest.approx(0.15) and out["bands"]["centre"] == pytest.approx(0.025)
+    with pytest.raises(ValueError, match="3 group labels for 4 frames"):
+        evaluate.border_error_map(pred, ds, groups=["a", "b", "c"])
