@@ -343,6 +343,12 @@ VIEW_EVIDENCE: list[dict] = [
     {"recipe": "symmetric downsampling, 96 px",
      "abs_rel": 0.1005, "rmse": 0.6513, "closeup_abs_rel": "", "closeup_shading_prior": "",
      "run": "g3_c4_size96_symdown"},
+    {"recipe": "partial-convolution padding (an experiment, not in the package)",
+     "abs_rel": 0.1211, "rmse": 0.7435, "closeup_abs_rel": "", "closeup_shading_prior": "",
+     "run": "g3_c4_partial"},
+    {"recipe": "partial-convolution padding, 96 px",
+     "abs_rel": 0.1191, "rmse": 0.7291, "closeup_abs_rel": "", "closeup_shading_prior": "",
+     "run": "g3_c4_size96_partial"},
 ]
 VIEW_EVIDENCE_NOTE = (
     "Validation split, 120 frames (the shading prior scores Abs Rel 0.182 there). Neither knob helps on "
@@ -358,5 +364,7 @@ VIEW_EVIDENCE_NOTE = (
     "border' prior alone; teach keeps no augmentation. Replacing the encoder's stride-2 operations by "
     "stride-1 ones and 2x2 average pooling (both image edges sampled alike; "
     "benchmarks/exp_symmetric_downsampling.py) lowers validation Abs Rel by 5% at both sizes (0.103 and "
-    "0.101) but leaves the worst border band 41-49% above the centre; the close-ups were not scored."
+    "0.101) but leaves the worst border band 41-49% above the centre. Partial-convolution padding "
+    "(benchmarks/exp_partial_padding.py: each border output rescaled by window area / real inputs) costs "
+    "0.012-0.013 and leaves it 46-52% above the centre. The close-ups were not scored for either experiment."
 )
