@@ -17,6 +17,12 @@ RMSE from 0.809 to 0.821 (benchmarks/tuning_log.jsonl, runs r3_c1_e8 and r3_c1_e
 tolerance for Abs Rel at 0.10 is 0.015, about ten times that shift and still less than a
 quarter of the gap between the trained models and the best baseline (the shading prior, 0.16).
 The verdicts and the standing against the baselines are strict nbval outputs in the notebooks.
+
+Notebook 06's border ratios by view kind ("border/<set>/<view>/<band>") divide by the centre's
+error of a subset of 15-127 frames, which is small in wall-facing views (0.06-0.09), so they move
+more: retraining its 96 px model under the same AVX2 cap (run g3_c4_size96_avx2) moved them by up
+to 0.166 (close-up views of the test split, 2.250 -> 2.083; 7%), against at most 0.05 for the pooled
+ratios. Their tolerance, BY_VIEW_TOL, is 0.1 + 10% (0.325 at 2.25), about twice the largest shift.
 """
 
 import json
@@ -32,6 +38,7 @@ NOTEBOOKS = sorted(p for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb")
 BASELINE_KEYS = ("constant", "mean_depth_map", "shading_prior")
 REL_TOL = 0.05
 DEFAULT_ABS_TOL = 0.02  # other numbers of the records (notebook 07: one frame's Abs Rel, scale ratios, wall errors)
+BY_VIEW_TOL = (0.1, 0.10)  # (absolute, relative) for notebook 06's border ratios by view kind
 ABS_TOL = {"abs_rel": 0.01, "sq_rel": 0.02, "rmse": 0.05, "rmse_log": 0.015, "a1": 0.02, "a2": 0.015, "a3": 0.01}
 
 
@@ -57,10 +64,19 @@ def reproduced_copy(path: Path, nb):
 
 
 def tolerance(key: str, committed: float) -> float:
+    if key.startswith("border/") and key.count("/") == 3:  # border/<set>/<view kind>/<band>
+        return BY_VIEW_TOL[0] + BY_VIEW_TOL[1] * abs(committed)
     parts = [p.strip() for p in key.split("|")]
     if any(p in BASELINE_KEYS for p in parts):
         return 1e-3
     return ABS_TOL.get(parts[-1], DEFAULT_ABS_TOL) + REL_TOL * abs(committed)
+
+
+def test_tolerance_by_kind_of_number():
+    assert tolerance("T1-L1 | Case 4 | abs_rel", 0.1) == pytest.approx(0.01 + 0.005)
+    assert tolerance("T1-L1 | shading_prior | abs_rel", 0.16) == 1e-3
+    assert tolerance("border/close-ups/left", 1.6) == pytest.approx(0.02 + 0.08)
+    assert tolerance("border/close-ups/papilla/left", 2.0) == pytest.approx(0.1 + 0.2)
 
 
 def test_records_exist():
