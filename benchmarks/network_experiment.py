@@ -50,6 +50,21 @@ def score_validation(net, cfg: dict) -> dict:
                 "val_rmse": round(result["overall"]["rmse"], 4)} | border_scores(predict, val)
 
 
+def train_tune_run(name: str, case: int, seed: int, settings: dict):
+    """Train (or resume) the teach recipe with ``settings`` into ``runs/tune/NAME``.
+
+    Returns (model in eval mode, cfg, minutes spent, run folder); the torch thread count is the run's.
+    """
+    cfg = config.make_config("teach", case, seed, **settings)
+    run_dir = utils.runs_dir() / "tune" / name
+    t0 = time.perf_counter()
+    ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
+    minutes = (time.perf_counter() - t0) / 60
+    net, _ = checkpoint.load_model(ckpt)
+    torch.set_num_threads(cfg["threads"] or torch.get_num_threads())
+    return net, cfg, minutes, run_dir
+
+
 def append_row(row: dict, log: str | Path = LOG) -> None:
     with open(log, "a") as f:
         f.write(json.dumps(row) + "\n")
@@ -66,13 +81,7 @@ def run(network_class, description: str, argv=None, doc: str = "") -> int:
     args = ap.parse_args(argv)
     settings = {k: json.loads(v) for k, _, v in (s.partition("=") for s in args.set)}
     model.DepthNet = network_class
-    cfg = config.make_config("teach", args.case, args.seed, **settings)
-    run_dir = utils.runs_dir() / "tune" / args.name
-    t0 = time.perf_counter()
-    ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
-    minutes = (time.perf_counter() - t0) / 60
-    net, _ = checkpoint.load_model(ckpt)
-    torch.set_num_threads(cfg["threads"] or torch.get_num_threads())
+    net, cfg, minutes, _ = train_tune_run(args.name, args.case, args.seed, settings)
     row = {"name": args.name, "case": args.case, "seed": args.seed, "settings": settings, "network": description}
     row |= score_validation(net, cfg)
     row |= {"minutes": round(minutes, 2), "generator": synth.GENERATOR_VERSION}

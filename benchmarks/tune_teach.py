@@ -17,7 +17,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -25,7 +24,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import network_experiment  # noqa: E402
 
-from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, inference, synth, train, utils
+from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, inference, synth
 from geodepth_lite.metrics import compute_depth_metrics
 
 LOG = network_experiment.LOG
@@ -55,13 +54,7 @@ def main(argv=None) -> int:
     for item in args.set:
         key, _, value = item.partition("=")
         settings[key] = parse_value(value)
-    cfg = config.make_config("teach", args.case, args.seed, **settings)
-    run_dir = utils.runs_dir() / "tune" / args.name
-    t0 = time.perf_counter()
-    ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
-    minutes = (time.perf_counter() - t0) / 60
-    model, _ = checkpoint.load_model(ckpt)
-    torch.set_num_threads(cfg["threads"] or torch.get_num_threads())
+    model, cfg, minutes, run_dir = network_experiment.train_tune_run(args.name, args.case, args.seed, settings)
     root = dataset.resolve_dataset(cfg)
     val = dataset.load_split(root, "val", cfg["image_size"])  # the whole validation split
     preds, gts = [], []
