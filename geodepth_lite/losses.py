@@ -47,10 +47,37 @@ def _prepare(pred, gt, mask):
     return gt_safe, valid
 
 
-def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """Mean of ``x`` over ``valid`` entries; 0 (connected to ``x``) when none is valid."""
+def masked_mean(x: torch.Tensor, valid: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of ``x`` over ``valid`` entries (weighted by ``weight``, broadcast to ``x``, when given);
+    0 (connected to ``x``) when none is valid."""
     x = torch.where(valid, x, torch.zeros_like(x))
-    return x.sum() / valid.sum().clamp(min=1).to(x.dtype)
+    if weight is None:
+        return x.sum() / valid.sum().clamp(min=1).to(x.dtype)
+    w = weight.to(x.dtype) * valid.to(x.dtype)
+    return (w * x).sum() / w.sum().clamp(min=1e-12)
+
+
+BORDER_RAMP_START = 0.7  # border_weight_map: the weight rises from here (0 = centre, 1 = edge) to the edge
+
+
+def border_weight_map(height: int, width: int, beta: float, like: torch.Tensor | None = None) -> torch.Tensor:
+    """1 x 1 x H x W pixel weights for the depth term: 1 in the middle, rising linearly to 1 + ``beta``
+    at the image edge over the outer 15% of each side.
+
+    A pixel's place is its Chebyshev distance from the centre in normalised coordinates (pixel
+    centres, 0 at the centre, 1 at the edge); the ramp starts at ``BORDER_RAMP_START``. Why: a
+    network sees less context at the border and its error there is larger (notebook 06's border
+    map; ``config.VIEW_EVIDENCE``); weighting those pixels more spends more of its effort there.
+    """
+    if not beta >= 0:
+        raise ValueError(f"border weight must be a non-negative number, got {beta!r}")
+    dtype = like.dtype if like is not None and like.is_floating_point() else torch.float32
+    device = like.device if like is not None else None
+    ys = (torch.arange(height, device=device, dtype=dtype) + 0.5) / height * 2 - 1
+    xs = (torch.arange(width, device=device, dtype=dtype) + 0.5) / width * 2 - 1
+    place = torch.maximum(ys.abs()[:, None], xs.abs()[None, :])
+    ramp = ((place - BORDER_RAMP_START) / (1 - BORDER_RAMP_START)).clamp(0, 1)
+    return (1 + beta * ramp)[None, None]
 
 
 def grad_x(d: torch.Tensor) -> torch.Tensor:
@@ -64,13 +91,17 @@ def grad_y(d: torch.Tensor) -> torch.Tensor:
 
 
 # ----------------------------------------------------------------------------- pixel losses
-def depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """L_depth = || D_pred - D_gt ||_1, as the mean absolute difference over valid pixels (Sec. 3.C, Eq. 1)."""
+def depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None,
+               weight: torch.Tensor | None = None) -> torch.Tensor:
+    """L_depth = || D_pred - D_gt ||_1, as the mean absolute difference over valid pixels (Sec. 3.C, Eq. 1).
+
+    ``weight``: optional per-pixel weights (e.g. :func:`border_weight_map`); the mean becomes weighted."""
     gt_safe, valid = _prepare(pred, gt, mask)
-    return masked_mean((pred - gt_safe).abs(), valid)
+    return masked_mean((pred - gt_safe).abs(), valid, weight)
 
 
-def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None,
+                   weight: torch.Tensor | None = None) -> torch.Tensor:
     """|ln D_pred - ln D_gt|, mean over valid pixels: the depth term in relative units.
 
     Not the paper's term (its Eq. 1 is the absolute L1 above). A far lumen pixel at 30 units
@@ -78,28 +109,31 @@ def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | No
     (Abs Rel, RMSE log). Measured against L1 and silog in ``config.TEACH_EVIDENCE``.
     """
     gt_safe, valid = _prepare(pred, gt, mask)
-    return masked_mean((torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe)).abs(), valid)
+    return masked_mean((torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe)).abs(), valid, weight)
 
 
 SILOG_VARIANCE_FOCUS = 0.85  # lambda of the scale-invariant log loss (Eigen et al. 2014; BTS)
 
 
-def silog_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+def silog_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None,
+                     weight: torch.Tensor | None = None) -> torch.Tensor:
     """Scale-invariant log loss, per frame sqrt(mean(d^2) - lambda mean(d)^2), d = ln D_pred - ln D_gt.
 
     Not the paper's term. One image does not say how far away the scene is (the endoscope's
     auto-exposure removes the brightness cue for absolute scale), and the metrics median-scale
     every frame. With lambda = 0.85 the loss mostly ignores a frame's global scale error
     (the mean of d) and spends the network's effort on relative depth; the remaining 15%
-    keeps the scale anchored. Mean over the frames that have valid pixels.
+    keeps the scale anchored. Mean over the frames that have valid pixels. ``weight``: optional
+    per-pixel weights (e.g. :func:`border_weight_map`): the per-frame means become weighted means.
     """
     gt_safe, valid = _prepare(pred, gt, mask)
     d = torch.where(valid, torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe), torch.zeros_like(pred))
-    n = valid.flatten(1).sum(1).to(d.dtype)  # valid pixels per frame
-    has = n > 0
-    n = n.clamp(min=1)
-    mean = d.flatten(1).sum(1) / n
-    msq = (d * d).flatten(1).sum(1) / n
+    w = valid.to(d.dtype) if weight is None else weight.to(d.dtype) * valid.to(d.dtype)
+    w = w.expand_as(d)
+    has = valid.flatten(1).any(1)
+    n = w.flatten(1).sum(1).clamp(min=1e-12)  # (weighted) valid pixels per frame
+    mean = (w * d).flatten(1).sum(1) / n
+    msq = (w * d * d).flatten(1).sum(1) / n
     per_frame = torch.sqrt((msq - SILOG_VARIANCE_FOCUS * mean * mean).clamp(min=1e-12))
     return torch.where(has, per_frame, torch.zeros_like(per_frame)).sum() / has.sum().clamp(min=1).to(d.dtype)
 
@@ -204,6 +238,12 @@ class LossInputs:
     mask: torch.Tensor | None = None      # (B, 1, H, W) bool or None
     sdf_grid: tuple = DEFAULT_SDF_GRID    # r_x, r_y, r_z of the SDF sample grid
     depth_term: str = "l1"                # the depth term's variant (DEPTH_TERMS)
+    border_weight: float = 0.0            # beta of border_weight_map in the depth term; 0 = all pixels alike
+
+
+def _depth_term(p: torch.Tensor, x: LossInputs) -> torch.Tensor:
+    weight = border_weight_map(*p.shape[-2:], x.border_weight, p) if x.border_weight else None
+    return DEPTH_TERMS[x.depth_term](p, x.gt, x.mask, weight=weight)
 
 
 @dataclass(frozen=True)
@@ -220,7 +260,7 @@ class LossTerm:
 # A new term is one entry here (plus its function); the training log, the widgets and the
 # notebooks read this table. A term in a new group needs that group's weight in ``lambdas``.
 LOSS_TERMS: dict[str, LossTerm] = {
-    "depth": LossTerm(lambda p, x: DEPTH_TERMS[x.depth_term](p, x.gt, x.mask), "lambda1", "Eq. 1"),
+    "depth": LossTerm(_depth_term, "lambda1", "Eq. 1"),
     "smooth": LossTerm(lambda p, x: smoothness_loss(p, x.image), "lambda1", "Eq. 2"),
     "grad": LossTerm(lambda p, x: gradient_loss(p, x.gt, x.mask), "lambda2", "Eq. 3"),
     "normal": LossTerm(lambda p, x: normal_loss(p, x.gt, x.mask), "lambda2", "Eq. 4"),
@@ -259,7 +299,7 @@ def group_weights(lambdas) -> dict[str, float]:
 
 
 def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID,
-               depth_term: str = "l1"):
+               depth_term: str = "l1", border_weight: float = 0.0):
     """L_total: each group's weight times the sum of its terms (``LOSS_TERMS``; Sec. 3.C, Eq. 11).
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats with
@@ -267,11 +307,12 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     group's terms, which are then reported as 0.0. The ablation cases of Sec. 4.3 are weight
     settings (``config.ABLATION_CASES``). ``lambdas``: see :func:`group_weights`. ``depth_term``:
     "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
+    ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).
     """
     if depth_term not in DEPTH_TERMS:
         raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
     weights = group_weights(lambdas)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight)
     zero = pred.sum() * 0.0
     t = {name: (term.fn(pred, inputs) if weights[term.group] else zero) for name, term in LOSS_TERMS.items()}
     loss = None
@@ -285,7 +326,7 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
 
 
 def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID, depth_term: str = "l1",
-                        terms=None) -> dict[str, float]:
+                        terms=None, border_weight: float = 0.0) -> dict[str, float]:
     """||dL_term / dD_pred||_2 of each unweighted term at the network's output (a loss-balancing diagnostic).
 
     The network sees the losses only through this gradient on its output depth map, so the
@@ -295,7 +336,7 @@ def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID
     (default: every term of ``LOSS_TERMS``).
     """
     p = pred.detach().float().clone().requires_grad_(True)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight)
     out = {}
     for name in terms or term_names():
         (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)

@@ -62,14 +62,16 @@ def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict):
     """(weighted total, {term: value}) of ``losses.total_loss`` for a batch, in float32."""
     g = cfg["sdf_grid"]
     return losses.total_loss(pred.float(), batch["depth"], batch["image"], batch["K"], lambdas=cfg["lambdas"],
-                             mask=batch.get("valid"), sdf_grid=(g, g, g), depth_term=cfg["depth_term"])
+                             mask=batch.get("valid"), sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
+                             border_weight=cfg["border_weight"])
 
 
 def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict) -> dict[str, float]:
     """Each loss term's gradient norm at the network output (logged once per epoch, first batch)."""
     g = cfg["sdf_grid"]
     return losses.term_gradient_norms(pred, batch["depth"], batch["image"], batch["K"], mask=batch.get("valid"),
-                                      sdf_grid=(g, g, g), depth_term=cfg["depth_term"])
+                                      sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
+                                      border_weight=cfg["border_weight"])
 
 
 @torch.no_grad()

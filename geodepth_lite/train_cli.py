@@ -28,6 +28,8 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr-schedule", default=None, choices=config.LR_SCHEDULES,
                         help="override the profile's schedule")
     parser.add_argument("--image-size", type=int, default=None, help="override the network input size (multiple of 32)")
+    parser.add_argument("--border-weight", type=float, default=None,
+                        help="beta: the depth term weighs the image edge 1 + beta times the middle")
     parser.add_argument("--dataset", default=None, help="manifest name or dataset directory (default: the profile's)")
     parser.add_argument("--encoder-weights", default=None,
                         help="torchvision-style resnet18 ImageNet state dict (.pth) for the encoder")
@@ -43,7 +45,8 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
 def run_train(args: argparse.Namespace) -> int:
     cfg = config.make_config(args.profile, args.case, args.seed, epochs=args.epochs, batch_size=args.batch_size,
                              lr=args.lr, lr_schedule=args.lr_schedule, image_size=args.image_size,
-                             dataset=args.dataset, encoder_weights=args.encoder_weights)
+                             border_weight=args.border_weight, dataset=args.dataset,
+                             encoder_weights=args.encoder_weights)
     run_dir = (Path(args.run_dir) if args.run_dir
                else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}")
     if not args.no_verify and distributed.is_main_process():

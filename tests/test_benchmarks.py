@@ -89,3 +89,66 @@ def test_partial_padding_gives_a_constant_image_the_same_response_at_the_border(
     assert sum(p.numel() for p in net.parameters()) == sum(p.numel() for p in base.parameters())
     padded = [m for m in base.modules() if isinstance(m, torch.nn.Conv2d) and any(p > 0 for p in m.padding)]
     assert sum(type(m).__name__ == "PartialConv2d" for m in net.modules()) == len(padded) > 20
+
+
+def test_coordinate_channels_and_a_coordconv_net_that_starts_as_depthnet():
+    """Known answer: pixel centres of a 2 x 4 image at x = -0.75, -0.25, 0.25, 0.75 and y = -0.5, 0.5.
+    The experiment's network has DepthNet's parameters plus two zero-initialised input channels, so
+    with DepthNet's weights copied in it predicts exactly what DepthNet predicts."""
+    import torch
+
+    from geodepth_lite import model
+
+    g = load("exp_coord_channels.py")
+    xy = g["coordinate_channels"](3, 2, 4, torch.zeros(1, dtype=torch.float64))
+    assert xy.shape == (3, 2, 2, 4)
+    assert torch.equal(xy[0, 0, 1], torch.tensor([-0.75, -0.25, 0.25, 0.75], dtype=torch.float64))
+    assert torch.equal(xy[2, 1, :, 0], torch.tensor([-0.5, 0.5], dtype=torch.float64))
+    torch.manual_seed(0)
+    base = model.DepthNet().double().eval()
+    torch.manual_seed(1)
+    coord = g["CoordDepthNet"]().double().eval()
+    state = base.state_dict()
+    w = torch.zeros(64, 5, 7, 7, dtype=torch.float64)
+    w[:, :3] = state["encoder.conv1.weight"]
+    coord.load_state_dict(dict(state, **{"encoder.conv1.weight": w}))
+    x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
+    with torch.no_grad():
+        assert torch.allclose(coord(x), base(x), rtol=1e-12, atol=0)
+        coord.encoder.conv1.weight[:, 3:] = 0.1  # once the coordinates count, the output changes
+        assert not torch.allclose(coord(x), base(x), rtol=1e-6, atol=0)
+
+
+def test_border_context_windows_put_the_crops_edge_where_asked():
+    """A 96 px crop of a 128 px frame, 32 px in from each side: its band (outer 10%, 10 px) covers
+    frame columns 32-41 for the left side; median scaling makes a prediction of 2 x gt error-free."""
+    import numpy as np
+
+    g = load("exp_border_context.py")
+    win = g["crop_windows"](128, 128, 96, 32)
+    assert win["left"] == (slice(16, 112), slice(32, 128))
+    assert win["right"] == (slice(16, 112), slice(0, 96))
+    assert win["top"] == (slice(32, 128), slice(16, 112)) and win["bottom"] == (slice(0, 96), slice(16, 112))
+    cols = np.arange(128)[win["left"][1]][g["regions"](96, "left")["band"][1]]
+    assert cols[0] == 32 and cols[-1] == 41
+    gt = np.random.default_rng(0).uniform(1, 5, (8, 8))
+    assert np.allclose(g["abs_log_error"](2 * gt, gt, np.ones((8, 8), bool)), 0)
+
+
+def test_every_evidence_row_is_a_logged_run():
+    """The tables that justify the teach recipe (config.TEACH_EVIDENCE, LAMBDA_SEARCH, VIEW_EVIDENCE;
+    notebook 04 and the README show them) quote benchmarks/tuning_log.jsonl: each row's validation
+    Abs Rel and RMSE are those of a logged run of its name, and its close-up score that of the run or
+    of its "<run>_closeups" scoring row."""
+    from geodepth_lite import config
+
+    log = [json.loads(line) for line in (BENCHMARKS / "tuning_log.jsonl").read_text().splitlines()]
+    rows = [*config.TEACH_EVIDENCE, *config.LAMBDA_SEARCH, *config.VIEW_EVIDENCE]
+    assert len(rows) > 20
+    for row in rows:
+        runs = [r for r in log if r["name"] == row["run"]]
+        assert any(abs(r.get("val_abs_rel", -1) - row["abs_rel"]) <= 5e-4
+                   and abs(r.get("val_rmse", -1) - row["rmse"]) <= 5e-4 for r in runs), row
+        if row.get("closeup_abs_rel") not in (None, ""):
+            scored = [r.get("closeup_abs_rel", -1) for r in log if r["name"] in (row["run"], row["run"] + "_closeups")]
+            assert any(abs(c - row["closeup_abs_rel"]) <= 5e-4 for c in scored), row

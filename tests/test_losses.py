@@ -387,3 +387,61 @@ def test_term_gradient_norms_known_values():
     assert norms["grad"] == pytest.approx(0.0, abs=1e-7)  # an offset has the ground truth's gradients
     assert norms["normal"] == pytest.approx(0.0, abs=1e-7)
     assert norms["sdf"] > 0
+
+
+# ----------------------------------------------------------------------------- the depth term's border weight
+def test_border_weight_map_known_values():
+    """10 x 10, beta 2: pixel centres at |x| = 0.1, 0.3, ..., 0.9; the ramp runs from 0.7 to 1."""
+    w = L.border_weight_map(10, 10, 2.0)[0, 0].double()
+    assert w.shape == (10, 10)
+    assert torch.allclose(w[1:-1, 1:-1], torch.ones(8, 8, dtype=torch.float64))  # distance <= 0.7: weight 1
+    assert torch.allclose(w[0], torch.full((10,), 1 + 2 * (0.9 - 0.7) / 0.3, dtype=torch.float64))
+    assert torch.allclose(w[:, -1], w[0])
+    assert torch.all(L.border_weight_map(7, 5, 0.0) == 1)
+    with pytest.raises(ValueError, match="border weight"):
+        L.border_weight_map(4, 4, -1.0)
+
+
+@pytest.mark.parametrize("term", sorted(L.DEPTH_TERMS))
+def test_weighted_depth_terms_against_a_hand_computation(term):
+    """Weights of ones change nothing; other weights give the weighted means computed in numpy."""
+    pred, gt = smooth_depth(2, 12, 12, seed=1), smooth_depth(2, 12, 12, seed=2)
+    mask = torch.ones_like(gt, dtype=torch.bool)
+    mask[0, 0, :3] = False
+    fn = L.DEPTH_TERMS[term]
+    assert float(fn(pred, gt, mask, weight=torch.ones(1, 1, 12, 12, dtype=torch.float64))) == pytest.approx(
+        float(fn(pred, gt, mask)), rel=1e-12)
+    w = L.border_weight_map(12, 12, 3.0, pred).expand_as(pred).numpy()
+    p, g, m = pred.numpy(), gt.numpy(), mask.numpy()
+    if term == "silog":
+        frames = []
+        for b in range(2):
+            d, wb = (np.log(p[b]) - np.log(g[b]))[m[b]], w[b][m[b]]
+            mean, msq = (wb * d).sum() / wb.sum(), (wb * d * d).sum() / wb.sum()
+            frames.append(math.sqrt(msq - L.SILOG_VARIANCE_FOCUS * mean * mean))
+        expected = np.mean(frames)
+    else:
+        e = np.abs(p - g) if term == "l1" else np.abs(np.log(p) - np.log(g))
+        expected = (w * e)[m].sum() / w[m].sum()
+    got = float(fn(pred, gt, mask, weight=L.border_weight_map(12, 12, 3.0, pred)))
+    assert got == pytest.approx(expected, rel=1e-10)
+
+
+def test_border_weight_pulls_harder_on_border_errors():
+    """An error only in the outermost ring weighs (1 + beta * ramp) times more in the log L1 term; an
+    error only in the middle weighs less (the mean is over more total weight)."""
+    gt = plane(2.0, 1, 20, 20)
+    ring = torch.zeros_like(gt, dtype=torch.bool)
+    ring[..., 0, :] = ring[..., -1, :] = ring[..., :, 0] = ring[..., :, -1] = True
+    for where, more in ((ring, True), (~ring, False)):
+        pred = torch.where(where, gt * math.e ** 0.1, gt)
+        plain = float(L.log_depth_loss(pred, gt))
+        _, terms = L.total_loss(pred, gt, torch.rand(1, 3, 20, 20, dtype=torch.float64), camera.intrinsics(20),
+                                lambdas=(1.0, 0.0, 0.0), depth_term="log_l1", border_weight=4.0)
+        assert (terms["depth"] > plain) == more
+    w = L.border_weight_map(20, 20, 4.0)[0, 0].double()
+    expected = 0.1 * float(w[ring[0, 0]].sum() / w.sum())  # hand value for the ring case
+    pred = torch.where(ring, gt * math.e ** 0.1, gt)
+    _, terms = L.total_loss(pred, gt, torch.rand(1, 3, 20, 20, dtype=torch.float64), camera.intrinsics(20),
+                            lambdas=(1.0, 0.0, 0.0), depth_term="log_l1", border_weight=4.0)
+    assert terms["depth"] == pytest.approx(expected, rel=1e-6)

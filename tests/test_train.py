@@ -137,6 +137,43 @@ def test_bad_settings_are_named():
     for key in ("optimizer", "depth_term", "augment"):
         with pytest.raises(ValueError, match=key):
             config.make_config("smoke", **{key: "nonsense"})
+    for bad in (-1.0, "2", True, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="border_weight"):
+            config.make_config("smoke", border_weight=bad)
+
+
+def test_a_later_key_at_its_default_keeps_old_checkpoint_names():
+    """border_weight was added after checkpoints existed: at 0 it is not part of the identity, so a
+    configuration saved without the key has the same hash; any other value is a different run."""
+    cfg = config.make_config("teach", 4, 0)
+    old = {k: v for k, v in cfg.items() if k != "border_weight"}  # a checkpoint's cfg from before the key
+    assert cfg["border_weight"] == 0.0
+    assert config.config_hash(old) == config.config_hash(cfg)
+    assert config.config_identity(old) == config.config_identity(cfg)
+    weighted = config.make_config("teach", 4, 0, border_weight=2)
+    assert weighted["border_weight"] == 2.0 and config.config_hash(weighted) != config.config_hash(cfg)
+    assert config.config_identity(weighted)["border_weight"] == 2.0
+
+
+
+def test_the_configured_border_weight_reaches_the_depth_term():
+    """train.compute_losses passes cfg["border_weight"] on: an error only in the outermost ring of a
+    16 x 16 frame weighs more with border_weight 2 than with 0, by the map's hand-computable factor."""
+    from geodepth_lite import camera, losses
+
+    gt = torch.full((1, 1, 16, 16), 2.0)
+    ring = torch.zeros_like(gt, dtype=torch.bool)
+    ring[..., 0, :] = ring[..., -1, :] = ring[..., :, 0] = ring[..., :, -1] = True
+    batch = {"depth": gt, "image": torch.rand(1, 3, 16, 16), "K": torch.as_tensor(camera.intrinsics(16)).float()}
+    pred = torch.where(ring, gt * 1.1, gt)
+    terms = {}
+    for bw in (0.0, 2.0):
+        cfg = config.make_config("smoke", 1, 0, depth_term="log_l1", border_weight=bw)
+        terms[bw] = train.compute_losses(pred, batch, cfg)[1]["depth"]
+    w = losses.border_weight_map(16, 16, 2.0)[0, 0]
+    share = float(w[ring[0, 0]].sum() / w.sum())  # the ring's share of the total weight
+    assert terms[0.0] == pytest.approx(np.log(1.1) * 60 / 256, rel=1e-5)
+    assert terms[2.0] == pytest.approx(np.log(1.1) * share, rel=1e-5) and terms[2.0] > terms[0.0]
 
 
 def test_paper_profile_has_the_papers_settings():
