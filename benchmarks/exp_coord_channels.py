@@ -36,29 +36,24 @@ def coordinate_channels(batch: int, height: int, width: int, like: torch.Tensor)
     return torch.stack((grid_x, grid_y)).unsqueeze(0).expand(batch, -1, -1, -1)
 
 
+class CoordConv2d(nn.Conv2d):
+    """A convolution over its input plus two channels holding each pixel's x and y (CoordConv)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(torch.cat((x, coordinate_channels(x.shape[0], *x.shape[-2:], x)), dim=1))
+
+
 class CoordDepthNet(BaseDepthNet):
     """DepthNet whose first convolution also sees the pixel coordinates (5 input channels)."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         old = self.encoder.conv1
-        conv = nn.Conv2d(5, 64, 7, 2, 3, bias=False, padding_mode=old.padding_mode)
+        conv = CoordConv2d(5, 64, 7, 2, 3, bias=False, padding_mode=old.padding_mode)
         with torch.no_grad():
             conv.weight.zero_()
             conv.weight[:, :3] = old.weight
         self.encoder.conv1 = conv
-
-    def encode(self, image: torch.Tensor) -> list[torch.Tensor]:
-        self.check_input(image)
-        e = self.encoder
-        x = (image - self.mean) / self.std
-        x = torch.cat((x, coordinate_channels(x.shape[0], *x.shape[-2:], x)), dim=1)
-        f0 = self.sab(e.relu(e.bn1(e.conv1(x))))
-        f1 = e.layer1(e.maxpool(f0))
-        f2 = e.layer2(f1)
-        f3 = e.layer3(f2)
-        f4 = e.layer4(f3)
-        return [f0, f1, f2, f3, f4]
 
 
 def main(argv=None) -> int:
