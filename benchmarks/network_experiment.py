@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -85,5 +86,8 @@ def run(network_class, description: str, argv=None, doc: str = "") -> int:
     row = {"name": args.name, "case": args.case, "seed": args.seed, "settings": settings, "network": description}
     row |= score_validation(net, cfg)
     row |= {"minutes": round(minutes, 2), "generator": synth.GENERATOR_VERSION}
+    env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
+    if env:  # a kernel cap changes the trained weights: say so
+        row["env"] = env
     append_row(row, args.log)
     return 0

@@ -106,7 +106,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
     from geodepth_lite.model import DepthNet
 
     ckpt = read_checkpoint(path)
-    model = DepthNet(padding=ckpt["cfg"].get("padding", "zeros"))
+    model = DepthNet(padding=ckpt["cfg"].get("padding", "zeros"), input_pad=int(ckpt["cfg"].get("input_pad", 0)))
     model.load_state_dict(ckpt["model"])
     return model.to(device).eval(), dict(ckpt["cfg"])
 
@@ -148,9 +148,15 @@ def ensure_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: b
 
 def predict_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: bool = False) -> Path:
     """The checkpoint of the model that notebooks 04, 06, 07 and ``predict`` use: ``case``/``seed``
-    trained at the profile's ``predict_image_size`` (the ablation's runs use ``image_size``)."""
-    size = config.get_profile(profile)["predict_image_size"]
-    return ensure_checkpoint(profile, case, seed, progress=progress, image_size=size)
+    trained at the profile's ``predict_image_size`` with its ``predict_overrides`` (the ablation's
+    runs use ``image_size`` and the profile's own settings)."""
+    return ensure_checkpoint(profile, case, seed, progress=progress, **predict_settings(profile))
+
+
+def predict_settings(profile: str) -> dict:
+    """The training settings that turn an ablation run of ``profile`` into its ``predict`` model."""
+    prof = config.get_profile(profile)
+    return {**prof.get("predict_overrides", {}), "image_size": prof["predict_image_size"]}
 
 
 def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: int | None = None,

@@ -21,6 +21,7 @@ PROFILES: dict[str, dict] = {
         "dataset": "scenario_smoke",   # manifest in data_manifests/
         "image_size": 64,              # network input (multiple of 32)
         "predict_image_size": 64,      # input of the model notebooks 04, 06, 07 and `predict` use
+        "predict_overrides": {},       # that model's training settings beyond the ablation's (make_config keys)
         "epochs": 1,                   # passes over the training split
         "batch_size": 4,               # frames per step
         "lr": 1e-4,                    # Adam learning rate
@@ -49,6 +50,9 @@ PROFILES: dict[str, dict] = {
         # the model notebooks 04, 06 and 07 show and `predict` uses: 96 px scores the held-out close-ups
         # 30% below the shading prior where 64 px gets 16% (VIEW_EVIDENCE), at 1.9x the training time
         "predict_image_size": 96,
+        # ... run on the image mirrored by 16 px on every side, so that no real pixel sits at the edge of
+        # what the network sees, with the border weighed 1 + 2 in the depth term (VIEW_EVIDENCE)
+        "predict_overrides": {"input_pad": 16, "border_weight": 2.0},
         "epochs": 8,
         "batch_size": 20,
         "lr": 1e-3,                    # larger than the paper's: few steps on a CPU
@@ -73,6 +77,7 @@ PROFILES: dict[str, dict] = {
         "dataset": "scenario_paper",
         "image_size": 320,
         "predict_image_size": 320,
+        "predict_overrides": {},       # the paper's recipe
         "epochs": 18,
         "batch_size": 20,
         "lr": 1e-4,
@@ -127,10 +132,11 @@ IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
     "threads", "lr_schedule", "optimizer", "depth_term", "augment", "padding", "border_weight",
+    "input_pad",
 )
 # Keys added after checkpoints existed: part of a configuration's identity only when they differ from
 # this default, so checkpoints trained before the key was added keep their names and stay valid.
-LATER_KEY_DEFAULTS = {"border_weight": 0.0}
+LATER_KEY_DEFAULTS = {"border_weight": 0.0, "input_pad": 0}
 LR_SCHEDULES = ("constant", "cosine")
 OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
 
@@ -163,6 +169,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "augment": p.get("augment", "none"),
         "padding": p.get("padding", "zeros"),   # the network's convolution padding (model.PADDINGS)
         "border_weight": p.get("border_weight", 0.0),  # beta of the depth term's border weight (losses)
+        "input_pad": p.get("input_pad", 0),     # mirrored pixels around the network's input (model.DepthNet)
         "seed": int(seed),
         "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
@@ -190,6 +197,7 @@ def validate_config(cfg: dict) -> dict:
     cfg.setdefault("augment", "none")
     cfg.setdefault("padding", "zeros")
     cfg.setdefault("border_weight", 0.0)
+    cfg.setdefault("input_pad", 0)
     from geodepth_lite.augment import AUGMENTS
     from geodepth_lite.losses import DEPTH_TERMS, group_weights
     from geodepth_lite.model import PADDINGS
@@ -223,6 +231,10 @@ def validate_config(cfg: dict) -> dict:
     if isinstance(bw, bool) or not isinstance(bw, (int, float, np.floating, np.integer)) or not 0 <= bw < float("inf"):
         raise ValueError(f"border_weight must be a non-negative number, got {bw!r}")
     cfg["border_weight"] = float(bw)
+    pad = cfg["input_pad"]
+    if isinstance(pad, bool) or not isinstance(pad, (int, np.integer)) or pad < 0 or pad % 16:
+        raise ValueError(f"input_pad must be a non-negative multiple of 16 (pixels), got {pad!r}")
+    cfg["input_pad"] = int(pad)
     for key in ("lr", "weight_decay"):
         v = cfg[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0 or (key == "lr" and v == 0):

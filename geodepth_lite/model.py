@@ -171,10 +171,19 @@ class DepthNet(nn.Module):
 
     H and W must be multiples of 32. ``encoder_weights``: optional path to a torchvision
     ``resnet18`` state dict (ImageNet weights); see :func:`load_encoder_weights`.
+
+    ``input_pad``: pixels of mirrored image added on every side before the network runs; the
+    depth of the padded frame is cropped back to the image. No real pixel then sits at the edge
+    of what the network sees (a multiple of 16, so the padded size stays a multiple of 32; 0 = off).
+    The same parameters, ((H + 2 pad) / H)^2 times the compute.
     """
 
-    def __init__(self, encoder_weights: str | os.PathLike | None = None, padding: str = "zeros"):
+    def __init__(self, encoder_weights: str | os.PathLike | None = None, padding: str = "zeros",
+                 input_pad: int = 0):
         super().__init__()
+        if isinstance(input_pad, bool) or not isinstance(input_pad, int) or input_pad < 0 or input_pad % (STRIDE // 2):
+            raise ValueError(f"input_pad must be a non-negative multiple of {STRIDE // 2}, got {input_pad!r}")
+        self.input_pad = input_pad
         self.encoder = ResNet18Encoder()
         self.sab = SpatialAttention()
         self.decoder = DepthDecoder()
@@ -225,7 +234,15 @@ class DepthNet(nn.Module):
         return [f0, f1, f2, f3, f4]
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return sigmoid_to_depth(self.decoder(self.encode(image)))
+        pad = self.input_pad
+        if not pad:
+            return sigmoid_to_depth(self.decoder(self.encode(image)))
+        self.check_input(image)
+        H, W = image.shape[-2:]
+        if pad >= min(H, W):
+            raise ValueError(f"input_pad {pad} needs an image larger than {pad} px on each side, got {H} x {W}")
+        padded = F.pad(image, (pad, pad, pad, pad), mode="reflect")  # mirrored, without repeating the edge
+        return sigmoid_to_depth(self.decoder(self.encode(padded)))[..., pad:pad + H, pad:pad + W]
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -161,7 +161,8 @@ class Trainer:
         from geodepth_lite.model import DepthNet
 
         utils.seed_everything(cfg["seed"])
-        self.model = DepthNet(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"]).to(self.device)
+        self.model = DepthNet(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"],
+                              input_pad=cfg["input_pad"]).to(self.device)
         opt_cls = torch.optim.AdamW if cfg["optimizer"] == "adamw" else torch.optim.Adam
         self.opt = opt_cls(self.model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]),
                            weight_decay=cfg["weight_decay"])

@@ -152,3 +152,29 @@ def test_replicate_padding_extends_the_edge_not_a_dark_frame():
         assert float(rep.std()) < float(zer.std())
     with pytest.raises(ValueError, match="padding"):
         M.DepthNet(padding="mirror")
+
+
+def test_input_pad_runs_on_the_mirrored_frame_and_crops_back():
+    """input_pad=16: the depth equals the unpadded network's depth of the image mirrored by 16 px
+    on every side (built here by index, the edge row not repeated), cropped to the image."""
+    torch.manual_seed(0)
+    padded = M.DepthNet(input_pad=16).eval()
+    plain = M.DepthNet().eval()
+    plain.load_state_dict(padded.state_dict())  # the pad is not a weight
+    img = torch.rand(2, 3, 32, 64)
+
+    def mirrored(n):  # source index of each padded position: 16..1, 0..n-1, n-2..n-17
+        return torch.cat((torch.arange(16, 0, -1), torch.arange(n), torch.arange(n - 2, n - 18, -1)))
+
+    frame = img.index_select(-2, mirrored(32)).index_select(-1, mirrored(64))
+    assert frame.shape[-2:] == (64, 96)
+    with torch.no_grad():
+        d = padded(img)
+        torch.testing.assert_close(d, plain(frame)[..., 16:48, 16:80])
+        assert d.shape == (2, 1, 32, 64)
+        assert not torch.allclose(d, plain(img))  # the border now sees mirrored image, not zeros
+    for bad in (-16, 8, 1.5, True):
+        with pytest.raises(ValueError, match="input_pad"):
+            M.DepthNet(input_pad=bad)
+    with pytest.raises(ValueError, match="input_pad 32 needs an image larger"):
+        M.DepthNet(input_pad=32)(torch.rand(1, 3, 32, 64))

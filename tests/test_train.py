@@ -140,19 +140,24 @@ def test_bad_settings_are_named():
     for bad in (-1.0, "2", True, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="border_weight"):
             config.make_config("smoke", border_weight=bad)
+    for bad in (-16, 8, "16", True, 16.0):
+        with pytest.raises(ValueError, match="input_pad"):
+            config.make_config("smoke", input_pad=bad)
 
 
-def test_a_later_key_at_its_default_keeps_old_checkpoint_names():
-    """border_weight was added after checkpoints existed: at 0 it is not part of the identity, so a
-    configuration saved without the key has the same hash; any other value is a different run."""
+@pytest.mark.parametrize("key, other", [("border_weight", 2.0), ("input_pad", 16)])
+def test_a_later_key_at_its_default_keeps_old_checkpoint_names(key, other):
+    """border_weight and input_pad were added after checkpoints existed: at their defaults they are
+    not part of the identity, so a configuration saved without the key has the same hash; any other
+    value is a different run."""
     cfg = config.make_config("teach", 4, 0)
-    old = {k: v for k, v in cfg.items() if k != "border_weight"}  # a checkpoint's cfg from before the key
-    assert cfg["border_weight"] == 0.0
+    old = {k: v for k, v in cfg.items() if k != key}  # a checkpoint's cfg from before the key
+    assert cfg[key] == config.LATER_KEY_DEFAULTS[key]
     assert config.config_hash(old) == config.config_hash(cfg)
     assert config.config_identity(old) == config.config_identity(cfg)
-    weighted = config.make_config("teach", 4, 0, border_weight=2)
-    assert weighted["border_weight"] == 2.0 and config.config_hash(weighted) != config.config_hash(cfg)
-    assert config.config_identity(weighted)["border_weight"] == 2.0
+    changed = config.make_config("teach", 4, 0, **{key: other})
+    assert changed[key] == other and config.config_hash(changed) != config.config_hash(cfg)
+    assert config.config_identity(changed)[key] == other
 
 
 
@@ -294,17 +299,22 @@ def test_ddp_two_cpu_processes_with_gloo(smoke_root, tmp_path):
 
 
 def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, smoke_root):
-    """The model of notebooks 04/06/07 and predict: the profile's predict_image_size, its own run folder."""
+    """The model of notebooks 04/06/07 and predict: the profile's predict_image_size and
+    predict_overrides, its own run folder; the loaded network pads as it was trained."""
     from geodepth_lite import config
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], predict_image_size=32,
+                                                         predict_overrides={"input_pad": 16, "border_weight": 2.0},
                                                          dataset=str(smoke_root)))
     path = checkpoint.predict_checkpoint("smoke", case=1, seed=0)
-    _, cfg = checkpoint.load_model(path)
-    assert cfg["image_size"] == 32 and cfg["case"] == 1
-    assert path.parent == checkpoint.checkpoint_dir("smoke", 1, 0, image_size=32)
+    net, cfg = checkpoint.load_model(path)
+    assert cfg["image_size"] == 32 and cfg["case"] == 1 and cfg["border_weight"] == 2.0
+    assert cfg["input_pad"] == 16 and net.input_pad == 16
+    assert path.parent == checkpoint.checkpoint_dir("smoke", 1, 0, image_size=32, input_pad=16, border_weight=2.0)
     assert path.parent != checkpoint.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
     assert config.PROFILES["teach"]["predict_image_size"] % 32 == 0
+    for name in config.PROFILES:  # every profile's predict model is a valid configuration
+        config.make_config(name, 4, 0, **checkpoint.predict_settings(name))
 
 
 def test_a_sixth_loss_term_is_one_table_entry(monkeypatch, smoke_root, tmp_path):
