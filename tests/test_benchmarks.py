@@ -152,3 +152,23 @@ def test_every_evidence_row_is_a_logged_run():
         if row.get("closeup_abs_rel") not in (None, ""):
             scored = [r.get("closeup_abs_rel", -1) for r in log if r["name"] in (row["run"], row["run"] + "_closeups")]
             assert any(abs(c - row["closeup_abs_rel"]) <= 5e-4 for c in scored), row
+
+
+def test_padded_training_experiment_builds_the_packages_mirrored_network():
+    """The experiment's network is DepthNet with input_pad forced on, whatever the caller passes:
+    the same parameters and, with the same weights, the same depth as DepthNet(input_pad=16)."""
+    import torch
+
+    from geodepth_lite import model
+
+    g = load("exp_padded_training.py")
+    torch.manual_seed(0)
+    net = g["padded_network"](16)(padding="zeros").eval()
+    ref = model.DepthNet(input_pad=16).eval()
+    ref.load_state_dict(net.state_dict())
+    x = torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        assert net.input_pad == 16 and torch.equal(net(x), ref(x))
+        plain = model.DepthNet().eval()
+        plain.load_state_dict(net.state_dict())
+        assert not torch.allclose(net(x), plain(x))  # the mirrored border changes the depth

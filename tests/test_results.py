@@ -20,9 +20,19 @@ The verdicts and the standing against the baselines are strict nbval outputs in 
 
 Notebook 06's border ratios by view kind ("border/<set>/<view>/<band>") divide by the centre's
 error of a subset of 15-127 frames, which is small in wall-facing views (0.06-0.09), so they move
-more: retraining its 96 px model under the same AVX2 cap (run g3_c4_size96_avx2) moved them by up
-to 0.166 (close-up views of the test split, 2.250 -> 2.083; 7%), against at most 0.05 for the pooled
-ratios. Their tolerance, BY_VIEW_TOL, is 0.1 + 10% (0.325 at 2.25), about twice the largest shift.
+more: retraining its 96 px model (mirrored input, border weight 2) under the same AVX2 cap (run
+g3_c4_size96_pad16r_bw2_avx2 against g3_c4_size96_pad16r_bw2_s0) moved them by up to 0.231 (wall views
+of the test split, left band 1.414 -> 1.645; 16%). Their tolerance, BY_VIEW_TOL, is 0.15 + 20%
+(0.433 at 1.414), about twice the largest shift. The pooled ratios ("border/<set>/<band>") moved by up
+to 0.067 (close-ups, top band, 1.368 -> 1.301); their tolerance, BORDER_TOL, is 0.06 + 5% (0.128 there).
+
+Notebook 07's numbers rest on one frame or on a 12-frame sequence, so they move most. Under the AVX2
+cap its model's frame-0 Abs Rel moved from 0.118 to 0.097 and the wall error of the sequence at one
+scale from 0.119 to 0.097 (DEFAULT_ABS_TOL: 0.045 + 5%, about twice that). The coefficient of
+variation of the per-frame scale ratio moved from 0.259 to 0.183, because single frames' ratios moved
+by up to 0.56 (1.95 -> 1.39); its tolerance, SCALE_CV_TOL, is 0.05 + 40% (0.154 at 0.259), twice that
+shift. It still fails a model whose scale drifts as much again, and the constant-depth reference
+beside it (0.096) needs no training.
 """
 
 import json
@@ -37,8 +47,10 @@ NOTEBOOKS = sorted(p for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb")
                    if "# results record" in p.read_text())
 BASELINE_KEYS = ("constant", "mean_depth_map", "shading_prior")
 REL_TOL = 0.05
-DEFAULT_ABS_TOL = 0.02  # other numbers of the records (notebook 07: one frame's Abs Rel, scale ratios, wall errors)
-BY_VIEW_TOL = (0.1, 0.10)  # (absolute, relative) for notebook 06's border ratios by view kind
+DEFAULT_ABS_TOL = 0.045  # other numbers of the records (notebook 07: one frame's Abs Rel, wall errors)
+SCALE_CV_TOL = (0.05, 0.40)  # (absolute, relative) for notebook 07's spread of the per-frame scale ratio
+BY_VIEW_TOL = (0.15, 0.20)  # (absolute, relative) for notebook 06's border ratios by view kind
+BORDER_TOL = (0.06, 0.05)  # (absolute, relative) for its pooled border ratios
 ABS_TOL = {"abs_rel": 0.01, "sq_rel": 0.02, "rmse": 0.05, "rmse_log": 0.015, "a1": 0.02, "a2": 0.015, "a3": 0.01}
 
 
@@ -66,6 +78,10 @@ def reproduced_copy(path: Path, nb):
 def tolerance(key: str, committed: float) -> float:
     if key.startswith("border/") and key.count("/") == 3:  # border/<set>/<view kind>/<band>
         return BY_VIEW_TOL[0] + BY_VIEW_TOL[1] * abs(committed)
+    if key.startswith("border/") and key.count("/") == 2:  # border/<set>/<band>
+        return BORDER_TOL[0] + BORDER_TOL[1] * abs(committed)
+    if key.startswith("scale ratio cv"):
+        return SCALE_CV_TOL[0] + SCALE_CV_TOL[1] * abs(committed)
     parts = [p.strip() for p in key.split("|")]
     if any(p in BASELINE_KEYS for p in parts):
         return 1e-3
@@ -75,8 +91,10 @@ def tolerance(key: str, committed: float) -> float:
 def test_tolerance_by_kind_of_number():
     assert tolerance("T1-L1 | Case 4 | abs_rel", 0.1) == pytest.approx(0.01 + 0.005)
     assert tolerance("T1-L1 | shading_prior | abs_rel", 0.16) == 1e-3
-    assert tolerance("border/close-ups/left", 1.6) == pytest.approx(0.02 + 0.08)
-    assert tolerance("border/close-ups/papilla/left", 2.0) == pytest.approx(0.1 + 0.2)
+    assert tolerance("border/close-ups/left", 1.6) == pytest.approx(0.06 + 0.08)
+    assert tolerance("border/close-ups/papilla/left", 2.0) == pytest.approx(0.15 + 0.4)
+    assert tolerance("scale ratio cv, network", 0.25) == pytest.approx(0.05 + 0.1)
+    assert tolerance("frame 0 abs_rel", 0.1) == pytest.approx(0.045 + 0.005)
 
 
 def test_records_exist():
