@@ -436,5 +436,5 @@ VIEW_EVIDENCE_NOTE = (
     "neither), the worst border band 21-30% above the centre, and close-ups 0.125, 0.119 and 0.130 (0.125, "
     "0.233, 0.161 with neither; 0.132 for seed 0 retrained under the AVX2 cap), at 1.2x the training time. "
     "So the model of notebooks 04, 06, 07 and predict trains with both (the profile's predict_overrides); "
-    "the ablation's runs keep the paper's network and loss."
+    "the ablation's runs keep the paper's network and weigh every pixel alike."
 )

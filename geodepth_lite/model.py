@@ -175,7 +175,7 @@ class DepthNet(nn.Module):
     ``input_pad``: pixels of mirrored image added on every side before the network runs; the
     depth of the padded frame is cropped back to the image. No real pixel then sits at the edge
     of what the network sees (a multiple of 16, so the padded size stays a multiple of 32; 0 = off).
-    The same parameters, ((H + 2 pad) / H)^2 times the compute.
+    The same parameters, ((H + 2 pad) / H)^2 times the compute. ``encode`` sees the image as given.
     """
 
     def __init__(self, encoder_weights: str | os.PathLike | None = None, padding: str = "zeros",
