@@ -67,6 +67,11 @@ def train_tune_run(name: str, case: int, seed: int, settings: dict):
 
 
 def append_row(row: dict, log: str | Path = LOG) -> None:
+    """Append ``row`` to the log as one JSON line, with the CPU kernel cap it ran under, if any
+    (a cap changes the trained weights)."""
+    env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
+    if env:
+        row = {**row, "env": env}
     with open(log, "a") as f:
         f.write(json.dumps(row) + "\n")
     print(json.dumps(row))
@@ -86,8 +91,5 @@ def run(network_class, description: str, argv=None, doc: str = "") -> int:
     row = {"name": args.name, "case": args.case, "seed": args.seed, "settings": settings, "network": description}
     row |= score_validation(net, cfg)
     row |= {"minutes": round(minutes, 2), "generator": synth.GENERATOR_VERSION}
-    env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
-    if env:  # a kernel cap changes the trained weights: say so
-        row["env"] = env
     append_row(row, args.log)
     return 0

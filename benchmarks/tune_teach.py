@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -84,9 +83,6 @@ def main(argv=None) -> int:
         b = baselines.evaluate_baselines(ds, None, names=["shading_prior"])["shading_prior"]
         row["closeup_abs_rel"] = round(r["overall"]["abs_rel"], 4)
         row["closeup_shading_prior_abs_rel"] = round(b["overall"]["abs_rel"], 4)
-    env = {k: os.environ[k] for k in ("ONEDNN_MAX_CPU_ISA",) if k in os.environ}
-    if env:  # a kernel cap changes the trained weights: say so
-        row["env"] = env
     network_experiment.append_row(row, args.log)
     return 0
 

@@ -172,3 +172,15 @@ def test_padded_training_experiment_builds_the_packages_mirrored_network():
         plain = model.DepthNet().eval()
         plain.load_state_dict(net.state_dict())
         assert not torch.allclose(net(x), plain(x))  # the mirrored border changes the depth
+
+
+def test_a_logged_row_says_which_kernel_cap_it_ran_under(tmp_path, monkeypatch):
+    """append_row adds {"env": {"ONEDNN_MAX_CPU_ISA": ...}} when the cap is set, nothing otherwise."""
+    g = load("network_experiment.py")
+    log = tmp_path / "log.jsonl"
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    g["append_row"]({"name": "a"}, log)
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    g["append_row"]({"name": "b"}, log)
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    assert rows == [{"name": "a"}, {"name": "b", "env": {"ONEDNN_MAX_CPU_ISA": "AVX2"}}]
