@@ -167,25 +167,51 @@ def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: in
     weights whether it trains alone or beside others; ``workers`` defaults to
     cpu_count // threads. Returns {(case, seed): checkpoint path}.
     """
+    runs = [(int(c), int(s)) for c, s in runs]
+    paths = ensure_runs(profile, [(c, s, overrides) for c, s in runs], workers=workers)
+    return dict(zip(runs, paths))
+
+
+def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int | None = None,
+                progress: bool = False) -> list[Path]:
+    """``ensure_checkpoint`` for several runs, each (case, seed, overrides), side by side in processes.
+
+    Finished runs are reused and interrupted ones continued. The largest inputs start first (they
+    train longest), so a long run overlaps the short ones instead of running alone at the end; the
+    weights do not depend on the order, as each run has its own seed and thread count. ``workers``
+    defaults to cpu_count // threads. Returns the checkpoint paths in the order of ``runs``.
+    """
     from geodepth_lite.dataset import resolve_dataset
 
-    runs = [(int(c), int(s)) for c, s in runs]
-    todo = [r for r in runs if not is_complete(profile, *r, **overrides)]
+    runs = [(int(c), int(s), dict(o or {})) for c, s, o in runs]
+    todo, folders = [], set()
+    for c, s, o in runs:  # one job per run folder: two runs of one configuration are the same run
+        folder = checkpoint_dir(profile, c, s, **o)
+        if folder not in folders and not is_complete(profile, c, s, **o):
+            todo.append((c, s, o))
+        folders.add(folder)
     if todo:
-        resolve_dataset(config.make_config(profile, *todo[0], **overrides))  # build it once, before any worker
-        threads = config.make_config(profile, *todo[0], **overrides)["threads"]
+        cfgs = [config.make_config(profile, c, s, **o) for c, s, o in todo]
+        for cfg in cfgs:
+            resolve_dataset(cfg)  # build (or find) each dataset before any worker starts
+        threads = max(cfg["threads"] or 0 for cfg in cfgs)
         if workers is None:
             workers = max(1, (os.cpu_count() or 1) // threads) if threads else 1
         workers = max(1, min(workers, len(todo)))
+        order = sorted(range(len(todo)), key=lambda i: -cfgs[i]["image_size"])
         if workers == 1:
-            for case, seed in todo:
-                ensure_checkpoint(profile, case, seed, **overrides)
+            for i in order:
+                c, s, o = todo[i]
+                ensure_checkpoint(profile, c, s, progress=progress, **o)
         else:
             import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            from tqdm.auto import tqdm
 
             with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                futures = [pool.submit(ensure_checkpoint, profile, case, seed, **overrides) for case, seed in todo]
-                for f in futures:
+                futures = [pool.submit(ensure_checkpoint, profile, *todo[i][:2], **todo[i][2]) for i in order]
+                for f in tqdm(as_completed(futures), total=len(futures), disable=not progress,
+                              desc=f"training {len(futures)} runs, {workers} side by side"):
                     f.result()
-    return {(c, s): checkpoint_dir(profile, c, s, **overrides) / CHECKPOINT_NAME for c, s in runs}
+    return [checkpoint_dir(profile, c, s, **o) / CHECKPOINT_NAME for c, s, o in runs]

@@ -195,6 +195,28 @@ def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
 # --------------------------------------------------------------------------- running and the report
 
 
+def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tuple[int, int, dict]], int | None]:
+    """The models that the notebooks of ``plan`` ([(notebook, its parameters)]) train or load, as
+    (case, seed, overrides) runs for ``checkpoint.ensure_runs``, and the worker count notebook 05
+    asks for (None: one per core). Trained together before the notebooks run, the longest (the
+    ``predict`` model of notebooks 04, 06 and 07) overlaps the ablation's runs instead of running alone."""
+    from geodepth_lite import checkpoint
+
+    runs: list[tuple[int, int, dict]] = []
+    workers = None
+    for nb, given in plan:
+        stem, p = nb.stem, {**notebook_parameters(nb), **given}
+        if stem.startswith(("04_", "06_")):
+            runs.append((int(p["case"]), int(p["seed"]), checkpoint.predict_settings(profile)))
+        elif stem.startswith("07_"):
+            runs.append((4, 0, checkpoint.predict_settings(profile)))
+        elif stem.startswith("05_"):
+            runs += [(int(c), int(s), {}) for c in p["cases"] for s in p["seeds"]]
+            workers = int(p["workers"]) or None
+    unique = [r for i, r in enumerate(runs) if r not in runs[:i]]
+    return unique, workers
+
+
 def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, params: dict[str, Any] | None = None,
               run_dir: str | os.PathLike | None = None, force: bool = False, progress: bool = True,
               dry_run: bool = False) -> Path:
@@ -223,6 +245,15 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
     # warns about parameters it missed; they were checked above (ast), so keep it quiet
     logging.getLogger("papermill").setLevel(logging.ERROR)
     log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
+    runs, workers = training_runs(profile, [(nb, p) for nb, p, done in plan if not done])
+    if runs:
+        print(f"[reproduce] training the {len(runs)} models the notebooks use, side by side "
+              "(finished runs are reused) ...", flush=True)
+        t0 = time.perf_counter()
+        from geodepth_lite import checkpoint
+
+        checkpoint.ensure_runs(profile, runs, workers=workers, progress=progress)
+        print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
     for nb, p, done in plan:
         if done:
             print(f"[reproduce] {nb.name}: complete, skipped (--force reruns it)", flush=True)

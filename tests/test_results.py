@@ -101,17 +101,34 @@ def test_records_exist():
     assert {p.name[:2] for p in NOTEBOOKS} >= {"04", "05", "06"}
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_record_matches_committed(path, tmp_path, monkeypatch):
-    import papermill as pm
-
-    # the real workspace, so checkpoints are shared with reproduce and the nbval run
+def use_real_workspace(monkeypatch) -> None:
+    """The user's workspace, so checkpoints are shared with reproduce and the nbval run."""
     home = os.environ.get("GEODEPTH_LITE_TEST_REAL_HOME")
     if home:
         monkeypatch.setenv("GEODEPTH_LITE_HOME", home)
     else:
         monkeypatch.delenv("GEODEPTH_LITE_HOME", raising=False)
+
+
+@pytest.fixture(scope="module")
+def teach_models():
+    """Every model the recorded notebooks will train, trained first in one pool (as ``reproduce``
+    does), so that notebook 04's long ``predict`` model overlaps notebook 05's ablation runs."""
+    from geodepth_lite import checkpoint, reproduce
+
+    with pytest.MonkeyPatch.context() as mp:
+        use_real_workspace(mp)
+        todo = [(p, {}) for p in NOTEBOOKS if reproduced_copy(p, nbformat.read(str(p), as_version=4)) is None]
+        runs, workers = reproduce.training_runs("teach", todo)
+        checkpoint.ensure_runs("teach", runs, workers=workers)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_record_matches_committed(path, tmp_path, monkeypatch, teach_models):
+    import papermill as pm
+
+    use_real_workspace(monkeypatch)
     nb = nbformat.read(str(path), as_version=4)
     committed = record_of(nb)
     done = reproduced_copy(path, nb)

@@ -377,3 +377,29 @@ def test_crop_augmentation_keeps_every_ray():
         assert min(float((x_new - x_old).abs().max()), float((x_new + x_old).abs().max())) < 1e-5
         cropped += int(float(Kb[0, 0]) > 30.0 + 1e-6)  # zoomed in
     assert cropped >= 4  # most frames are really cropped (scale uniform in CROP_SCALE)
+
+
+
+def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smoke_root):
+    """One job per run folder (notebooks 04, 06 and 07 ask for the same model; an override equal
+    to the profile's value is the same run), finished runs skipped, the largest input first; the
+    paths come back in the order asked."""
+    import geodepth_lite.dataset
+    from geodepth_lite import config
+
+    monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
+    calls = []
+
+    def fake_ensure(profile, case, seed, progress=False, **overrides):
+        calls.append((case, seed, overrides.get("image_size")))
+
+    monkeypatch.setattr(checkpoint, "ensure_checkpoint", fake_ensure)
+    monkeypatch.setattr(geodepth_lite.dataset, "resolve_dataset", lambda cfg, progress=False: smoke_root)
+    monkeypatch.setattr(checkpoint, "is_complete", lambda profile, c, s, **o: (c, s) == (2, 0))
+    assert config.PROFILES["smoke"]["image_size"] == 64
+    runs = [(1, 0, {}), (4, 0, {"image_size": 96}), (1, 1, {}), (4, 0, {"image_size": 96}),
+            (1, 0, {"image_size": 64}), (2, 0, {})]
+    paths = checkpoint.ensure_runs("smoke", runs, workers=1)
+    assert calls == [(4, 0, 96), (1, 0, None), (1, 1, None)]
+    assert paths == [checkpoint.checkpoint_dir("smoke", c, s, **o) / "checkpoint.pt" for c, s, o in runs]
+    assert paths[1] == paths[3] and paths[0] == paths[4] and len(set(paths)) == 4
