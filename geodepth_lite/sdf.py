@@ -110,6 +110,8 @@ def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_e
     |q|^2 - 2 q.x + |x|^2, which can pick a near-tie wrongly (used only as a speed baseline).
     points: N x 3, queries: M x 3 -> M indices (int64).
     """
+    dtype = torch.promote_types(points.dtype, queries.dtype)  # cdist needs one dtype
+    points, queries = points.to(dtype), queries.to(dtype)
     n = points.shape[0]
     step = max(1, chunk_elements // max(n, 1))
     mode = "donot_use_mm_for_euclid_dist" if exact else "use_mm_for_euclid_dist"

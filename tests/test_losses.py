@@ -244,6 +244,9 @@ def test_nearest_neighbour_search_equals_brute_force(seed):
     ch32 = sdf.nearest_indices(pts.float(), q.float(), "chunked")
     d = (pts[ch32] - q).norm(dim=1) - (pts[brute] - q).norm(dim=1)
     assert d.abs().max() < 1e-5
+    # float32 points with float64 queries (or the reverse) search in the wider type: the exact answer
+    assert torch.equal(sdf.nearest_indices(pts.float(), q, "chunked"), sdf.nearest_indices(pts.float(), q, "kdtree"))
+    assert torch.equal(sdf.nearest_indices(pts, q.float(), "chunked"), sdf.nearest_indices(pts, q.float(), "kdtree"))
 
 
 def test_sdf_gradients_reach_pred_through_nearest_points():
