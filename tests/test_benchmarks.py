@@ -184,3 +184,34 @@ def test_a_logged_row_says_which_kernel_cap_it_ran_under(tmp_path, monkeypatch):
     g["append_row"]({"name": "b"}, log)
     rows = [json.loads(line) for line in log.read_text().splitlines()]
     assert rows == [{"name": "a"}, {"name": "b", "env": {"ONEDNN_MAX_CPU_ISA": "AVX2"}}]
+
+
+def test_score_run_records_closeups_and_test_border(tmp_path, monkeypatch, smoke_root):
+    """score_run.py scores a tune run on heldout_closeup and the test split and logs one row; a run
+    of exp_padded_training.py is scored with its mirror padding; a missing run is named."""
+    import pytest
+    from conftest import save_untrained_checkpoint
+
+    from geodepth_lite import config, utils
+
+    monkeypatch.setitem(config.PROFILES, "teach", dict(config.PROFILES["teach"],
+                                                         closeup_overrides=config.PROFILES["smoke"]["closeup_overrides"]))
+    g = load("score_run.py")
+    run = utils.runs_dir() / "tune" / "tiny"
+    run.mkdir(parents=True)
+    save_untrained_checkpoint(run / "checkpoint.pt", {"image_size": 32, "case": 4, "seed": 0,
+                                                      "dataset": str(smoke_root)})
+    log = tmp_path / "log.jsonl"
+    assert g["main"](["tiny", "--log", str(log)]) == 0
+    assert g["main"](["tiny", "--input-pad", "16", "--log", str(log)]) == 0
+    plain, padded = (json.loads(line) for line in log.read_text().splitlines())
+    assert plain["name"] == "tiny_closeups" and "input_pad" not in plain["settings"]
+    assert padded["settings"]["input_pad"] == 16
+    for row in (plain, padded):
+        assert set(row["test_border"]) == {"top", "bottom", "left", "right"}
+        assert row["test_border_worst"] == max(row["test_border"].values())
+        assert 0 < row["closeup_abs_rel"] and 0 < row["closeup_shading_prior_abs_rel"] < 1
+    assert plain["closeup_shading_prior_abs_rel"] == padded["closeup_shading_prior_abs_rel"]
+    assert plain["closeup_border_worst"] != padded["closeup_border_worst"]  # the padded network sees more
+    with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
+        g["main"](["missing", "--log", str(log)])
