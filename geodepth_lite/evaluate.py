@@ -240,14 +240,19 @@ BORDER_BANDS = ("top", "bottom", "left", "right")
 
 def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band: float = 0.1,
                      min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
-                     groups: list[str] | None = None, progress: bool = False) -> dict:
+                     groups: list[str] | None = None, n_boot: int = 2000, progress: bool = False) -> dict:
     """Is a predictor biased near the image border? Per-pixel log errors averaged over ``dataset``.
 
     Each frame's prediction is median-scaled to its ground truth (as the metrics see it); then
     e = log(pred) - log(gt) on valid pixels. Returns {"signed": H x W mean e, "abs": H x W mean
     |e|, "count": H x W valid frames per pixel, "bands": mean |e| over the outer ``band``
     fraction of rows/columns on each side and over the centre (the middle half in both axes),
-    "ratios": each border band's mean |e| over the centre's}. Frames must share one size.
+    "ratios": each border band's mean |e| over the centre's, "intervals": for each band, the 95%
+    percentile bootstrap interval of its ratio over frames (``n_boot`` resamples of the frames
+    with replacement, seeded), so that a ratio's distance from a goal can be told from which
+    frames happen to be in the set, "frame_bands": {region: each frame's mean |e| there} and
+    "frame_index": those frames' places in ``dataset`` (a frame with no valid pixel is left out),
+    to find the frames that weigh most in a band}. Frames must share one size.
 
     groups: one label per frame (in dataset order), e.g. the view kind of each synthetic frame;
     then out["groups"] = {label: {"frames", "bands", "ratios", "signed"}} holds the same region
@@ -260,6 +265,8 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
         raise ValueError(f"border_error_map: {len(groups)} group labels for {len(dataset)} frames")
     signed = absolute = count = None
     per_group: dict[str, list] = {}  # label -> [signed sum, |e| sum, count, frames]
+    per_frame: list[np.ndarray] = []  # each frame's (|e| sum, count) per region, for the bootstrap
+    frame_index: list[int] = []  # their places in the dataset
     seen = 0
     for batch in tqdm(loader, desc="border error map", disable=not progress, leave=False):
         gt = batch["depth"].numpy()[:, 0].astype(np.float64)  # (B, H, W)
@@ -282,6 +289,9 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
             signed += e
             absolute += np.abs(e)
             count += v
+            regions = band_regions(*e.shape, band)
+            per_frame.append(np.array([[np.abs(e[r]).sum(), v[r].sum()] for r in regions.values()]))
+            frame_index.append(seen + j)
             if groups is not None:
                 acc = per_group.setdefault(groups[seen + j], [np.zeros_like(e), np.zeros_like(e), np.zeros_like(e), 0])
                 acc[0] += e
@@ -294,6 +304,11 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
     with np.errstate(invalid="ignore", divide="ignore"):
         out = {"signed": signed / count, "abs": absolute / count, "count": count}
     out["bands"], out["ratios"] = border_bands(absolute, count, band)
+    stacked = np.stack(per_frame)  # (frames, 5 regions, (|e| sum, count))
+    out["intervals"] = bootstrap_band_ratios(stacked, n_boot=n_boot)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out["frame_bands"] = {k: stacked[:, i, 0] / stacked[:, i, 1] for i, k in enumerate(band_regions(1, 1))}
+    out["frame_index"] = np.array(frame_index)
     if groups is not None:
         out["groups"] = {}
         for label, (g_signed, g_abs, g_count, frames) in sorted(per_group.items()):
@@ -303,13 +318,43 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
     return out
 
 
+def band_regions(H: int, W: int, band: float = 0.1) -> dict[str, tuple[slice, slice]]:
+    """The regions of the border error map: the outer ``band`` fraction of rows or columns on each
+    side ("top", "bottom", "left", "right") and the middle half in both axes ("centre")."""
+    bh, bw = max(1, round(band * H)), max(1, round(band * W))
+    return {"top": (slice(0, bh), slice(None)), "bottom": (slice(H - bh, H), slice(None)),
+            "left": (slice(None), slice(0, bw)), "right": (slice(None), slice(W - bw, W)),
+            "centre": (slice(H // 4, H - H // 4), slice(W // 4, W - W // 4))}
+
+
+def bootstrap_band_ratios(per_frame: np.ndarray, n_boot: int = 2000, level: float = 0.95,
+                          seed: int = 0) -> dict[str, tuple[float, float]]:
+    """Percentile bootstrap interval of each border band's ratio (band mean |e| / centre mean |e|).
+
+    per_frame: (frames, 5, 2) array of each frame's (|e| sum, valid count) in the regions of
+    ``band_regions`` (in its order). Frames are resampled with replacement; each resample's ratio
+    pools its frames' sums as ``border_bands`` pools the whole set's.
+    """
+    n = per_frame.shape[0]
+    if n_boot <= 0 or n == 0:
+        return {}
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, n, size=(n_boot, n))
+    sums = per_frame[picks].sum(axis=1)  # (n_boot, 5, 2)
+    means = sums[..., 0] / np.maximum(sums[..., 1], 1)  # (n_boot, 5)
+    centre = means[:, 4:5]
+    ratios = np.where(centre > 0, means[:, :4] / np.where(centre > 0, centre, 1.0), np.nan)  # as border_bands
+    lo, hi = 100 * (1 - level) / 2, 100 * (1 + level) / 2
+    out = {}
+    for i, k in enumerate(BORDER_BANDS):
+        r = ratios[:, i][np.isfinite(ratios[:, i])]
+        out[k] = (float(np.percentile(r, lo)), float(np.percentile(r, hi))) if r.size else (float("nan"),) * 2
+    return out
+
+
 def border_bands(abs_sum: np.ndarray, count: np.ndarray, band: float = 0.1) -> tuple[dict, dict]:
     """Mean |error| per region from per-pixel sums and counts: ({region: mean}, {border band: mean / centre})."""
-    H, W = abs_sum.shape
-    bh, bw = max(1, round(band * H)), max(1, round(band * W))
-    regions = {"top": (slice(0, bh), slice(None)), "bottom": (slice(H - bh, H), slice(None)),
-               "left": (slice(None), slice(0, bw)), "right": (slice(None), slice(W - bw, W)),
-               "centre": (slice(H // 4, H - H // 4), slice(W // 4, W - W // 4))}
+    regions = band_regions(*abs_sum.shape, band)
     means = {k: float(abs_sum[r].sum() / max(count[r].sum(), 1)) for k, r in regions.items()}
     ratios = {k: means[k] / means["centre"] if means["centre"] > 0 else float("nan") for k in BORDER_BANDS}
     return means, ratios

@@ -178,3 +178,32 @@ def test_border_error_map_by_group_known_answer():
     assert out["bands"]["left"] == pytest.approx(0.15) and out["bands"]["centre"] == pytest.approx(0.025)
     with pytest.raises(ValueError, match="3 group labels for 4 frames"):
         evaluate.border_error_map(pred, ds, groups=["a", "b", "c"])
+
+
+def test_border_ratio_intervals_resample_frames():
+    """Identical frames: the interval is the ratio itself. Two frames with left-band ratios 3 and 1
+    (centre 0.1 in both): a resample holds both frames twice, or one of them twice, so the ratio
+    is 3, 2 or 1, each extreme with probability 1/4, and the 95% interval is [1, 3]."""
+    H = W = 40
+    e = torch.zeros(H, W)
+    e[:, :4] = 0.2
+    e[10:30, 10:30] = 0.1
+    same = evaluate.border_error_map(lambda x: (2.0 * torch.exp(e)).expand(x.shape[0], 1, H, W), _ConstantFrames())
+    assert same["ratios"]["left"] == pytest.approx(0.2 / 0.1)
+    for band, (lo, hi) in same["intervals"].items():
+        assert lo == pytest.approx(same["ratios"][band]) and hi == pytest.approx(same["ratios"][band])
+
+    errors = [e.clone(), e.clone()]
+    errors[0][:, :4] = 0.3
+    errors[1][:, :4] = 0.1
+
+    def pred(images):
+        return torch.stack([2.0 * torch.exp(errors[int(x[0, 0, 0])])[None] for x in images])
+
+    out = evaluate.border_error_map(pred, _NumberedFrames(n=2), n_boot=4000)
+    assert out["ratios"]["left"] == pytest.approx(2.0)
+    assert out["intervals"]["left"] == pytest.approx((1.0, 3.0))
+    np.testing.assert_allclose(out["frame_bands"]["left"], [0.3, 0.1], rtol=1e-5)
+    np.testing.assert_allclose(out["frame_bands"]["centre"], [0.1, 0.1], rtol=1e-5)
+    assert out["frame_index"].tolist() == [0, 1]
+    assert evaluate.border_error_map(pred, _NumberedFrames(n=2), n_boot=0)["intervals"] == {}
