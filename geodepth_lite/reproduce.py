@@ -247,13 +247,16 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
     log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
     runs, workers = training_runs(profile, [(nb, p) for nb, p, done in plan if not done])
     if runs:
-        print(f"[reproduce] training the {len(runs)} models the notebooks use, side by side "
-              "(finished runs are reused) ...", flush=True)
-        t0 = time.perf_counter()
         from geodepth_lite import checkpoint
 
-        checkpoint.ensure_runs(profile, runs, workers=workers, progress=progress)
-        print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
+        folders = {checkpoint.checkpoint_dir(profile, c, s, **o): (c, s, o) for c, s, o in runs}
+        todo = [r for r in folders.values() if not checkpoint.is_complete(profile, r[0], r[1], **r[2])]
+        if todo:
+            print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
+                  "(an interrupted one continues from its last epoch) ...", flush=True)
+            t0 = time.perf_counter()
+            checkpoint.ensure_runs(profile, todo, workers=workers, progress=progress)
+            print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
     for nb, p, done in plan:
         if done:
             print(f"[reproduce] {nb.name}: complete, skipped (--force reruns it)", flush=True)
