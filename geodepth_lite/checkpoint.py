@@ -193,7 +193,7 @@ def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int
     if todo:
         cfgs = [config.make_config(profile, c, s, **o) for c, s, o in todo]
         for cfg in cfgs:
-            resolve_dataset(cfg)  # build (or find) each dataset before any worker starts
+            resolve_dataset(cfg, progress=progress)  # build (or find) each dataset before any worker starts
         threads = max(cfg["threads"] or 0 for cfg in cfgs)
         if workers is None:
             workers = max(1, (os.cpu_count() or 1) // threads) if threads else 1
