@@ -39,12 +39,13 @@ def border_scores(predict, val) -> dict:
             "val_abs_last_cols": round(float(columns[-3:].mean()), 3)}
 
 
-def score_validation(net, cfg: dict) -> dict:
-    """Validation-split scores of ``net`` at the frames' own size: Abs Rel, RMSE and ``border_scores``."""
+def score_validation(net, cfg: dict, flips: str = "none") -> dict:
+    """Validation-split scores of ``net`` at the frames' own size, with test-time ``flips``
+    (``inference.predict_depth``): Abs Rel, RMSE and ``border_scores``."""
     val = evaluate.open_eval_dataset(str(dataset.resolve_dataset(cfg)), split="val")
     with torch.no_grad():
         def predict(x):
-            return inference.predict_depth(net, x, cfg["image_size"])
+            return inference.predict_depth(net, x, cfg["image_size"], flips)
 
         result = evaluate.evaluate_predictor(predict, val, error_maps=0)
         return {"val_abs_rel": round(result["overall"]["abs_rel"], 4),

@@ -222,13 +222,16 @@ def evaluate_predictor(predict_fn: Callable, dataset, *, batch_size: int = 8,
 def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size: int = 8,
                    out_dir: str | os.PathLike | None = None, error_maps: int = 4, min_depth: float = EVAL_MIN_DEPTH,
                    max_depth: float = EVAL_MAX_DEPTH, progress: bool = False, name: str = "",
-                   baselines: dict | None = None) -> dict:
+                   baselines: dict | None = None, flips: str = "none") -> dict:
     """``evaluate_predictor`` for a network: each batch resized to the network's ``image_size``,
-    predicted and resized back (``inference.predict_depth``). Same result dict and files."""
-    from geodepth_lite.inference import predict_depth
+    predicted (with test-time ``flips``, see ``inference.predict_depth``) and resized back. Same
+    result dict and files."""
+    from geodepth_lite.inference import check_flips, predict_depth
+
+    check_flips(flips)
 
     def predict_fn(images: torch.Tensor) -> torch.Tensor:
-        return predict_depth(model, images, image_size).cpu()
+        return predict_depth(model, images, image_size, flips).cpu()
 
     return evaluate_predictor(predict_fn, dataset, batch_size=batch_size, out_dir=out_dir, error_maps=error_maps,
                               min_depth=min_depth, max_depth=max_depth, progress=progress, name=name,
@@ -384,16 +387,19 @@ def border_map_figure(maps: dict, title: str = ""):
 def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_teach", *, split: str = "test",
                         root: str | os.PathLike | None = None, out_dir: str | os.PathLike | None = None,
                         device: str | None = None, batch_size: int = 8, error_maps: int = 4,
-                        progress: bool = False, baselines: bool = False, **kw: Any) -> dict:
+                        progress: bool = False, baselines: bool = False, flips: str = "none", **kw: Any) -> dict:
     """``evaluate_model`` for a checkpoint file on a dataset named as in ``open_eval_dataset``.
+
+    flips: test-time flips of the network's prediction (``inference.predict_depth``).
 
     baselines: also score the trivial baselines (``baselines.BASELINES``) on the same frames
     and add them to the result ("baselines") and the overall table. The mean depth map is fitted
     on the dataset's own train split, else on the checkpoint's training dataset (``cfg["dataset"]``).
     """
     from geodepth_lite.checkpoint import load_model
-    from geodepth_lite.inference import pick_device
+    from geodepth_lite.inference import check_flips, pick_device
 
+    check_flips(flips)
     model, cfg = load_model(checkpoint, pick_device(device))
     ds = open_eval_dataset(dataset, split=split, root=root, progress=progress, **kw)
     max_depth = getattr(ds, "max_depth", EVAL_MAX_DEPTH)  # a public dataset's own encoding bounds the mask
@@ -407,7 +413,7 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_
     try:
         return evaluate_model(model, ds, image_size=cfg["image_size"], batch_size=batch_size, out_dir=out_dir,
                               error_maps=error_maps, progress=progress, name=f"{dataset}/{split}", baselines=base,
-                              max_depth=max_depth)
+                              max_depth=max_depth, flips=flips)
     except NonFiniteDepth as exc:
         raise NonFiniteDepth(f"checkpoint {checkpoint} is unusable: {exc}") from None
 
@@ -556,6 +562,9 @@ def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--error-maps", type=int, default=4, help="number of error-map PNGs (default 4)")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--device", default=None, help="cpu | cuda (default: CUDA when available)")
+    parser.add_argument("--flips", choices=("none", "h", "hv"), default="none",
+                        help="test-time flips averaged into each prediction: none (default, one pass as in the "
+                        "paper), h (left-right) or hv (all four mirrorings; what the teach predict model uses)")
     parser.add_argument("--no-baselines", action="store_true",
                         help="skip the trivial baselines (constant, mean depth map, shading prior) in the tables")
     parser.add_argument("--no-progress", action="store_true")
@@ -597,7 +606,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         synth.check_dataset(ds_root, {args.split, "train"} if own_train else {args.split})
     result = evaluate_checkpoint(args.checkpoint, args.dataset, split=args.split, root=args.root, out_dir=out,
                                  device=args.device, batch_size=args.batch_size, error_maps=args.error_maps,
-                                 progress=not args.no_progress, baselines=not args.no_baselines, **kw)
+                                 progress=not args.no_progress, baselines=not args.no_baselines,
+                                 flips=args.flips, **kw)
     t = metrics_table(result)
     print(markdown_table(t["columns"], t["rows"]))
     print(f"wrote {out / 'metrics.json'}, {out / 'frames.csv'}, {out / 'tables.md'}")
@@ -605,13 +615,16 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth: float = EVAL_MIN_DEPTH,
-                        max_depth: float = EVAL_MAX_DEPTH) -> list[dict]:
+                        max_depth: float = EVAL_MAX_DEPTH, flips: str = "none") -> list[dict]:
     """Examples for ``error_map_figure``: frames ``indices`` of ``dataset`` predicted by each model.
 
-    models: {label: (model, image_size)}; each prediction is median-scaled to the frame's
-    ground truth (as the metrics see it). One label gives "pred"; several give "preds".
+    models: {label: (model, image_size)}; each prediction (with test-time ``flips``,
+    ``inference.predict_depth``) is median-scaled to the frame's ground truth (as the metrics see
+    it). One label gives "pred"; several give "preds".
     """
-    from geodepth_lite.inference import predict_depth
+    from geodepth_lite.inference import check_flips, predict_depth
+
+    check_flips(flips)
 
     out = []
     for i in indices:
@@ -620,7 +633,7 @@ def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth:
         valid = item["valid"][0].numpy().astype(bool) if "valid" in item else None
         preds = {}
         for label, (model, size) in models.items():
-            pred = predict_depth(model, item["image"][None], size)[0, 0].cpu().numpy()
+            pred = predict_depth(model, item["image"][None], size, flips)[0, 0].cpu().numpy()
             ratio = _frame_metrics(pred, gt, valid, min_depth, max_depth)["ratio"]
             preds[label] = pred * ratio
         ex = {"image": item["image"].permute(1, 2, 0).numpy(), "gt": gt, "valid": valid, "index": int(item["index"])}

@@ -55,10 +55,30 @@ def to_device(batch: dict, device: torch.device) -> dict:
     return {k: (v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
 
 
+# test-time flips: the image axes each extra prediction mirrors ((): the image as it is). Mirroring
+# keeps a centred camera's intrinsics, so each mirrored prediction, mirrored back, is a second
+# opinion on the same frame; their mean is the prediction.
+FLIPS = {"none": ((),), "h": ((), (-1,)), "hv": ((), (-1,), (-2,), (-2, -1))}
+
+
+def check_flips(flips: str) -> str:
+    """``flips`` if it names an entry of FLIPS, else a ValueError naming the choices."""
+    if flips not in FLIPS:
+        raise ValueError(f"flips must be one of {', '.join(FLIPS)}, got {flips!r}")
+    return flips
+
+
 @torch.no_grad()
-def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int] | None = None) -> torch.Tensor:
+def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int] | None = None,
+                  flips: str = "none") -> torch.Tensor:
     """Depth B x 1 x H x W for images B x 3 x H x W in [0, 1]: resized (dataset.resize_image) to the
-    network's ``image_size`` (int or (h, w), multiples of 32), predicted, resized back."""
+    network's ``image_size`` (int or (h, w), multiples of 32), predicted, resized back.
+
+    flips: "none" (one forward pass, as the paper), "h" (the mean with the prediction for the
+    left-right mirrored image, mirrored back) or "hv" (the mean over the four mirrorings); the
+    teach profile's ``predict_flips`` says which the ``predict`` model uses, and why.
+    """
+    axes = FLIPS[check_flips(flips)]
     if images.dim() == 3:
         images = images[None]
     if images.dim() != 4 or images.shape[1] != 3:
@@ -75,7 +95,12 @@ def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int]
     x = resize_image(x, size)  # (B, 3, h, w), as the training frames were made (antialiased)
     was_training = model.training
     model.eval()
-    pred = model(x).float()  # (B, 1, h, w)
+    pred = None
+    for dims in axes:  # one pass per mirroring, each mirrored back before the mean
+        p = model(x.flip(dims) if dims else x).float()  # (B, 1, h, w)
+        p = p.flip(dims) if dims else p
+        pred = p if pred is None else pred + p
+    pred = pred / len(axes)
     model.train(was_training)
     if pred.shape[-2:] != (H, W):
         pred = F.interpolate(pred, size=(H, W), mode="bilinear", align_corners=False)  # (B, 1, H, W)

@@ -10,7 +10,9 @@ For every frame this writes, into ``--out``:
 - ``<name>.ply``: the coloured back-projected point cloud (or mesh, ``--ply mesh``).
 
 Frames of any size are resized to the network's input and the prediction back to the
-frame (``inference.predict_depth``). Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
+frame (``inference.predict_depth``); each depth map is the mean of the network's predictions
+for the frame and its three mirror images, mirrored back (``--flips hv``; ``none`` for one
+pass). Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
 degrees). A file that cannot be read or written is reported by name, the others are
 still processed, and the exit status is 1 if any frame failed (2 for a usage error).
@@ -157,18 +159,18 @@ def _batches(frames, batch_size: int):
 
 # --------------------------------------------------------------------------- inference and outputs
 @torch.no_grad()
-def predict_frames(model, frames: list[np.ndarray], image_size) -> list[np.ndarray]:
+def predict_frames(model, frames: list[np.ndarray], image_size, flips: str = "none") -> list[np.ndarray]:
     """Depth (H x W float32, each frame's own size) for a list of H x W x 3 uint8 frames of any sizes.
 
     Each frame is resized to the network's ``image_size`` so that one batch holds frames of
     different sizes; ``inference.predict_depth`` runs the network; each prediction is resized
-    back (bilinear) to its frame.
+    back (bilinear) to its frame. flips: test-time flips (``inference.predict_depth``).
     """
     from .inference import predict_depth
 
     size = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
     x = torch.stack([resize_image(torch.from_numpy(f).permute(2, 0, 1).float().div(255.0), size) for f in frames])
-    pred = predict_depth(model, x, size).cpu()
+    pred = predict_depth(model, x, size, flips).cpu()
     out = []
     for f, p in zip(frames, pred):
         p = F.interpolate(p[None], size=f.shape[:2], mode="bilinear", align_corners=False)[0, 0]
@@ -212,6 +214,10 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
                         help="PLY per frame: coloured point cloud (default), surface mesh, or none")
     parser.add_argument("--ply-stride", type=int, default=1, help="keep every N-th pixel in the PLY (default 1)")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: CUDA when available)")
+    parser.add_argument("--flips", choices=("none", "h", "hv"), default="hv",
+                        help="test-time flips averaged into each depth map: hv (default; the mean over the four "
+                        "mirrorings of the frame, 4 passes of the network), h (left-right, 2 passes) or none (one "
+                        "pass, as the paper); see the teach profile's predict_flips for what it gains")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -242,7 +248,7 @@ def run_predict(args: argparse.Namespace) -> int:
     total = len(files) if kind == "images" else None
     bar = tqdm(total=total, unit="frame", desc="predict", disable=args.no_progress, file=sys.stderr)
     for batch in _batches(iter_frames(files, kind, failures), args.batch_size):
-        depths = predict_frames(model, [rgb for _, rgb in batch], cfg["image_size"])
+        depths = predict_frames(model, [rgb for _, rgb in batch], cfg["image_size"], args.flips)
         for (name, _), depth in zip(batch, depths):
             if not np.isfinite(depth).all():  # refuse before writing anything of this batch
                 raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {name}: "

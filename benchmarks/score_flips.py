@@ -1,0 +1,93 @@
+"""Test-time flips (``inference.FLIPS``) for trained runs: the evidence for a profile's ``predict_flips``.
+
+    python benchmarks/score_flips.py RUN [RUN ...] [--input-pad P] [--flips none h hv]
+
+RUN is a ``runs/tune/NAME`` folder name or the path of a checkpoint.pt (e.g. the teach ``predict``
+model in ``runs/teach/checkpoints``). For each run and each flips setting one row named
+``<NAME>_flips_<flips>`` is appended to ``benchmarks/tuning_log.jsonl``: the validation split's
+Abs Rel, RMSE and border band ratios (what a choice is made on), and, recorded beside them, Abs Rel
+on the teach profile's ``heldout_closeup`` set and the test split's Abs Rel and worst border band.
+No weights change: the same network predicts each frame as the mean over the mirrorings.
+``--input-pad`` is for runs of ``exp_padded_training.py``, whose network mirrors its input without
+the setting in its configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import network_experiment  # noqa: E402
+
+from geodepth_lite import checkpoint, config, evaluate, inference, synth, utils  # noqa: E402
+
+RECORD_NOTE = ("no training: {name} predicted with test-time flips '{flips}'; chosen on the val_* fields, "
+               "closeup_* and test_* recorded")
+
+
+def load_run(run: str, input_pad: int | None = None):
+    """(network, cfg, row name) of a tune run's name or a checkpoint path."""
+    path = Path(run)
+    if path.suffix == ".pt":
+        name = path.parent.name
+    else:
+        name, path = run, utils.runs_dir() / "tune" / run / checkpoint.CHECKPOINT_NAME
+    if not path.is_file():
+        raise SystemExit(f"score_flips: no checkpoint at {path}")
+    net, cfg = checkpoint.load_model(path)
+    if input_pad is not None and cfg.get("input_pad", 0) != input_pad:
+        if cfg.get("input_pad", 0):
+            raise SystemExit(f"score_flips: {name} was trained with input_pad={cfg['input_pad']}, not {input_pad}")
+        cfg["input_pad"] = net.input_pad = input_pad
+    return net, cfg, name
+
+
+def score(net, cfg: dict, name: str, flips: str, closeups, test) -> dict:
+    start = time.perf_counter()
+    row = {"name": f"{name}_flips_{flips}", "case": cfg["case"], "seed": cfg["seed"], "flips": flips,
+           "settings": {k: cfg[k] for k in ("image_size", "threads", "border_weight", "input_pad") if k in cfg}}
+    row |= network_experiment.score_validation(net, cfg, flips)
+
+    def predict(x):
+        return inference.predict_depth(net, x, cfg["image_size"], flips)
+
+    with torch.no_grad():
+        close = evaluate.evaluate_predictor(predict, closeups, error_maps=0)
+        t = evaluate.evaluate_predictor(predict, test, error_maps=0)
+        test_border = evaluate.border_error_map(predict, test, n_boot=0)
+    row |= {"closeup_abs_rel": round(close["overall"]["abs_rel"], 4),
+            "test_abs_rel": round(t["overall"]["abs_rel"], 4),
+            "test_border": {k: round(v, 3) for k, v in test_border["ratios"].items()},
+            "test_border_worst": round(max(test_border["ratios"].values()), 3),
+            "minutes": round((time.perf_counter() - start) / 60, 2),
+            "generator": synth.GENERATOR_VERSION, "note": RECORD_NOTE.format(name=name, flips=flips)}
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("runs", nargs="+", metavar="RUN")
+    ap.add_argument("--input-pad", type=int, default=None,
+                    help="the mirror padding of a run trained by exp_padded_training.py")
+    ap.add_argument("--flips", nargs="+", choices=tuple(inference.FLIPS), default=list(inference.FLIPS))
+    ap.add_argument("--log", default=str(network_experiment.LOG))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    prof = config.get_profile("teach")
+    closeups = evaluate.open_eval_dataset(
+        str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"], progress=False)), split="test")
+    for run in args.runs:
+        net, cfg, name = load_run(run, args.input_pad)
+        test = evaluate.open_eval_dataset(cfg["dataset"], split="test")
+        for flips in args.flips:
+            network_experiment.append_row(score(net, cfg, name, flips, closeups, test), args.log)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
