@@ -215,3 +215,36 @@ def test_score_run_records_closeups_and_test_border(tmp_path, monkeypatch, smoke
     assert plain["closeup_border_worst"] != padded["closeup_border_worst"]  # the padded network sees more
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
         g["main"](["missing", "--log", str(log)])
+
+
+def test_score_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, smoke_root):
+    """score_flips.py scores a tune run or a checkpoint path with each test-time flips setting: one row
+    each, validation fields beside the recorded close-up and test fields; "none" is the network's own
+    single pass, so its validation Abs Rel is score_validation's; a missing run is named."""
+    import pytest
+    import torch
+    from conftest import save_untrained_checkpoint
+
+    from geodepth_lite import checkpoint, config, utils
+
+    monkeypatch.setitem(config.PROFILES, "teach", dict(config.PROFILES["teach"],
+                                                         closeup_overrides=config.PROFILES["smoke"]["closeup_overrides"]))
+    g = load("score_flips.py")
+    run = utils.runs_dir() / "tune" / "tiny"
+    run.mkdir(parents=True)
+    save_untrained_checkpoint(run / "checkpoint.pt", {"image_size": 32, "case": 4, "seed": 0,
+                                                      "dataset": str(smoke_root)})
+    log = tmp_path / "log.jsonl"
+    assert g["main"](["tiny", str(run / "checkpoint.pt"), "--flips", "none", "hv", "--log", str(log)]) == 0
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["name"] for r in rows] == ["tiny_flips_none", "tiny_flips_hv"] * 2
+    assert rows[0] | {"minutes": 0} == rows[2] | {"minutes": 0}  # by name or by path: the same run
+    net, cfg = checkpoint.load_model(run / "checkpoint.pt")
+    torch.set_num_threads(1)
+    plain = load("network_experiment.py")["score_validation"](net, cfg)
+    assert rows[0]["val_abs_rel"] == plain["val_abs_rel"] and rows[0]["val_rmse"] == plain["val_rmse"]
+    assert rows[1]["val_abs_rel"] != rows[0]["val_abs_rel"]
+    for row in rows:
+        assert row["test_border_worst"] == max(row["test_border"].values()) and 0 < row["closeup_abs_rel"]
+    with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
+        g["main"](["missing", "--log", str(log)])

@@ -63,6 +63,24 @@ def test_batching_does_not_change_the_prediction(checkpoint):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
+def test_predict_averages_the_mirrorings_by_default(tmp_path, checkpoint):
+    """The CLI's depth is predict_frames with flips "hv" unless --flips says otherwise."""
+    from geodepth_lite.checkpoint import load_model
+
+    model, cfg = load_model(checkpoint)
+    src = tmp_path / "in"
+    src.mkdir()
+    frame = _frame(40, 56, 3)
+    iio.imwrite(src / "a.png", frame)
+    for flips, args in (("hv", []), ("none", ["--flips", "none"])):
+        out = tmp_path / flips
+        assert _cli(["predict", "--checkpoint", str(checkpoint), "--input", str(src), "--out", str(out),
+                     "--ply", "none", "--no-progress", *args]) == 0
+        want = predict.predict_frames(model, [frame], cfg["image_size"], flips)[0]
+        np.testing.assert_allclose(np.load(out / "a_depth.npy"), want, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(np.load(tmp_path / "hv" / "a_depth.npy"), np.load(tmp_path / "none" / "a_depth.npy"))
+
+
 def test_video_and_intrinsics_file(tmp_path, checkpoint):
     video = tmp_path / "clip.mp4"
     iio.imwrite(video, np.stack([_frame(48, 64, k) for k in range(3)]), fps=10)

@@ -275,6 +275,35 @@ def test_predict_depth_resizes_to_the_network_and_back(smoke_root):
         inference.predict_depth(model, torch.rand(2, 1, 64, 64), 64)
 
 
+def test_test_time_flips_make_the_prediction_mirror_with_the_image():
+    """flips="h" averages the prediction for the mirrored frame back in, so the result mirrors exactly
+    with its input, which the bare network does not; "hv" does so along both axes; "none" is one pass
+    (the network's own output); an unknown name is refused with the choices."""
+    from geodepth_lite.model import DepthNet
+
+    torch.manual_seed(0)
+    model = DepthNet().eval()
+    x = torch.rand(2, 3, 64, 64)
+
+    def close(a, b):
+        return torch.allclose(a, b, rtol=1e-5, atol=1e-6)
+
+    with torch.no_grad():
+        assert torch.equal(inference.predict_depth(model, x, 64, "none"), model(x))
+        assert not close(model(x.flip(-1)), model(x).flip(-1))  # the untrained network is not symmetric
+        h = inference.predict_depth(model, x, 64, "h")
+        assert close(inference.predict_depth(model, x.flip(-1), 64, "h"), h.flip(-1))
+        assert not close(inference.predict_depth(model, x.flip(-2), 64, "h"), h.flip(-2))
+        hv = inference.predict_depth(model, x, 64, "hv")
+        for dims in ((-1,), (-2,), (-2, -1)):
+            assert close(inference.predict_depth(model, x.flip(dims), 64, "hv"), hv.flip(dims))
+        # the mean of the passes: between the smallest and largest of them at every pixel
+        passes = torch.stack([model(x.flip(d)).flip(d) if d else model(x) for d in inference.FLIPS["hv"]])
+        assert (hv >= passes.min(0).values - 1e-6).all() and (hv <= passes.max(0).values + 1e-6).all()
+    with pytest.raises(ValueError, match="flips must be one of none, h, hv, got 'lr'"):
+        inference.predict_depth(model, x, 64, "lr")
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
