@@ -65,6 +65,30 @@ def test_per_frame_means_equal_the_metric_on_the_whole_set(smoke):
         assert result["by_organ"][organ]["rmse"] == pytest.approx(sub["rmse"], rel=1e-5)
 
 
+def test_cli_flips_score_the_mean_over_the_mirrorings(smoke, tmp_path):
+    """evaluate --flips hv scores the mean over the four mirrorings (the same metrics as
+    evaluate_model with flips="hv"), not the one-pass prediction it scores by default."""
+    from geodepth_lite import cli
+    from geodepth_lite.dataset import SyntheticDepthDataset
+
+    root, ckpt = smoke
+    model, cfg = checkpoint.load_model(ckpt)
+    ds = SyntheticDepthDataset(root, "test")
+    scores = {}
+    for flips in ("none", "hv"):
+        out = tmp_path / flips
+        assert cli.main(["evaluate", "--checkpoint", str(ckpt), "--dataset", str(root), "--split", "test",
+                         "--out", str(out), "--error-maps", "0", "--no-baselines", "--no-progress",
+                         "--flips", flips]) == 0
+        scores[flips] = json.loads((out / "metrics.json").read_text())["overall"]
+        direct = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"], flips=flips)["overall"]
+        for k in evaluate.METRIC_KEYS:
+            assert scores[flips][k] == pytest.approx(direct[k], rel=1e-5, abs=1e-7)
+    assert scores["hv"]["abs_rel"] != scores["none"]["abs_rel"]
+    with pytest.raises(ValueError, match="flips must be one of"):
+        evaluate.evaluate_model(model, ds, image_size=cfg["image_size"], flips="vh")
+
+
 def test_a_perfect_prediction_up_to_scale_scores_perfectly(smoke):
     """A model that returns the ground truth up to a scale gets Abs Rel 0, a1 1 (median scaling)."""
     root, _ = smoke
