@@ -219,7 +219,8 @@ def test_a_nan_checkpoint_is_refused_and_nothing_is_written(smoke_root, tmp_path
 def test_a_model_that_predicts_nan_writes_nothing(smoke_root, tmp_path, capsys, monkeypatch, untrained_checkpoint):
     from geodepth_lite import predict
 
-    monkeypatch.setattr(predict, "predict_frames", lambda m, frames, s, flips="none": [np.full(f.shape[:2], np.nan) for f in frames])
+    monkeypatch.setattr(predict, "predict_frames",
+                        lambda m, frames, s, flips="none": [np.full(f.shape[:2], np.nan) for f in frames])
     out = tmp_path / "pred"
     argv = ["predict", "--checkpoint", str(untrained_checkpoint), "--input", str(smoke_root / "test" / "rgb"),
             "--out", str(out), "--no-progress"]
