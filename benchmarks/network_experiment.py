@@ -67,6 +67,25 @@ def train_tune_run(name: str, case: int, seed: int, settings: dict):
     return net, cfg, minutes, run_dir
 
 
+def load_tune_run(run: str, input_pad: int | None = None, script: str = "score"):
+    """(network, cfg, name) of a trained run: a ``runs/tune/NAME`` folder name or a checkpoint.pt path
+    (named by its folder). ``input_pad`` is for runs of ``exp_padded_training.py``, whose network mirrors
+    its input without the setting in its configuration; a run trained with another padding is refused."""
+    path = Path(run)
+    if path.suffix == ".pt":
+        name = path.parent.name
+    else:
+        name, path = run, utils.runs_dir() / "tune" / run / checkpoint.CHECKPOINT_NAME
+    if not path.is_file():
+        raise SystemExit(f"{script}: no checkpoint at {path}; train the run first (tune_teach.py {name} ...)")
+    net, cfg = checkpoint.load_model(path)
+    if input_pad is not None and cfg.get("input_pad", 0) != input_pad:
+        if cfg.get("input_pad", 0):
+            raise SystemExit(f"{script}: {name} was trained with input_pad={cfg['input_pad']}, not {input_pad}")
+        cfg["input_pad"] = net.input_pad = input_pad
+    return net, cfg, name
+
+
 def append_row(row: dict, log: str | Path = LOG) -> None:
     """Append ``row`` to the log as one JSON line, with the CPU kernel cap it ran under, if any
     (a cap changes the trained weights)."""

@@ -24,27 +24,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import network_experiment  # noqa: E402
 
-from geodepth_lite import checkpoint, config, evaluate, inference, synth, utils  # noqa: E402
+from geodepth_lite import config, evaluate, inference, synth  # noqa: E402
 
 RECORD_NOTE = ("no training: {name} predicted with test-time flips '{flips}'; chosen on the val_* fields, "
                "closeup_* and test_* recorded")
-
-
-def load_run(run: str, input_pad: int | None = None):
-    """(network, cfg, row name) of a tune run's name or a checkpoint path."""
-    path = Path(run)
-    if path.suffix == ".pt":
-        name = path.parent.name
-    else:
-        name, path = run, utils.runs_dir() / "tune" / run / checkpoint.CHECKPOINT_NAME
-    if not path.is_file():
-        raise SystemExit(f"score_flips: no checkpoint at {path}")
-    net, cfg = checkpoint.load_model(path)
-    if input_pad is not None and cfg.get("input_pad", 0) != input_pad:
-        if cfg.get("input_pad", 0):
-            raise SystemExit(f"score_flips: {name} was trained with input_pad={cfg['input_pad']}, not {input_pad}")
-        cfg["input_pad"] = net.input_pad = input_pad
-    return net, cfg, name
 
 
 def score(net, cfg: dict, name: str, flips: str, closeups, test) -> dict:
@@ -82,7 +65,7 @@ def main(argv=None) -> int:
     closeups = evaluate.open_eval_dataset(
         str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"], progress=False)), split="test")
     for run in args.runs:
-        net, cfg, name = load_run(run, args.input_pad)
+        net, cfg, name = network_experiment.load_tune_run(run, args.input_pad, "score_flips")
         test = evaluate.open_eval_dataset(cfg["dataset"], split="test")
         for flips in args.flips:
             network_experiment.append_row(score(net, cfg, name, flips, closeups, test), args.log)

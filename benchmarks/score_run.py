@@ -22,22 +22,13 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import network_experiment  # noqa: E402
 
-from geodepth_lite import baselines, checkpoint, config, evaluate, inference, synth, utils  # noqa: E402
+from geodepth_lite import baselines, config, evaluate, inference, synth  # noqa: E402
 
 RECORD_NOTE = "no training: run {name} scored on heldout_closeup and on the test split (recorded, not for choosing)"
 
 
 def score(name: str, input_pad: int | None = None) -> dict:
-    run_dir = utils.runs_dir() / "tune" / name
-    path = run_dir / checkpoint.CHECKPOINT_NAME
-    if not path.exists():
-        raise SystemExit(f"score_run: no checkpoint at {path}; train the run first (tune_teach.py {name} ...)")
-    net, cfg = checkpoint.load_model(path)
-    if input_pad is not None and cfg.get("input_pad", 0) != input_pad:
-        if cfg.get("input_pad", 0):
-            raise SystemExit(f"score_run: {name} was trained with input_pad={cfg['input_pad']}, not {input_pad}")
-        cfg["input_pad"] = input_pad
-        net.input_pad = input_pad
+    net, cfg, name = network_experiment.load_tune_run(name, input_pad, "score_run")
     prof = config.get_profile("teach")
     closeups = evaluate.open_eval_dataset(
         str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"], progress=False)), split="test")
