@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
-from geodepth_lite.inference import collate
+from geodepth_lite.inference import FLIPS, check_flips, collate
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
 
 METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.3, named once in metrics.py
@@ -226,7 +226,7 @@ def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size:
     """``evaluate_predictor`` for a network: each batch resized to the network's ``image_size``,
     predicted (with test-time ``flips``, see ``inference.predict_depth``) and resized back. Same
     result dict and files."""
-    from geodepth_lite.inference import check_flips, predict_depth
+    from geodepth_lite.inference import predict_depth
 
     check_flips(flips)
 
@@ -397,7 +397,7 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_
     on the dataset's own train split, else on the checkpoint's training dataset (``cfg["dataset"]``).
     """
     from geodepth_lite.checkpoint import load_model
-    from geodepth_lite.inference import check_flips, pick_device
+    from geodepth_lite.inference import pick_device
 
     check_flips(flips)
     model, cfg = load_model(checkpoint, pick_device(device))
@@ -562,7 +562,7 @@ def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--error-maps", type=int, default=4, help="number of error-map PNGs (default 4)")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--device", default=None, help="cpu | cuda (default: CUDA when available)")
-    parser.add_argument("--flips", choices=("none", "h", "hv"), default="none",
+    parser.add_argument("--flips", choices=tuple(FLIPS), default="none",
                         help="test-time flips averaged into each prediction: none (default, one pass as in the "
                         "paper), h (left-right) or hv (all four mirrorings; what the teach predict model uses)")
     parser.add_argument("--no-baselines", action="store_true",
@@ -622,7 +622,7 @@ def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth:
     ``inference.predict_depth``) is median-scaled to the frame's ground truth (as the metrics see
     it). One label gives "pred"; several give "preds".
     """
-    from geodepth_lite.inference import check_flips, predict_depth
+    from geodepth_lite.inference import predict_depth
 
     check_flips(flips)
 

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 
 from . import camera, recon, utils
 from .dataset import resize_image
+from .inference import FLIPS
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_EXTS = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v", ".wmv"}
@@ -214,7 +215,7 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
                         help="PLY per frame: coloured point cloud (default), surface mesh, or none")
     parser.add_argument("--ply-stride", type=int, default=1, help="keep every N-th pixel in the PLY (default 1)")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: CUDA when available)")
-    parser.add_argument("--flips", choices=("none", "h", "hv"), default="hv",
+    parser.add_argument("--flips", choices=tuple(FLIPS), default="hv",
                         help="test-time flips averaged into each depth map: hv (default; the mean over the four "
                         "mirrorings of the frame, 4 passes of the network), h (left-right, 2 passes) or none (one "
                         "pass, as the paper); see the teach profile's predict_flips for what it gains")
