@@ -248,3 +248,42 @@ def test_score_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, smoke
         assert row["test_border_worst"] == max(row["test_border"].values()) and 0 < row["closeup_abs_rel"]
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
         g["main"](["missing", "--log", str(log)])
+
+
+def test_border_anatomy_known_answers_and_a_logged_row(tmp_path, smoke_root):
+    """A prediction with twice the true log-depth contrast: its median-scaled log error is exactly
+    log gt - median log gt, so each region's |e| equals its spread of true log depth, each band whose
+    depths all lie beyond the median is wrong as a whole (coherence 1), and a per-frame contrast fit
+    leaves nothing. The script then logs one row for a checkpoint, every test frame counted."""
+    import numpy as np
+    import pytest
+    from conftest import save_untrained_checkpoint
+
+    from geodepth_lite import evaluate
+
+    g = load("exp_border_anatomy.py")
+    H = W = 40
+    yy, xx = np.mgrid[:H, :W]
+    # flat over the centre (the middle half), farther toward the border, as in a wall-facing view: every
+    # band pixel lies beyond the frame's median depth
+    gt = np.exp(0.05 * np.maximum(0.0, np.maximum(abs(yy - 19.5), abs(xx - 19.5)) - 10.0))
+    s = g["frame_stats"](gt**2, gt, gt)
+    m = np.median(np.log(gt))
+    for region, (rows, cols) in evaluate.band_regions(H, W).items():
+        assert s[region]["abs"] == pytest.approx(np.abs(np.log(gt[rows, cols]) - m).mean())
+        assert s[region]["spread"] == pytest.approx(s[region]["abs"])
+        assert s[region]["contrast"] == pytest.approx(0.0, abs=1e-9) and s[region]["floor"] == 0.0
+    row = g["summarize"]([s, s])
+    assert row["ratio"] == pytest.approx(row["spread"]) and row["frames"] == 2 and row["floor_share"] == 0.0
+    assert row["coherence"] == pytest.approx(1.0)  # the bands' depths all lie beyond the median
+    # a prediction right up to scale has no error, whatever the depth range
+    assert g["frame_stats"](3.0 * gt, gt, gt)["left"]["abs"] == pytest.approx(0.0, abs=1e-9)
+
+    ckpt = save_untrained_checkpoint(tmp_path / "checkpoint.pt", {"image_size": 32, "case": 4, "seed": 0,
+                                                                  "dataset": str(smoke_root)})
+    log = tmp_path / "log.jsonl"
+    assert g["main"]([str(ckpt), "--flips", "none", "--name", "tiny", "--log", str(log)]) == 0
+    (logged,) = [json.loads(line) for line in log.read_text().splitlines()]
+    n = len(evaluate.open_eval_dataset(str(smoke_root), split="test"))
+    assert logged["name"] == "tiny_border_anatomy_test" and logged["all"]["frames"] == n
+    assert sum(r["frames"] for r in logged["by_view"].values()) == n
