@@ -1,6 +1,6 @@
 """What the border excess of a trained model is made of, per view kind (no training).
 
-    python benchmarks/exp_border_anatomy.py CHECKPOINT [--flips hv] [--split test] [--name NAME]
+    python benchmarks/exp_border_anatomy.py CHECKPOINT [--flips hv] [--split test] [--dataset D] [--name NAME]
 
 e.g. CHECKPOINT = runs/teach/checkpoints/case4_seed0-6c4b6bb6/checkpoint.pt, the teach ``predict`` model.
 
@@ -89,12 +89,13 @@ def main(argv=None) -> int:
     ap.add_argument("checkpoint")
     ap.add_argument("--flips", default="hv", choices=tuple(inference.FLIPS))
     ap.add_argument("--split", default="test")
+    ap.add_argument("--dataset", default="", help="a dataset folder or manifest name (default: the checkpoint's own)")
     ap.add_argument("--name", default="", help="the log row's name (default: the checkpoint's folder)")
     ap.add_argument("--log", default=str(network_experiment.LOG))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     net, cfg = checkpoint.load_model(args.checkpoint)
-    ds = evaluate.open_eval_dataset(cfg["dataset"], split=args.split)
+    ds = evaluate.open_eval_dataset(args.dataset or cfg["dataset"], split=args.split)
     size = cfg["image_size"]
     loader = torch.utils.data.DataLoader(ds, batch_size=8, shuffle=False, collate_fn=inference.collate)
     per_view: dict[str, list] = {}
@@ -120,6 +121,7 @@ def main(argv=None) -> int:
     everything = [s for stats in per_view.values() for s in stats]
     row = {"name": (args.name or Path(args.checkpoint).parent.name) + f"_border_anatomy_{args.split}",
            "case": cfg["case"], "seed": cfg["seed"], "flips": args.flips, "split": args.split,
+           "dataset": Path(args.dataset).name if args.dataset else cfg["dataset"],
            "settings": {k: cfg[k] for k in ("image_size", "border_weight", "input_pad") if k in cfg},
            # which weights: a retrain on another CPU gives other ones
            "checkpoint_sha256": hashlib.sha256(Path(args.checkpoint).read_bytes()).hexdigest()[:16],
@@ -127,7 +129,7 @@ def main(argv=None) -> int:
     for key in ("gamma", "exposure_stops"):
         x = np.array([np.nan if a.get(key) is None else a[key] for a in appearance], float)
         ok = np.isfinite(x)
-        if ok.sum() > 2:
+        if ok.sum() > 2 and np.ptp(x[ok]) > 0:  # a field held fixed has no correlation to give
             r = np.corrcoef(x[ok], np.array(signed)[ok])[0, 1]
             row[f"wall_closeup_corr_signed_band_{key}"] = round(float(r), 3)
     print(evaluate.markdown_table(
