@@ -22,7 +22,7 @@ view kind it prints, and appends as one row to ``benchmarks/tuning_log.jsonl``:
   share of the model's: what resolution alone costs there.
 
 And over the wall-facing and close-up frames, the correlation of each frame's mean signed band
-error with its appearance record's camera ``gamma`` and ``exposure_stops``.
+error with its appearance record's camera ``gamma``, ``exposure_stops`` and ``vignetting``.
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def main(argv=None) -> int:
            # which weights: a retrain on another CPU gives other ones
            "checkpoint_sha256": hashlib.sha256(Path(args.checkpoint).read_bytes()).hexdigest()[:16],
            "all": summarize(everything), "by_view": {v: summarize(s) for v, s in sorted(per_view.items())}}
-    for key in ("gamma", "exposure_stops"):
+    for key in ("gamma", "exposure_stops", "vignetting"):
         x = np.array([np.nan if a.get(key) is None else a[key] for a in appearance], float)
         ok = np.isfinite(x)
         if ok.sum() > 2 and np.ptp(x[ok]) > 0:  # a field held fixed has no correlation to give
