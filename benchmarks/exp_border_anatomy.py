@@ -4,9 +4,11 @@
 
 e.g. CHECKPOINT = runs/teach/checkpoints/case4_seed0-6c4b6bb6/checkpoint.pt, the teach ``predict`` model.
 
-For each frame of the split (of the checkpoint's own dataset), the prediction is median-scaled as
-the metrics see it and e = log(pred) - log(gt); the regions are ``evaluate.band_regions``'s. Per
-view kind it prints, and appends as one row to ``benchmarks/tuning_log.jsonl``:
+For each frame of the split (of the checkpoint's own dataset, or of ``--dataset``, e.g. a folder
+made by ``synth.ensure_dataset(name, overrides=...)``: the same frames with one appearance range
+held fixed), the prediction is median-scaled as the metrics see it and e = log(pred) - log(gt);
+the regions are ``evaluate.band_regions``'s. Per view kind it prints, and appends as one row to
+``benchmarks/tuning_log.jsonl``:
 
 - ``ratio``: the worst band's mean |e| over the centre's (``evaluate.border_error_map``'s figure);
   the other figures are for that same band:
