@@ -102,7 +102,6 @@ def main(argv=None) -> int:
     loader = torch.utils.data.DataLoader(ds, batch_size=8, shuffle=False, collate_fn=inference.collate)
     per_view: dict[str, list] = {}
     signed, appearance = [], []
-    k = 0
     for batch in loader:
         pred = inference.predict_depth(net, batch["image"], size, args.flips)[:, 0].double().numpy()
         depth = batch["depth"]
@@ -110,8 +109,7 @@ def main(argv=None) -> int:
                               mode="bilinear", align_corners=False)[:, 0].double().numpy()
         gt = depth[:, 0].double().numpy()
         for j in range(gt.shape[0]):
-            frame = ds.frames[k]
-            k += 1
+            frame = ds.frames[int(batch["index"][j])]
             s = frame_stats(pred[j], gt[j], small[j])
             if s is None:
                 continue
