@@ -267,7 +267,8 @@ BORDER_BANDS = ("top", "bottom", "left", "right")
 
 def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band: float = 0.1,
                      min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
-                     groups: list[str] | None = None, n_boot: int = 2000, progress: bool = False) -> dict:
+                     groups: list[str] | None = None, clusters: list | None = None, n_boot: int = 2000,
+                     progress: bool = False) -> dict:
     """Is a predictor biased near the image border? Per-pixel log errors averaged over ``dataset``.
 
     Each frame's prediction is median-scaled to its ground truth (as the metrics see it); then
@@ -276,20 +277,26 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
     fraction of rows/columns on each side and over the centre (the middle half in both axes),
     "ratios": each border band's mean |e| over the centre's, "intervals": for each band, the 95%
     percentile bootstrap interval of its ratio over frames (``n_boot`` resamples of the frames
-    with replacement, seeded), so that a ratio's distance from a goal can be told from which
-    frames happen to be in the set, "frame_bands": {region: each frame's mean |e| there} and
+    with replacement, seeded; of whole clusters when ``clusters`` is given), so that a ratio's
+    distance from a goal can be told from which frames happen to be in the set, "frame_bands": {region: each frame's mean |e| there} and
     "frame_index": those frames' places in ``dataset`` (a frame with no valid pixel is left out),
     to find the frames that weigh most in a band}. Frames must share one size.
 
     groups: one label per frame (in dataset order), e.g. the view kind of each synthetic frame;
     then out["groups"] = {label: {"frames", "bands", "ratios", "signed"}} holds the same region
     means per label, "signed" being the mean e per region (negative: too near).
+
+    clusters: one label per frame (in dataset order) for frames that are not independent draws,
+    e.g. the scene of each synthetic frame (its frames share one tube, texture and camera path);
+    the interval then resamples whole clusters, as :func:`bootstrap_band_ratios` says.
     """
     from tqdm.auto import tqdm
 
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=collate)
     if groups is not None and len(groups) != len(dataset):
         raise ValueError(f"border_error_map: {len(groups)} group labels for {len(dataset)} frames")
+    if clusters is not None and len(clusters) != len(dataset):
+        raise ValueError(f"border_error_map: {len(clusters)} cluster labels for {len(dataset)} frames")
     signed = absolute = count = None
     per_group: dict[str, list] = {}  # label -> [signed sum, |e| sum, count, frames]
     per_frame: list[np.ndarray] = []  # each frame's (|e| sum, count) per region, for the bootstrap
@@ -332,7 +339,8 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
         out = {"signed": signed / count, "abs": absolute / count, "count": count}
     out["bands"], out["ratios"] = border_bands(absolute, count, band)
     stacked = np.stack(per_frame)  # (frames, 5 regions, (|e| sum, count))
-    out["intervals"] = bootstrap_band_ratios(stacked, n_boot=n_boot)
+    out["intervals"] = bootstrap_band_ratios(
+        stacked, n_boot=n_boot, clusters=None if clusters is None else [clusters[i] for i in frame_index])
     with np.errstate(invalid="ignore", divide="ignore"):
         out["frame_bands"] = {k: stacked[:, i, 0] / stacked[:, i, 1] for i, k in enumerate(band_regions(1, 1))}
     out["frame_index"] = np.array(frame_index)
@@ -355,13 +363,25 @@ def band_regions(H: int, W: int, band: float = 0.1) -> dict[str, tuple[slice, sl
 
 
 def bootstrap_band_ratios(per_frame: np.ndarray, n_boot: int = 2000, level: float = 0.95,
-                          seed: int = 0) -> dict[str, tuple[float, float]]:
+                          seed: int = 0, clusters: list | None = None) -> dict[str, tuple[float, float]]:
     """Percentile bootstrap interval of each border band's ratio (band mean |e| / centre mean |e|).
 
     per_frame: (frames, 5, 2) array of each frame's (|e| sum, valid count) in the regions of
     ``band_regions`` (in its order). Frames are resampled with replacement; each resample's ratio
     pools its frames' sums as ``border_bands`` pools the whole set's.
+
+    clusters: one label per frame. Then whole clusters are resampled (a cluster bootstrap): frames
+    of one scene resemble each other, so resampling them one by one treats them as more
+    independent draws than they are and gives too narrow an interval.
     """
+    if clusters is not None:
+        if len(clusters) != per_frame.shape[0]:
+            raise ValueError(f"bootstrap_band_ratios: {len(clusters)} cluster labels for {per_frame.shape[0]} frames")
+        labels = list(dict.fromkeys(clusters))  # in order of first appearance
+        where = {c: i for i, c in enumerate(labels)}
+        summed = np.zeros((len(labels),) + per_frame.shape[1:])
+        np.add.at(summed, [where[c] for c in clusters], per_frame)
+        per_frame = summed  # a cluster's sums pool like one frame's
     n = per_frame.shape[0]
     if n_boot <= 0 or n == 0:
         return {}

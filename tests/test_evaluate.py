@@ -233,6 +233,33 @@ def test_border_ratio_intervals_resample_frames():
     assert evaluate.border_error_map(pred, _NumberedFrames(n=2), n_boot=0)["intervals"] == {}
 
 
+def test_border_ratio_intervals_resample_whole_clusters():
+    """Six frames, three copies each of the two frames above (left-band ratios 3 and 1). Resampled
+    one by one, the six look like six draws and the interval is narrower than [1, 3]; resampled as
+    the two clusters they are, the interval is the two frames' [1, 3] again. One label per frame
+    is a cluster bootstrap that equals the frame bootstrap."""
+    H = W = 40
+    errors = [torch.zeros(H, W), torch.zeros(H, W)]
+    for err, left in zip(errors, (0.3, 0.1)):
+        err[10:30, 10:30] = 0.1
+        err[:, :4] = left
+
+    def pred(images):
+        return torch.stack([2.0 * torch.exp(errors[int(x[0, 0, 0]) % 2])[None] for x in images])
+
+    ds = _NumberedFrames(n=6)
+    frames = evaluate.border_error_map(pred, ds, n_boot=4000)
+    scenes = evaluate.border_error_map(pred, ds, n_boot=4000, clusters=["a", "b"] * 3)
+    assert frames["ratios"] == scenes["ratios"] and scenes["ratios"]["left"] == pytest.approx(2.0)
+    lo, hi = frames["intervals"]["left"]
+    assert 1.2 < lo < hi < 2.8               # a draw of six holds both kinds of frame but rarely
+    assert scenes["intervals"]["left"] == pytest.approx((1.0, 3.0))
+    own = evaluate.border_error_map(pred, ds, n_boot=4000, clusters=list(range(6)))
+    assert own["intervals"] == frames["intervals"]
+    with pytest.raises(ValueError, match="5 cluster labels for 6 frames"):
+        evaluate.border_error_map(pred, ds, clusters=list(range(5)))
+
+
 def test_cached_predictor_predicts_each_batch_once():
     """The metrics and then the border map over the same frames: the wrapped predictor sees each
     batch once, and both results equal those of the bare predictor."""
