@@ -244,8 +244,14 @@ def test_score_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, smoke
     plain = load("network_experiment.py")["score_validation"](net, cfg)
     assert rows[0]["val_abs_rel"] == plain["val_abs_rel"] and rows[0]["val_rmse"] == plain["val_rmse"]
     assert rows[1]["val_abs_rel"] != rows[0]["val_abs_rel"]
+    from geodepth_lite import evaluate
+    n_test = len(evaluate.open_eval_dataset(str(smoke_root), split="test"))
     for row in rows:
         assert row["test_border_worst"] == max(row["test_border"].values()) and 0 < row["closeup_abs_rel"]
+        assert row["test_frames"] == n_test
+    assert g["main"](["tiny", "--flips", "none", "--tag", "t2", "--log", str(log)]) == 0
+    tagged = json.loads(log.read_text().splitlines()[-1])
+    assert tagged["name"] == "tiny_flips_none_t2" and tagged | {"name": 0, "minutes": 0} == rows[0] | {"name": 0, "minutes": 0}
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
         g["main"](["missing", "--log", str(log)])
 
