@@ -4,9 +4,10 @@
 
 RUN is a ``runs/tune/NAME`` folder name or the path of a checkpoint.pt (e.g. the teach ``predict``
 model in ``runs/teach/checkpoints``). For each run and each flips setting one row named
-``<NAME>_flips_<flips>`` (``..._<TAG>`` with ``--tag``) is appended to ``benchmarks/tuning_log.jsonl``: the validation split's
-Abs Rel, RMSE and border band ratios (what a choice is made on), and, recorded beside them, Abs Rel
-on the teach profile's ``heldout_closeup`` set and the test split's Abs Rel and worst border band.
+``<NAME>_flips_<flips>`` (``..._<TAG>`` with ``--tag``) is appended to ``benchmarks/tuning_log.jsonl``:
+the validation split's Abs Rel, RMSE and border band ratios (what a choice is made on), and, recorded
+beside them, Abs Rel on the teach profile's ``heldout_closeup`` set and the test split's Abs Rel, worst
+border band and frame count.
 No weights change: the same network predicts each frame as the mean over the mirrorings.
 ``--input-pad`` is for runs of ``exp_padded_training.py``, whose network mirrors its input without
 the setting in its configuration.
@@ -32,7 +33,8 @@ RECORD_NOTE = ("no training: {name} predicted with test-time flips '{flips}'; ch
 
 def score(net, cfg: dict, name: str, flips: str, closeups, test, tag: str = "") -> dict:
     start = time.perf_counter()
-    row = {"name": f"{name}_flips_{flips}" + (f"_{tag}" if tag else ""), "case": cfg["case"], "seed": cfg["seed"], "flips": flips,
+    row = {"name": f"{name}_flips_{flips}" + (f"_{tag}" if tag else ""), "case": cfg["case"], "seed": cfg["seed"],
+           "flips": flips,
            "settings": {k: cfg[k] for k in ("image_size", "threads", "border_weight", "input_pad") if k in cfg}}
     row |= network_experiment.score_validation(net, cfg, flips)
 

@@ -278,9 +278,10 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
     "ratios": each border band's mean |e| over the centre's, "intervals": for each band, the 95%
     percentile bootstrap interval of its ratio over frames (``n_boot`` resamples of the frames
     with replacement, seeded; of whole clusters when ``clusters`` is given), so that a ratio's
-    distance from a goal can be told from which frames happen to be in the set, "frame_bands": {region: each frame's mean |e| there} and
-    "frame_index": those frames' places in ``dataset`` (a frame with no valid pixel is left out),
-    to find the frames that weigh most in a band}. Frames must share one size.
+    distance from a goal can be told from which frames happen to be in the set, "frame_bands":
+    {region: each frame's mean |e| there} and "frame_index": those frames' places in ``dataset``
+    (a frame with no valid pixel is left out), to find the frames that weigh most in a band}.
+    Frames must share one size.
 
     groups: one label per frame (in dataset order), e.g. the view kind of each synthetic frame;
     then out["groups"] = {label: {"frames", "bands", "ratios", "signed"}} holds the same region

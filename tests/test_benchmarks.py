@@ -251,7 +251,8 @@ def test_score_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, smoke
         assert row["test_frames"] == n_test
     assert g["main"](["tiny", "--flips", "none", "--tag", "t2", "--log", str(log)]) == 0
     tagged = json.loads(log.read_text().splitlines()[-1])
-    assert tagged["name"] == "tiny_flips_none_t2" and tagged | {"name": 0, "minutes": 0} == rows[0] | {"name": 0, "minutes": 0}
+    same = {"name": 0, "minutes": 0}
+    assert tagged["name"] == "tiny_flips_none_t2" and tagged | same == rows[0] | same
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
         g["main"](["missing", "--log", str(log)])
 
