@@ -138,12 +138,15 @@ def beats_baselines(result: dict, set_name: str, metric: str = "abs_rel", margin
     return {run: scores[set_name][metric] <= (1 - margin) * best for run, scores in result["scores"].items()}
 
 
+PAIRED_METRICS = ("abs_rel", "rmse")  # the metrics whose paired intervals decide the verdicts
+
+
 def claims(result: dict, margin: float = 0.2) -> list[str]:
     """The ablation's conclusions as sentences: verdict per claim and set, and how every run stands
     against the baselines. Computed from the numbers; the notebook prints them as they come."""
     lines = []
     for set_name in result["baselines"]:
-        for metric in ("abs_rel", "rmse"):
+        for metric in PAIRED_METRICS:
             for c in result["cases"]:
                 if c == 1:
                     continue
@@ -167,4 +170,22 @@ def record(result: dict, digits: int = 4) -> dict[str, float]:
     """
     tree = {f"case{c} seed{s}": sets for (c, s), sets in sorted(result["scores"].items())}
     tree["baselines"] = result["baselines"]
-    return evaluate.flat_record(tree, digits)
+    out = evaluate.flat_record(tree, digits)
+    out |= paired_bounds(result)
+    return out
+
+
+def paired_bounds(result: dict) -> dict[str, float]:
+    """The ends of every verdict's interval, in percent of Case 1's mean, rounded to 0.01:
+    {"paired | <set> | <metric> | case<k> | low %": ..., "... | high %": ...}. A verdict is only as
+    firm as its interval's distance from zero, so the record carries the interval, not only the word."""
+    out = {}
+    for set_name in result["baselines"]:
+        for metric in PAIRED_METRICS:
+            for c in result["cases"]:
+                if c == 1:
+                    continue
+                p = paired(result, metric, set_name, c)
+                out[f"paired | {set_name} | {metric} | case{c} | low %"] = round(p["rel_low"], 2)
+                out[f"paired | {set_name} | {metric} | case{c} | high %"] = round(p["rel_high"], 2)
+    return out

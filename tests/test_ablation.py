@@ -58,6 +58,9 @@ def test_baselines_margin_and_record():
     rec = ablation.record(r)
     assert rec[f"case1 seed2 | {ablation.IN_DOMAIN} | abs_rel"] == 0.2
     assert rec[f"baselines | {ablation.IN_DOMAIN} | shading_prior | abs_rel"] == 0.16
+    # Case 2 is 0.1 better at every seed: its interval is that point, -0.1 / 0.15 (Case 1's mean) = -66.67%
+    for end in ("low", "high"):
+        assert rec[f"paired | {ablation.IN_DOMAIN} | abs_rel | case2 | {end} %"] == -66.67
     lines = ablation.claims(r)
     assert any("Case 2 vs Case 1 -> reproduced" in line for line in lines)
     assert (f"{ablation.IN_DOMAIN}: runs below every baseline in Abs Rel: 5 of 6; "

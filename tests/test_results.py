@@ -37,6 +37,7 @@ beside it (0.096) needs no training.
 
 import json
 import os
+import re
 from pathlib import Path
 
 import nbformat
@@ -51,6 +52,7 @@ DEFAULT_ABS_TOL = 0.045  # other numbers of the records (notebook 07: one frame'
 SCALE_CV_TOL = (0.05, 0.40)  # (absolute, relative) for notebook 07's spread of the per-frame scale ratio
 BY_VIEW_TOL = (0.15, 0.20)  # (absolute, relative) for notebook 06's border ratios by view kind
 BORDER_TOL = (0.06, 0.05)  # (absolute, relative) for its pooled border ratios
+PAIRED_TOL = 2.0  # percentage points, for the ends of notebook 05's paired intervals ("paired | ...")
 ABS_TOL = {"abs_rel": 0.01, "sq_rel": 0.02, "rmse": 0.05, "rmse_log": 0.015, "a1": 0.02, "a2": 0.015, "a3": 0.01}
 
 
@@ -75,11 +77,38 @@ def reproduced_copy(path: Path, nb):
     return done if code(done) == code(nb) else None
 
 
+def verdict_lines(nb) -> list[str] | None:
+    """The printed lines of the notebook's "# verdicts" cell (notebook 05), or None if it has none."""
+    for cell in nb.cells:
+        if cell.cell_type == "code" and cell.source.lstrip().startswith("# verdicts"):
+            return "".join(o.get("text", "") for o in cell.get("outputs", []) if o.get("name") == "stdout").splitlines()
+    return None
+
+
+VERDICT_LINE = re.compile(r"^(?P<set>.+), (?P<label>[^,]+): Case (?P<case>\d+) vs Case 1 -> ")
+
+
+def verdict_may_change(line: str, record: dict) -> bool:
+    """True when ``line`` is a verdict whose interval ends within tolerance of zero in ``record``:
+    "reproduced" means the interval's upper end is below zero and "opposite" that its lower end
+    is above, so an end that close to zero may cross it on another computer and change the word."""
+    m = VERDICT_LINE.match(line)
+    if m is None:
+        return False
+    from geodepth_lite import evaluate
+
+    metric = {label: key for key, label in evaluate.METRIC_LABELS.items()}[m["label"]]
+    ends = [f"paired | {m['set']} | {metric} | case{m['case']} | {end} %" for end in ("low", "high")]
+    return any(abs(record[k]) <= tolerance(k, record[k]) for k in ends)
+
+
 def tolerance(key: str, committed: float) -> float:
     if key.startswith("border/") and key.count("/") == 3:  # border/<set>/<view kind>/<band>
         return BY_VIEW_TOL[0] + BY_VIEW_TOL[1] * abs(committed)
     if key.startswith("border/") and key.count("/") == 2:  # border/<set>/<band>
         return BORDER_TOL[0] + BORDER_TOL[1] * abs(committed)
+    if key.startswith("paired |"):
+        return PAIRED_TOL
     if key.startswith("scale ratio cv"):
         return SCALE_CV_TOL[0] + SCALE_CV_TOL[1] * abs(committed)
     parts = [p.strip() for p in key.split("|")]
@@ -95,6 +124,22 @@ def test_tolerance_by_kind_of_number():
     assert tolerance("border/close-ups/papilla/left", 2.0) == pytest.approx(0.15 + 0.4)
     assert tolerance("scale ratio cv, network", 0.25) == pytest.approx(0.05 + 0.1)
     assert tolerance("frame 0 abs_rel", 0.1) == pytest.approx(0.045 + 0.005)
+    assert tolerance("paired | test split | rmse | case3 | high %", -0.7) == PAIRED_TOL
+
+
+def test_a_verdict_may_change_only_where_its_interval_ends_near_zero():
+    near, far = PAIRED_TOL / 2, PAIRED_TOL + 1.0
+    key = "paired | {} | {} | case{} | {} %".format
+    record = {key("test split", "rmse", 3, "low"): -5.0 - far, key("test split", "rmse", 3, "high"): -near,
+              key("test split", "abs_rel", 2, "low"): -9.0 - far, key("test split", "abs_rel", 2, "high"): -far,
+              key("held-out T x L", "rmse", 4, "low"): -far, key("held-out T x L", "rmse", 4, "high"): far,
+              key("held-out T x L", "abs_rel", 4, "low"): near, key("held-out T x L", "abs_rel", 4, "high"): far}
+    assert verdict_may_change("test split, RMSE: Case 3 vs Case 1 -> reproduced", record)  # upper end near zero
+    assert not verdict_may_change("test split, Abs Rel: Case 2 vs Case 1 -> reproduced", record)
+    assert not verdict_may_change("held-out T x L, RMSE: Case 4 vs Case 1 -> undecided at this power", record)
+    assert verdict_may_change("held-out T x L, Abs Rel: Case 4 vs Case 1 -> opposite", record)  # lower end near
+    assert not verdict_may_change("test split: runs below every baseline in Abs Rel: 12 of 12; at least 20% "
+                                  "below the best baseline: 12 of 12", record)
 
 
 def test_records_exist():
@@ -132,14 +177,20 @@ def test_record_matches_committed(path, tmp_path, monkeypatch, teach_models):
     nb = nbformat.read(str(path), as_version=4)
     committed = record_of(nb)
     done = reproduced_copy(path, nb)
-    if done is not None:  # `reproduce` executed this very notebook on this machine: use its record
-        fresh = record_of(done)
-    else:
+    if done is None:  # else `reproduce` executed this very notebook on this machine: use its outputs
         out = tmp_path / path.name
         pm.execute_notebook(str(path), str(out), parameters={"run_dir": str(tmp_path / "run")},
                             kernel_name="python3", progress_bar=False, cwd=str(path.parent))
-        fresh = record_of(nbformat.read(str(out), as_version=4))
+        done = nbformat.read(str(out), as_version=4)
+    fresh = record_of(done)
     assert sorted(fresh) == sorted(committed), "the record's entries changed: re-execute the notebook"
     bad = [f"{k}: committed {committed[k]}, now {fresh[k]} (tolerance {tolerance(k, committed[k]):.3f})"
            for k in committed if abs(fresh[k] - committed[k]) > tolerance(k, committed[k])]
     assert not bad, f"{len(bad)} of {len(committed)} numbers outside tolerance:\n" + "\n".join(bad[:20])
+    # the verdicts: word for word, but where an interval ends within tolerance of zero
+    lines = verdict_lines(nb)
+    if lines is not None:
+        now = verdict_lines(done)
+        assert len(now) == len(lines), "the verdicts changed in number: re-execute the notebook"
+        moved = [f"{a!r} -> {b!r}" for a, b in zip(lines, now) if a != b and not verdict_may_change(a, committed)]
+        assert not moved, "verdicts changed whose intervals end far from zero:\n" + "\n".join(moved)
