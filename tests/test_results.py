@@ -16,7 +16,17 @@ what ``perturbed-pytest`` does) moved the final validation Abs Rel from 0.1034 t
 RMSE from 0.809 to 0.821 (benchmarks/tuning_log.jsonl, runs r3_c1_e8 and r3_c1_e8_avx2). The
 tolerance for Abs Rel at 0.10 is 0.015, about ten times that shift and still less than a
 quarter of the gap between the trained models and the best baseline (the shading prior, 0.16).
-The verdicts and the standing against the baselines are strict nbval outputs in the notebooks.
+The standing against the baselines is a strict nbval output in the notebooks.
+
+Notebook 05's verdicts rest on 95% intervals over three paired seeds, whose ends are in the record
+("paired | <set> | <metric> | case<k> | low %" / "high %", percent of Case 1's mean). Retraining the
+twelve runs under the same AVX2 cap moved those ends by up to 4.27 points (test split, RMSE, Case 3:
+[-5.11, -0.73] -> [-9.38, +1.93], which turns its verdict from "reproduced" to "undecided at this
+power"): another kernel set is in effect another draw of the seeds. Their tolerance, PAIRED_TOL,
+is 8.5 points, twice that. The verdict lines are compared word for word, except a verdict whose
+interval has an end within PAIRED_TOL of zero, where the word decides on a sign that another
+computer may flip. At three seeds that is every verdict of the teach profile, so there the test
+holds the interval ends to PAIRED_TOL and lets the words follow them.
 
 Notebook 06's border ratios by view kind ("border/<set>/<view>/<band>") divide by the centre's
 error of a subset of 15-127 frames, which is small in wall-facing views (0.06-0.09), so they move
@@ -52,7 +62,7 @@ DEFAULT_ABS_TOL = 0.045  # other numbers of the records (notebook 07: one frame'
 SCALE_CV_TOL = (0.05, 0.40)  # (absolute, relative) for notebook 07's spread of the per-frame scale ratio
 BY_VIEW_TOL = (0.15, 0.20)  # (absolute, relative) for notebook 06's border ratios by view kind
 BORDER_TOL = (0.06, 0.05)  # (absolute, relative) for its pooled border ratios
-PAIRED_TOL = 2.0  # percentage points, for the ends of notebook 05's paired intervals ("paired | ...")
+PAIRED_TOL = 8.5  # percentage points, for the ends of notebook 05's paired intervals ("paired | ...")
 ABS_TOL = {"abs_rel": 0.01, "sq_rel": 0.02, "rmse": 0.05, "rmse_log": 0.015, "a1": 0.02, "a2": 0.015, "a3": 0.01}
 
 
