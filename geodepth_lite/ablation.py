@@ -141,17 +141,21 @@ def beats_baselines(result: dict, set_name: str, metric: str = "abs_rel", margin
 PAIRED_METRICS = ("abs_rel", "rmse")  # the metrics whose paired intervals decide the verdicts
 
 
-def claims(result: dict, margin: float = 0.2) -> list[str]:
-    """The ablation's conclusions as sentences: verdict per claim and set, and how every run stands
-    against the baselines. Computed from the numbers; the notebook prints them as they come."""
-    lines = []
+def comparisons(result: dict):
+    """Every claim the verdicts judge, in their order: (set, metric, case, ``paired(...)``) for each
+    evaluation set, each of PAIRED_METRICS and each case against Case 1."""
     for set_name in result["baselines"]:
         for metric in PAIRED_METRICS:
             for c in result["cases"]:
-                if c == 1:
-                    continue
-                p = paired(result, metric, set_name, c)
-                lines.append(f"{set_name}, {evaluate.METRIC_LABELS[metric]}: Case {c} vs Case 1 -> {p['verdict']}")
+                if c != 1:
+                    yield set_name, metric, c, paired(result, metric, set_name, c)
+
+
+def claims(result: dict, margin: float = 0.2) -> list[str]:
+    """The ablation's conclusions as sentences: verdict per claim and set, and how every run stands
+    against the baselines. Computed from the numbers; the notebook prints them as they come."""
+    lines = [f"{set_name}, {evaluate.METRIC_LABELS[metric]}: Case {c} vs Case 1 -> {p['verdict']}"
+             for set_name, metric, c, p in comparisons(result)]
     for set_name in result["baselines"]:
         ok = beats_baselines(result, set_name, "abs_rel", 0.0)
         strong = beats_baselines(result, set_name, "abs_rel", margin)
@@ -180,12 +184,7 @@ def paired_bounds(result: dict) -> dict[str, float]:
     {"paired | <set> | <metric> | case<k> | low %": ..., "... | high %": ...}. A verdict is only as
     firm as its interval's distance from zero, so the record carries the interval, not only the word."""
     out = {}
-    for set_name in result["baselines"]:
-        for metric in PAIRED_METRICS:
-            for c in result["cases"]:
-                if c == 1:
-                    continue
-                p = paired(result, metric, set_name, c)
-                out[f"paired | {set_name} | {metric} | case{c} | low %"] = round(p["rel_low"], 2)
-                out[f"paired | {set_name} | {metric} | case{c} | high %"] = round(p["rel_high"], 2)
+    for set_name, metric, c, p in comparisons(result):
+        out[f"paired | {set_name} | {metric} | case{c} | low %"] = round(p["rel_low"], 2)
+        out[f"paired | {set_name} | {metric} | case{c} | high %"] = round(p["rel_high"], 2)
     return out
