@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("geodepth_lite.evaluate", "evaluate a checkpoint with the seven depth metrics"),
     "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
     "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
+    "convert-checkpoint": ("geodepth_lite.checkpoint", "rewrite checkpoints of the first format so they load safely"),
 }
 
 
@@ -47,8 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help=f"show the full traceback of an error (also: {DEBUG_ENV}=1)")
         module = importlib.import_module(module_name)
-        getattr(module, f"add_arguments_{name}")(p)
-        p.set_defaults(_run=getattr(module, f"run_{name}"))
+        ident = name.replace("-", "_")
+        getattr(module, f"add_arguments_{ident}")(p)
+        p.set_defaults(_run=getattr(module, f"run_{ident}"))
     return parser
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -242,7 +243,8 @@ def validate_config(cfg: dict) -> dict:
     cfg["input_pad"] = int(pad)
     for key in ("lr", "weight_decay"):
         v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0 or (key == "lr" and v == 0):
+        if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0
+                or (key == "lr" and v == 0)):
             raise ValueError(f"{key} must be a {'positive' if key == 'lr' else 'non-negative'} number, got {v!r}")
         cfg[key] = float(v)
     betas = cfg["betas"]
@@ -253,6 +255,8 @@ def validate_config(cfg: dict) -> dict:
     if not isinstance(lam, (list, tuple, dict)):
         raise ValueError(f"lambdas must be the loss weights by group name or in group order, got {lam!r}")
     cfg["lambdas"] = list(group_weights(lam).values())  # in group order: [lambda1, lambda2, lambda3]
+    if not all(math.isfinite(float(w)) and float(w) >= 0 for w in cfg["lambdas"]):
+        raise ValueError(f"lambdas must be finite non-negative numbers, got {lam!r}")
     if isinstance(cfg["seed"], bool) or not isinstance(cfg["seed"], (int, np.integer)) or cfg["seed"] < 0:
         raise ValueError(f"seed must be a non-negative integer, got {cfg['seed']!r}")
     cfg["seed"] = int(cfg["seed"])

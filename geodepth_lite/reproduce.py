@@ -232,6 +232,8 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
     for nb in selected:
         p = {"profile": profile, "run_dir": str(out), **per_nb[nb]}
         plan.append((nb, p, (not force) and _is_done(out, nb, p)))
+    for c, s, o in training_runs(profile, [(nb, p) for nb, p, _ in plan])[0]:
+        config.make_config(profile, c, s, **o)  # a bad case or seed is refused now, dry run or not
     if dry_run:
         for nb, p, done in plan:
             print(f"{'skip' if done else 'run '} {nb.name} {p}")

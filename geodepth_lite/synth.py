@@ -745,10 +745,33 @@ def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path
         stem += "-" + hashlib.sha256(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:8]
     out = Path(root) / stem if root is not None else data_dir() / stem
     if not is_complete(out, m):
-        # the workspace's data/ is a cache this package owns: a dataset left there by an older
-        # recipe (e.g. an edited manifest) is replaced; a folder holding anything else is refused
-        generate(m, out, progress=progress, overwrite=(out / "manifest.json").is_file())
+        _refuse_other_dataset(out, m, name, overrides)
+        generate(m, out, progress=progress)  # a partial dataset of the same manifest is completed
     return out
+
+
+def _refuse_other_dataset(out: Path, m: dict, name: str, overrides: dict | None) -> None:
+    """Refuse to replace a dataset of another manifest found where ``name``'s belongs: name both
+    manifests and say how to regenerate, deleting nothing (it may be hours of rendering)."""
+    mpath = out / "manifest.json"
+    if not mpath.is_file():
+        return
+    try:
+        old = json.loads(mpath.read_text())
+    except (OSError, json.JSONDecodeError):
+        old = None
+    if old == m:
+        return
+    if isinstance(old, dict):
+        frames = sum(old.get("splits", {}).values()) if isinstance(old.get("splits"), dict) else "?"
+        found = f"manifest {old.get('name', '?')!r} with {frames} frames"
+    else:
+        found = "an unreadable manifest.json"
+    how = ("delete that folder" if overrides else
+           f"run `python -m geodepth_lite synth --manifest {name} --out {out} --overwrite`, or delete that folder")
+    raise FileExistsError(f"{out} holds another dataset ({found}) than manifest {m.get('name', name)!r} "
+                          f"({sum(m['splits'].values())} frames) asks for; nothing was deleted. "
+                          f"To regenerate it: {how}")
 
 
 def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, seed: int = 0,

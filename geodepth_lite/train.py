@@ -124,6 +124,23 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
         torch.set_num_threads(threads_before)
 
 
+def worker_batches(loader):
+    """The batches of ``loader``; when the loop stops early (an error), its worker processes are shut
+    down at once, so that they exit cleanly and remove their temporary folders (``/tmp/pymp-*``)
+    instead of being killed at interpreter exit."""
+    batches = iter(loader)
+    try:
+        yield from batches
+    finally:
+        shutdown = getattr(batches, "_shutdown_workers", None)  # multi-process loaders only
+        if shutdown is not None:
+            shutdown()
+
+
+class TrainingDiverged(ValueError):
+    """A non-finite loss or weight: training stops at once, naming the epoch, step, term and lr."""
+
+
 class Trainer:
     """One training run: ``train`` -> ``run_epoch`` -> ``process_batch`` -> ``compute_losses``."""
 
@@ -137,9 +154,15 @@ class Trainer:
         self.ckpt_path = run_dir / ckpt_io.CHECKPOINT_NAME
 
     def train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
+        """Rank 0 holds the run folder's lock for the whole run (``checkpoint.run_folder``)."""
+        if not self.is_main:
+            return self._train(resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
+        with ckpt_io.run_folder(self.run_dir):
+            return self._train(resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
+
+    def _train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
         cfg = self.cfg
-        if self.is_main:  # half-written checkpoint/log files of a run killed while saving (never a final name)
-            utils.make_dir(self.run_dir)  # a file in the way is named now, not after an epoch of work
+        if self.is_main:  # half-written checkpoint/log files of a run killed while saving (under the lock only)
             stale = utils.remove_stale_temps(self.run_dir)
             if stale:
                 print(f"removed {stale} half-written temporary file(s) of an interrupted save in {self.run_dir}")
@@ -149,7 +172,7 @@ class Trainer:
             if not resume:
                 raise FileExistsError(f"{self.ckpt_path} exists: pass --resume to continue it, "
                                       "or choose another --run-dir")
-            state = ckpt_io.read_checkpoint(self.ckpt_path)
+            state = ckpt_io.read_checkpoint(self.ckpt_path, for_resume=True)
             if config.config_identity(config.validate_config(state["cfg"])) != config.config_identity(cfg):
                 diff = [k for k in config.IDENTITY_KEYS if state["cfg"].get(k) != cfg.get(k)]
                 raise ValueError(f"cannot resume {self.ckpt_path}: its configuration differs in {', '.join(diff)}")
@@ -168,23 +191,15 @@ class Trainer:
                            weight_decay=cfg["weight_decay"])
         self.scaler = torch.amp.GradScaler(
             "cuda", enabled=self.device.type == "cuda" and not torch.cuda.is_bf16_supported())
+        if self.is_main:  # room for the first checkpoint, before the first epoch
+            utils.check_output_dir(self.run_dir, need_bytes=ckpt_io.checkpoint_bytes(self.model))
         self.make_loader()
         total_steps = cfg["epochs"] * len(self.loader)
         self.schedule = torch.optim.lr_scheduler.LambdaLR(
             self.opt, lambda step: get_lr_factor(step, total_steps, cfg["lr_schedule"]))
         # 4. resume: every state as it was after the last finished epoch
         self.history: list[dict] = []
-        start = 0
-        if state is not None:
-            self.model.load_state_dict(state["model"])
-            self.opt.load_state_dict(state["optimizer"])
-            self.schedule.load_state_dict(state["schedule"])
-            self.scaler.load_state_dict(state["scaler"])
-            ckpt_io.set_rng_state(state["rng"], self.loader_gen)
-            self.history = list(state["history"])
-            start = int(state["epoch"])
-            if self.is_main:
-                print(f"resuming {self.ckpt_path} after epoch {start}/{cfg['epochs']}")
+        start = 0 if state is None else self.restore(state)
         self.net = torch.nn.parallel.DistributedDataParallel(self.model) if self.distributed else self.model
         # 5. the epochs, a checkpoint after each
         for done, epoch in enumerate(range(start, cfg["epochs"]), start=1):
@@ -196,6 +211,22 @@ class Trainer:
             if stop_after is not None and done >= stop_after:
                 break
         return self.ckpt_path
+
+    def restore(self, state: dict) -> int:
+        """Every state as it was after the checkpoint's last epoch; returns that epoch."""
+        ckpt_io.load_weights(self.model, state["model"], self.ckpt_path)
+        try:
+            self.opt.load_state_dict(state["optimizer"])
+            self.schedule.load_state_dict(state["schedule"])
+            self.scaler.load_state_dict(state["scaler"])
+            ckpt_io.set_rng_state(state["rng"], self.loader_gen)
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise ValueError(f"cannot resume {self.ckpt_path}: its optimizer, schedule or random state "
+                             f"does not fit this run ({type(exc).__name__}: {str(exc).splitlines()[0]})") from None
+        self.history = list(state["history"])
+        if self.is_main:
+            print(f"resuming {self.ckpt_path} after epoch {int(state['epoch'])}/{self.cfg['epochs']}")
+        return int(state["epoch"])
 
     def load_data(self, cache, num_workers: int | None) -> None:
         cfg = self.cfg
@@ -236,9 +267,11 @@ class Trainer:
                    leave=False)
         t_epoch = tick = time.perf_counter()
         grad_norms: dict[str, float] = {}
-        for batch in self.loader:
+        for step, batch in enumerate(worker_batches(self.loader), start=1):
             got = time.perf_counter()
             loss, terms, pred, batch = self.process_batch(batch)
+            if not bool(torch.isfinite(loss)):
+                raise TrainingDiverged(self.divergence_message(epoch, step, terms))
             if not grad_norms:  # the first step of the epoch (at initialisation in epoch 1)
                 grad_norms = term_gradient_norms(pred, batch, cfg)
             self.step(loss)
@@ -252,6 +285,9 @@ class Trainer:
             bar.set_postfix(loss=f"{loss.item():.4f}")
             bar.update()
         bar.close()
+        bad = next((n for n, p in self.model.named_parameters() if not bool(torch.isfinite(p).all())), None)
+        if bad is not None:  # the last step's update broke the weights: stop before validation fails on it
+            raise TrainingDiverged(self.divergence_message(epoch, len(self.loader), {}, weight=bad))
         if self.distributed:
             torch.distributed.all_reduce(sums)
         row: dict[str, Any] = {"epoch": epoch + 1}
@@ -264,6 +300,20 @@ class Trainer:
         row["train_frames_per_s"] = float(sums[-1]) / max(step_total, 1e-9)
         row["data_wait_share"] = wait / max(step_total, 1e-9)
         return row
+
+    def divergence_message(self, epoch: int, step: int, terms: dict, weight: str | None = None) -> str:
+        """One line: where training diverged, which loss term, the learning rate, what was kept."""
+        if weight is not None:
+            what = f"the weights became non-finite (first {weight})"
+        else:
+            bad = [k for k, v in terms.items() if k != "total" and not math.isfinite(float(v))]
+            what = ("the loss term" + ("s " if len(bad) > 1 else " ") + ", ".join(bad) + " became non-finite"
+                    if bad else f"the weighted loss is {float(terms.get('total', float('nan')))}")
+        kept = (f"{self.ckpt_path} (epoch {epoch}) is kept" if epoch and self.ckpt_path.exists()
+                else "no checkpoint was written")
+        return (f"training diverged in {self.run_dir}: epoch {epoch + 1}, step {step} of {len(self.loader)}: "
+                f"{what} at learning rate {self.opt.param_groups[0]['lr']:g}; {kept}. Lower --lr, or check "
+                "the dataset")
 
     def process_batch(self, batch: dict):
         """Augment, forward, losses: (loss, {term: value}, prediction (B, 1, H, W), the batch as seen)."""

@@ -52,12 +52,19 @@ def run_train(args: argparse.Namespace) -> int:
                              encoder_weights=args.encoder_weights)
     run_dir = (Path(args.run_dir) if args.run_dir
                else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}")
-    if not args.no_verify and distributed.is_main_process():
-        # before any work: a changed or missing frame is named now, not as a bad epoch later
-        # (rank 0 builds a missing dataset here; the other ranks find it complete in fit)
-        from geodepth_lite import synth
+    if args.resume and not (run_dir / checkpoint.CHECKPOINT_NAME).is_file():
+        raise FileNotFoundError(f"--resume: no checkpoint to continue in {run_dir} "
+                                f"(no {checkpoint.CHECKPOINT_NAME}); leave out --resume to start a new run")
+    if distributed.is_main_process():
+        # before any work: an unwritable run folder, then a changed or missing frame, is named now, not
+        # after an epoch (rank 0 builds a missing dataset here; the other ranks find it complete in fit)
+        created = utils.missing_dirs(run_dir)
+        utils.check_output_dir(run_dir)
+        utils.remove_empty_dirs(created)  # fit creates it again under its lock; a refused run leaves none
+        if not args.no_verify:
+            from geodepth_lite import synth
 
-        synth.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
+            synth.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
     path = train.fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,
                      num_workers=args.num_workers, cache=False if args.no_cache else "auto")
     if distributed.is_main_process():

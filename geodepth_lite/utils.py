@@ -140,6 +140,122 @@ def make_dir(path: str | os.PathLike) -> Path:
     return path
 
 
+def check_output_dir(path: str | os.PathLike, need_bytes: int = 0) -> Path:
+    """``path`` as a folder that can be written, with ``need_bytes`` free, checked before any work.
+
+    The folder is created (with its parents) if missing, then a small probe file is written
+    and removed, and the free space is compared with ``need_bytes``. On failure a
+    :class:`FileProblem` names the folder, and the folders this call created are removed again,
+    so a refused command leaves nothing behind.
+    """
+    path = Path(path)
+    missing = missing_dirs(path)
+    try:
+        make_dir(path)
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".write-probe.", suffix=".tmp", dir=path)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise FileProblem(f"cannot write into {path}: {os_reason(exc)}", path) from exc
+        if need_bytes > 0:
+            import shutil
+
+            free = shutil.disk_usage(path).free
+            if free < need_bytes:
+                raise FileProblem(f"cannot write into {path}: no space left on device "
+                                  f"({free / 2**20:.1f} MB free, {need_bytes / 2**20:.1f} MB needed)", path)
+    except FileProblem:
+        remove_empty_dirs(missing)
+        raise
+    return path
+
+
+def missing_dirs(path: str | os.PathLike) -> list[Path]:
+    """The folders that creating ``path`` would make: ``path`` and its missing parents, innermost first."""
+    path, out = Path(path).absolute(), []
+    while not path.exists() and path != path.parent:
+        out.append(path)
+        path = path.parent
+    return out
+
+
+def remove_if_empty(path: str | os.PathLike) -> None:
+    """Remove the folder ``path`` if it exists and holds nothing (a refused run's leftover)."""
+    remove_empty_dirs([Path(path)])
+
+
+def remove_empty_dirs(folders: list[Path]) -> None:
+    """Remove each folder of ``folders`` (innermost first) that exists and holds nothing: what a
+    refused command created is taken back; a folder with anything in it stays."""
+    for p in folders:
+        with contextlib.suppress(OSError):
+            p.rmdir()
+
+
+LOCK_NAME = ".lock"  # the lock file a writer holds in its run folder (see FolderLock)
+
+
+class FolderBusy(FileProblem):
+    """Another process holds the folder's lock: one line naming the folder and the holder's PID."""
+
+
+class FolderLock:
+    """One writer per folder: an OS lock (``fcntl.flock``) on ``<folder>/.lock`` for as long as it is held.
+
+    The kernel frees the lock when its holder exits, however it exits (kill -9 included), so a
+    crashed run never leaves the folder locked. A second writer is refused at once with
+    :class:`FolderBusy`, naming the holder's PID (written into the lock file). The lock file
+    stays after release (removing it could let two writers lock two different files); where
+    ``fcntl`` is missing (Windows) the lock is a no-op.
+    """
+
+    def __init__(self, folder: str | os.PathLike, what: str = "run folder"):
+        self.folder, self.what = Path(folder), what
+        self.path = self.folder / LOCK_NAME
+        self._fd: int | None = None
+
+    def acquire(self) -> FolderLock:
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - Windows
+            return self
+        make_dir(self.folder)
+        while True:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, file_mode())
+            except OSError as exc:
+                raise FileProblem(f"cannot write {self.path}: {os_reason(exc)}", self.path) from exc
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+                os.close(fd)
+                raise FolderBusy(f"cannot write into {self.folder}: the {self.what} is in use by process "
+                                 f"{holder}; wait for it to finish, or choose another folder", self.folder) from None
+            try:  # the file we locked must still be the one under the name (not unlinked meanwhile)
+                if os.fstat(fd).st_ino == os.stat(self.path).st_ino:
+                    break
+            except FileNotFoundError:
+                pass
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor frees the flock
+            self._fd = None
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
@@ -172,7 +288,12 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
     except FileProblem:
         raise
     except (OSError, ValueError, EOFError) as exc:  # missing, truncated, or pickled objects
-        reason = os_reason(exc) if isinstance(exc, OSError) else f"damaged .npy file ({exc})"
+        if isinstance(exc, OSError):
+            reason = os_reason(exc)
+        elif "allow_pickle" in str(exc) or "pickle" in str(exc).lower():
+            reason = "it holds pickled Python objects, never loaded (a depth file holds numbers only)"
+        else:
+            reason = f"damaged .npy file ({exc})"
         raise FileProblem(f"cannot read {path}: {reason}", path) from exc
     if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
         raise FileProblem(f"cannot read {path}: not a numeric array", path)

@@ -73,7 +73,8 @@ def test_train_on_a_read_only_or_full_disk(smoke_root, tmp_path, monkeypatch, ca
     argv = ["train", "--profile", "smoke", "--dataset", str(smoke_root), "--image-size", "32", "--run-dir", str(run),
             "--no-progress", "--no-verify"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, "error: cannot write", str(run / "checkpoint.pt"), reason)
+    # read-only: found by the probe before any work; full: at the first checkpoint's flush
+    _one_line_error(capsys, "error: cannot write", str(run if where == "mkstemp" else run / "checkpoint.pt"), reason)
     assert not (run / "checkpoint.pt").exists()
 
 
