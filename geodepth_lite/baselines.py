@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from geodepth_lite import utils
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH
 
 # name -> what it predicts (one line; shown in the evaluate tables' notes)
@@ -109,14 +110,17 @@ def mean_depth_map(train_depths: Iterable | np.ndarray, valid: Iterable | np.nda
 
 def fit_mean_depth_map(root: str | os.PathLike, split: str = "train", image_size=None) -> np.ndarray:
     """``mean_depth_map`` of every frame of a synthetic dataset split (``SyntheticDepthDataset(root,
-    split, image_size)``), reading the depth files one at a time (RGB images are not decoded)."""
+    split, image_size)``), reading the depth files one at a time (RGB images are not decoded).
+
+    Each file is read as the dataset reads it (``utils.read_npy``: never unpickled), so a damaged
+    or foreign depth file is a :class:`utils.FileProblem` naming it."""
     from geodepth_lite.dataset import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(root, split, image_size=image_size)
 
     def depths():
         for rec in ds.frames:
-            d = np.load(ds.root / rec["depth"])
+            d = utils.read_npy(ds.root / rec["depth"])
             yield d if ds.size is None else _resize_depth(d, ds.size)  # as ds[i]["depth"], without the image
 
     return mean_depth_map(depths())

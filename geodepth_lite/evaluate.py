@@ -10,7 +10,8 @@ overall and per group (organ; texture x lighting group).
 
 ``evaluate_model`` is what the notebooks call: it returns plain dicts (no pandas)
 and, given ``out_dir``, writes ``metrics.json``, ``frames.csv`` (one row per
-frame), ``tables.md`` and error-map PNGs laid out like the paper's Fig. 7.
+frame), ``tables.md`` and error-map PNGs laid out like the paper's Fig. 7, as one set:
+all of them or, on a failure, none (an earlier set in that folder is kept whole).
 It is ``evaluate_predictor`` for a network: any function images -> depth is scored
 the same way, which is how the trivial baselines of ``baselines.py`` get their rows.
 """
@@ -18,12 +19,16 @@ the same way, which is how the trivial baselines of ``baselines.py`` get their r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import io
+import json
 import os
+import shutil
+import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 import torch
@@ -206,7 +211,8 @@ def evaluate_predictor(predict_fn: Callable, dataset, *, batch_size: int = 8,
     seven metrics, median-scaling ratio]}. ``baselines`` ({name: result} from
     ``baselines.evaluate_baselines``) is kept under "baselines" and adds rows to the overall
     table. With ``out_dir`` also writes metrics.json, frames.csv, tables.md and
-    ``error_maps`` PNGs (input | GT | prediction | Abs Rel map).
+    ``error_maps`` PNGs (input | GT | prediction | Abs Rel map), as one set or none
+    (``write_results``).
     """
     results, examples = _evaluate({name: predict_fn}, dataset, batch_size=batch_size, error_maps=error_maps,
                                   min_depth=min_depth, max_depth=max_depth, progress=progress,
@@ -497,23 +503,91 @@ def metrics_table(result: dict, by: str | None = None) -> dict:
     return {"columns": columns, "rows": rows}
 
 
-def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict] = (), *,
-                  min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH) -> None:
-    """metrics.json, frames.csv, tables.md and error_maps/*.png in ``out_dir`` (each atomic)."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+OUTPUT_SET = ("metrics.json", "frames.csv", "tables.md", "error_maps")  # one evaluation's files, replaced whole
+STAGING_PREFIX = ".eval-staging-"  # hidden folder in the output folder where a new set is written first
+PREVIOUS_PREFIX = ".eval-previous-"  # hidden folder that holds the replaced set until the new one is in place
+TABLES_BYTES = 4 * 2**20  # room asked for metrics.json, frames.csv and tables.md before any work (a few kB each)
+ERROR_MAP_BYTES = 2**20  # and per error-map PNG (about 0.1-0.3 MB at dpi 80)
+
+
+def output_bytes_needed(error_maps: int) -> int:
+    """A generous estimate of the bytes one evaluation writes: its tables and ``error_maps`` PNGs."""
+    return TABLES_BYTES + max(0, int(error_maps)) * ERROR_MAP_BYTES
+
+
+def _problem_reason(exc: utils.FileProblem) -> str:
+    """The reason part of a :class:`utils.FileProblem` ("no space left on device"), without its path."""
+    cause = exc.__cause__
+    if isinstance(cause, OSError) and not isinstance(cause, utils.FileProblem):
+        return utils.os_reason(cause)
+    text = str(exc)
+    prefix = f"{exc.path}: " if exc.path is not None else ""
+    return text.split(prefix, 1)[1] if prefix and prefix in text else text
+
+
+def prepare_output_dir(out: str | os.PathLike, need_bytes: int = 0) -> Path:
+    """``out`` as a writable folder with ``need_bytes`` free, checked before any work (``utils.check_output_dir``).
+
+    Any refusal is a :class:`utils.FileProblem` reading "cannot write <out>: <reason>" (a file of
+    that name, a read-only or full disk, no permission), and the folders this call created are
+    removed again.
+    """
+    out = Path(out)
+    if os.path.lexists(out) and not out.is_dir():
+        raise utils.FileProblem(f"cannot write {out}: a file of that name exists (the output must be a folder)", out)
+    try:
+        return utils.check_output_dir(out, need_bytes)
+    except utils.FileProblem as exc:
+        raise utils.FileProblem(f"cannot write {out}: {_problem_reason(exc)}", out) from exc
+
+
+def _hidden_folder(out: Path, prefix: str) -> Path:
+    """A new empty hidden folder in ``out`` (same file system, so renames out of it are atomic)."""
+    try:
+        return Path(tempfile.mkdtemp(prefix=prefix, dir=out))
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot write {out}: {utils.os_reason(exc)}", out) from exc
+
+
+def _remove_stale_sets(out: Path) -> None:
+    """Delete the hidden staging / previous-set folders an evaluation killed mid-write left in ``out``."""
+    for prefix in (STAGING_PREFIX, PREVIOUS_PREFIX):
+        for folder in out.glob(prefix + "*"):
+            if folder.is_dir() and not folder.is_symlink():
+                shutil.rmtree(folder, ignore_errors=True)
+
+
+def _remove_path(path: Path) -> None:
+    """Delete a file or a folder tree, if present."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif os.path.lexists(path):
+        path.unlink()
+
+
+@contextlib.contextmanager
+def _staged_file(staging: Path, out: Path, name: str) -> Iterator[Path]:
+    """A temporary path for ``staging/name`` (``utils.atomic_path``: flushed, renamed when complete); a
+    failure is a :class:`utils.FileProblem` naming the file's final place ``out/name``."""
+    try:
+        with utils.atomic_path(staging / name) as tmp:
+            yield tmp
+    except utils.FileProblem as exc:
+        raise utils.FileProblem(f"cannot write {out / name}: {_problem_reason(exc)}", out / name) from exc
+
+
+def _results_files(result: dict) -> dict[str, bytes]:
+    """The text files of a result: {"metrics.json": ..., "frames.csv": ..., "tables.md": ...} as bytes."""
     summary = {k: v for k, v in result.items() if k != "frames"}
     if result.get("baselines"):
         summary["baselines"] = {name: {k: v for k, v in b.items() if k != "frames"}
                                 for name, b in result["baselines"].items()}
-    utils.write_json_atomic(out / "metrics.json", summary)
     fields = ["index", "organ", "group", *METRIC_KEYS, "ratio", "skipped"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     w.writeheader()
     for r in result["frames"]:
         w.writerow({k: (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]) for k in fields if k in r})
-    utils.write_bytes_atomic(out / "frames.csv", buf.getvalue().encode())
     skipped = result.get("skipped", [])
     md = [f"# Evaluation {result.get('name', '')}".rstrip(), "", f"{result['n']} frames; median scaling per frame."
           + (f" {len(skipped)} skipped (no valid ground-truth pixel): {', '.join(skipped)}." if skipped else ""), ""]
@@ -528,15 +602,108 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: list[dict]
                 md.append(f"- `{name}`: {b.get('description', '')}".rstrip())
                 md += [f"  - {note}" for note in b.get("notes", [])]
             md.append("")
-    utils.write_bytes_atomic(out / "tables.md", "\n".join(md).encode())
+    return {"metrics.json": (json.dumps(summary, indent=2) + "\n").encode(), "frames.csv": buf.getvalue().encode(),
+            "tables.md": "\n".join(md).encode()}
+
+
+def _stage_results(result: dict, staging: Path, out: Path, examples: Iterable[dict] = (), *,
+                   min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH) -> None:
+    """Write the whole set (``_results_files`` and one error-map PNG per example) into ``staging``."""
+    for name, data in _results_files(result).items():
+        with _staged_file(staging, out, name) as tmp:
+            tmp.write_bytes(data)
+    examples = list(examples)
     if examples:
         import matplotlib.pyplot as plt  # no backend switch: a notebook's inline figures must keep showing
 
         for ex in examples:
             fig = error_map_figure([ex], min_depth=min_depth, max_depth=max_depth)
-            with utils.atomic_path(out / "error_maps" / f"{ex['index']:06d}.png") as tmp:
-                fig.savefig(tmp, format="png", dpi=80, bbox_inches="tight")
-            plt.close(fig)
+            try:
+                with _staged_file(staging, out, f"error_maps/{ex['index']:06d}.png") as tmp:
+                    fig.savefig(tmp, format="png", dpi=80, bbox_inches="tight")
+            finally:
+                plt.close(fig)
+
+
+def _roll_back(out: Path, previous: Path, moved_aside: list[str], placed: list[str]) -> bool:
+    """Undo a half-done ``_commit_results``: remove the new files put in ``out``, move the old ones back.
+
+    Returns whether every old file is back in place (else some are still in ``previous``)."""
+    ok = True
+    for name in placed:
+        with contextlib.suppress(OSError):
+            _remove_path(out / name)
+    for name in moved_aside:
+        try:
+            os.replace(previous / name, out / name)
+        except OSError:
+            ok = False
+    return ok
+
+
+def _commit_results(staging: Path, out: Path) -> None:
+    """Swap the set in ``staging`` for the one in ``out``: every name of ``OUTPUT_SET``, new or old, at once.
+
+    The old set's entries are first moved aside into a hidden folder, then the new ones moved
+    in, by renames within one file system (no data is written in this phase). If any rename
+    fails, the new entries are removed and the old ones moved back, and a
+    :class:`utils.FileProblem` is raised; on success the old set is deleted.
+    """
+    previous = _hidden_folder(out, PREVIOUS_PREFIX)
+    moved_aside: list[str] = []
+    placed: list[str] = []
+    try:
+        for name in OUTPUT_SET:
+            if os.path.lexists(out / name):
+                os.replace(out / name, previous / name)
+                moved_aside.append(name)
+        for name in OUTPUT_SET:
+            if os.path.lexists(staging / name):
+                os.replace(staging / name, out / name)
+                placed.append(name)
+        utils.fsync_dir(out)
+    except BaseException as exc:
+        restored = _roll_back(out, previous, moved_aside, placed)
+        if restored:
+            shutil.rmtree(previous, ignore_errors=True)
+        if not isinstance(exc, OSError):
+            raise
+        kept = "the previous results are kept" if restored else f"the previous results are in {previous}"
+        raise utils.FileProblem(f"cannot write {out}: {utils.os_reason(exc)} ({kept})", out) from exc
+    shutil.rmtree(previous, ignore_errors=True)
+
+
+def write_results(result: dict, out_dir: str | os.PathLike, examples: Iterable[dict] = (), *,
+                  min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH) -> None:
+    """metrics.json, frames.csv, tables.md and error_maps/*.png in ``out_dir``, as one set or none.
+
+    Guarantee: when this returns, ``out_dir`` holds exactly the new set (``OUTPUT_SET``; the
+    error_maps folder holds this run's PNGs only, none if there are no examples); when it raises
+    (full or read-only disk, an interrupt...), ``out_dir`` holds what it held before, an earlier
+    run's set untouched and nothing new, and folders this call created are removed again.
+
+    How: every file is first written and flushed into a hidden staging folder inside
+    ``out_dir``; only then is the set swapped in by renames (``_commit_results``), which move no
+    data and are undone if one fails. Other files in ``out_dir`` are left alone. Not covered:
+    a power loss or kill -9 during the swap itself (a few renames) can leave part of either
+    set, the rest being in a hidden ``.eval-previous-*`` folder; the next write_results into
+    that folder deletes such leftovers. Two evaluations writing into one folder at the same time
+    are not supported.
+    """
+    out = Path(out_dir)
+    created = utils.missing_dirs(out)
+    try:
+        prepare_output_dir(out)
+        _remove_stale_sets(out)
+        staging = _hidden_folder(out, STAGING_PREFIX)
+        try:
+            _stage_results(result, staging, out, examples, min_depth=min_depth, max_depth=max_depth)
+            _commit_results(staging, out)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+    except BaseException:
+        utils.remove_empty_dirs(created)
+        raise
 
 
 def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, min_depth: float = EVAL_MIN_DEPTH,
@@ -617,7 +784,25 @@ def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
                         help="synthetic datasets: skip checking the files against checksums.sha256 first")
 
 
+def verify_synthetic(dataset: str, split: str, *, own_train: bool = True, progress: bool = False) -> None:
+    """Check a synthetic dataset's files against its checksums (``synth.check_dataset``) before any work:
+    the evaluated ``split``, and its train split (where the mean-depth-map baseline is fitted) when
+    ``own_train`` and the dataset has one."""
+    from geodepth_lite import synth
+
+    path = Path(dataset).expanduser()
+    ds_root = (path if path.is_dir() and (path / "manifest.json").exists()
+               else synth.ensure_dataset(dataset, progress=progress))
+    with_train = own_train and (Path(ds_root) / "train" / "frames.jsonl").is_file()
+    synth.check_dataset(ds_root, {split, "train"} if with_train else {split})
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
+    """``evaluate``: check --out, verify the dataset, score the checkpoint, write the set of result files.
+
+    --out is checked (a folder, writable, room for the tables) before the model is loaded; a run
+    that fails leaves no folder it created behind, and never part of a result set
+    (``write_results``)."""
     from geodepth_lite import loaders
 
     public = args.dataset in loaders.REGISTRY
@@ -640,19 +825,19 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.error_maps < 0:
         raise ValueError(f"--error-maps must be >= 0, got {args.error_maps}")
     out = Path(args.out) if args.out else utils.runs_dir() / "eval" / f"{Path(args.dataset).name}-{args.split}"
-    if not public and not args.no_verify:  # a synthetic dataset: its checksums first, before any work
-        from geodepth_lite import synth
-
-        path = Path(args.dataset).expanduser()
-        ds_root = (path if path.is_dir() and (path / "manifest.json").exists()
-                   else synth.ensure_dataset(args.dataset, progress=not args.no_progress))
-        # the evaluated split, and the train split the mean-depth-map baseline is fitted on
-        own_train = not args.no_baselines and (Path(ds_root) / "train" / "frames.jsonl").is_file()
-        synth.check_dataset(ds_root, {args.split, "train"} if own_train else {args.split})
-    result = evaluate_checkpoint(args.checkpoint, args.dataset, split=args.split, root=args.root, out_dir=out,
-                                 device=args.device, batch_size=args.batch_size, error_maps=args.error_maps,
-                                 progress=not args.no_progress, baselines=not args.no_baselines,
-                                 flips=args.flips, **kw)
+    created = utils.missing_dirs(out)
+    prepare_output_dir(out, output_bytes_needed(args.error_maps))  # before any work: a refusal costs nothing
+    try:
+        if not public and not args.no_verify:  # a synthetic dataset: its checksums first, before any work
+            verify_synthetic(args.dataset, args.split, own_train=not args.no_baselines,
+                             progress=not args.no_progress)
+        result = evaluate_checkpoint(args.checkpoint, args.dataset, split=args.split, root=args.root, out_dir=out,
+                                     device=args.device, batch_size=args.batch_size, error_maps=args.error_maps,
+                                     progress=not args.no_progress, baselines=not args.no_baselines,
+                                     flips=args.flips, **kw)
+    except BaseException:
+        utils.remove_empty_dirs(created)  # a failed run leaves no empty output folder behind
+        raise
     t = metrics_table(result)
     print(markdown_table(t["columns"], t["rows"]))
     print(f"wrote {out / 'metrics.json'}, {out / 'frames.csv'}, {out / 'tables.md'}")
