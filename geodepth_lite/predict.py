@@ -9,20 +9,37 @@ For every frame this writes, into ``--out``:
 - ``<name>_depth.png``: the depth colorized (``viz.colorize_depth``);
 - ``<name>.ply``: the coloured back-projected point cloud (or mesh, ``--ply mesh``).
 
-Frames of any size are resized to the network's input and the prediction back to the
-frame (``inference.predict_depth``); each depth map is the mean of the network's predictions
-for the frame and its three mirror images, mirrored back (``--flips hv``; ``none`` for one
-pass). Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
+Frames of any size from 2 x 2 pixels up are resized to the network's input and the
+prediction back to the frame (``inference.predict_depth``); each depth map is the mean of
+the network's predictions for the frame and its three mirror images, mirrored back
+(``--flips hv``; ``none`` for one pass). Images of 16 bits a sample are scaled to 8 bits
+(``to_rgb8``), not clipped. Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
-degrees). A file that cannot be read or written is reported by name, the others are
-still processed, and the exit status is 1 if any frame failed (2 for a usage error).
+degrees).
+
+Failures: before any work, the inputs are checked and ``--out`` is created, probed for
+writing and for room for one frame's outputs (``utils.check_output_dir``); a refused run
+leaves no folder behind. Half-written temporary files of an interrupted run are removed
+from ``--out``. A folder's images that ``predict`` itself wrote (``<name>_depth.png`` beside
+``<name>_depth.npy``) are skipped, and ``--out`` may not be the ``--input`` folder. An image
+or video that cannot be read, or a frame whose outputs cannot be made, is reported by name
+and the others are still processed; a frame's outputs are written all or none. At the end
+each failure is one line ``error: <message naming the file>`` on stderr, followed by the
+summary, and the exit status is 2 if anything failed, else 0. A full or read-only disk
+stops the run at the first frame it refuses (exit status 2).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
+import io
 import json
+import os
+import re
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -33,11 +50,17 @@ import torch.nn.functional as F
 from . import camera, recon, utils
 from .dataset import resize_image
 from .inference import FLIPS
+from .utils import FileProblem, os_reason
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_EXTS = {".mp4", ".avi", ".mov", ".mkv", ".webm", ".mpg", ".mpeg", ".m4v", ".wmv"}
 DEFAULT_FOV_DEG = camera.fov_x_deg(camera.intrinsics(1000), 1000)  # the authors' set: about 83.97 degrees
 DEFAULT_BATCH_SIZE = 8
+MIN_SIDE = 2  # the smallest frame side: the colorized depth and the mesh need 2 x 2 pixels
+OUTPUT_SUFFIX = "_depth.png"  # with "_depth.npy" beside it, a file predict wrote (never read as an input)
+ROOM_MARGIN = 2**20  # bytes --out must have free beyond one frame's outputs
+# a write failure with one of these reasons stops the run: every later frame would fail the same way
+DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
 
 
 # --------------------------------------------------------------------------- intrinsics
@@ -90,13 +113,48 @@ def frame_intrinsics(width: int, height: int, calib: dict | None, fov_deg: float
 
 
 # --------------------------------------------------------------------------- inputs
-def list_inputs(path) -> tuple[list[Path], str]:
-    """(files, kind) with kind "images" or "video"; a folder is read non-recursively, sorted by name."""
-    path = Path(path)
-    if not path.exists():
+def check_input_path(path: Path) -> None:
+    """Nothing if ``path`` leads to a file or folder; else a one-line error saying why not:
+    not found, a broken symbolic link (and to what), a symbolic link loop."""
+    try:
+        path.stat()
+        return
+    except OSError as exc:
+        problem = exc
+    if problem.errno == errno.ELOOP:
+        raise FileProblem(f"--input {path}: a symbolic link loop ({os_reason(problem)})", path)
+    if path.is_symlink():
+        raise FileProblem(f"--input {path}: a broken symbolic link to {os.readlink(path)}", path)
+    if problem.errno in (errno.ENOENT, errno.ENOTDIR):
         raise FileNotFoundError(f"--input not found: {path}")
+    raise FileProblem(f"cannot read --input {path}: {os_reason(problem)}", path)
+
+
+def is_predict_output(path: Path) -> bool:
+    """Whether ``path`` is a colorized depth that predict wrote: ``<name>_depth.png`` with
+    ``<name>_depth.npy`` beside it (a photo that merely ends in ``_depth.png`` is an input)."""
+    if not path.name.endswith(OUTPUT_SUFFIX):
+        return False
+    return path.with_name(path.name[: -len(OUTPUT_SUFFIX)] + "_depth.npy").is_file()
+
+
+def _is_image_entry(path: Path) -> bool:
+    """An image of a folder listing: a file with an image extension, or a symbolic link named
+    like one (a broken link is then reported by name rather than skipped)."""
+    return path.suffix.lower() in IMAGE_EXTS and (path.is_file() or path.is_symlink())
+
+
+def list_inputs(path) -> tuple[list[Path], str]:
+    """(files, kind) with kind "images" or "video"; a folder is read non-recursively, sorted by
+    name, without the files predict itself wrote there (``is_predict_output``)."""
+    path = Path(path)
+    check_input_path(path)
     if path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS)
+        try:
+            entries = sorted(path.iterdir())
+        except OSError as exc:
+            raise FileProblem(f"cannot read folder {path}: {os_reason(exc)}", path) from exc
+        files = [p for p in entries if _is_image_entry(p) and not is_predict_output(p)]
         if not files:
             raise ValueError(f"--input folder {path} holds no images ({', '.join(sorted(IMAGE_EXTS))})")
         return files, "images"
@@ -109,42 +167,198 @@ def list_inputs(path) -> tuple[list[Path], str]:
                      f"or a video ({', '.join(sorted(VIDEO_EXTS))})")
 
 
+def check_out_is_not_input(out, input_path) -> None:
+    """A ValueError when ``--out`` is the ``--input`` folder: a second run would read its own outputs."""
+    src = Path(input_path)
+    if src.is_dir() and Path(out).resolve() == src.resolve():
+        raise ValueError(f"--out {out} is the --input folder: the outputs would be mixed with the images "
+                         f"(and read as images by the next run); choose another --out")
+
+
 def _output_stems(files: list[Path]) -> dict[Path, str]:
     """Output name per input: its stem, or stem_ext where two inputs share a stem."""
     stems = [f.stem for f in files]
     return {f: (f.stem if stems.count(f.stem) == 1 else f"{f.stem}_{f.suffix.lstrip('.').lower()}") for f in files}
 
 
-def iter_frames(files: list[Path], kind: str, failures: list[str]) -> Iterator[tuple[str, np.ndarray]]:
-    """(output name, H x W x 3 uint8) per frame; unreadable inputs are appended to ``failures``."""
+# --------------------------------------------------------------------------- reading images
+def _scaled_gray(a: np.ndarray, full_scale: float) -> np.ndarray:
+    """H x W x 3 uint8 from one channel whose ``full_scale`` maps to 255 (NaN and below 0: black)."""
+    v = np.nan_to_num(a.astype(np.float64) * (255.0 / full_scale), nan=0.0)
+    g = np.clip(np.rint(v), 0, 255).astype(np.uint8)
+    return np.repeat(g[..., None], 3, axis=-1)
+
+
+def to_rgb8(im) -> np.ndarray:
+    """H x W x 3 uint8 of a PIL image, samples of more than 8 bits scaled to 8, not clipped.
+
+    PIL's ``convert("RGB")`` clips 16-bit grey ("I;16") and 32-bit ("I") images to white. Here
+    16-bit data is divided by 257 (65535 -> 255); an "I" image is taken as 16-bit data when all
+    its values fit (how 16-bit files often arrive), else scaled by the int32 range; a float
+    ("F") image by 1 when its values lie in [0, 1], else as 0-255. PIL itself reduces 16-bit
+    colour PNG and TIFF to 8 bits (their high byte) when it opens them.
+    """
+    if im.mode.startswith("I;16"):
+        return _scaled_gray(np.asarray(im), 65535.0)
+    if im.mode == "I":
+        a = np.asarray(im)
+        return _scaled_gray(a, 65535.0 if a.size == 0 or 0 <= a.min() <= a.max() <= 65535 else 2.0**31 - 1)
+    if im.mode == "F":
+        a = np.asarray(im)
+        finite = a[np.isfinite(a)]
+        return _scaled_gray(a, 1.0 if finite.size and finite.min() >= 0 and finite.max() <= 1 else 255.0)
+    return np.array(im.convert("RGB"))
+
+
+def _image_reason(exc: BaseException) -> str:
+    """Why an image could not be decoded, in a few words (whatever the decoder raised)."""
     from PIL import Image
 
-    if kind == "video":
-        import imageio.v3 as iio
+    if isinstance(exc, Image.UnidentifiedImageError):
+        return "not an image file, or a damaged one"
+    if isinstance(exc, OSError):  # unreadable, truncated ("image file is truncated")
+        return os_reason(exc)
+    return f"damaged or unsupported image ({exc.__class__.__name__}: {exc})"
 
-        video = files[0]
-        k = -1
-        try:
-            for k, frame in enumerate(iio.imiter(video, plugin="FFMPEG")):
-                frame = np.asarray(frame)
-                if frame.ndim == 2:
-                    frame = np.repeat(frame[..., None], 3, axis=-1)
-                yield f"{video.stem}_{k:06d}", np.ascontiguousarray(frame[..., :3])
-        except Exception as exc:  # noqa: BLE001 - report and go on with what was read
-            failures.append(f"{video.name} (after frame {k}): {exc.__class__.__name__}: {exc}")
-        if k < 0 and not failures:
-            failures.append(f"{video.name}: no frames could be read")
+
+def check_frame_size(width: int, height: int, what: str, path: Path) -> None:
+    """A FileProblem naming ``path`` when a frame is smaller than MIN_SIDE x MIN_SIDE pixels."""
+    if width < MIN_SIDE or height < MIN_SIDE:
+        raise FileProblem(f"cannot use {what} {path}: {width} x {height} pixels is too small "
+                          f"(predict needs at least {MIN_SIDE} x {MIN_SIDE})", path)
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """H x W x 3 uint8 of an image file (``to_rgb8``); a FileProblem naming the file if it cannot
+    be decoded or is too small (``check_frame_size``)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            check_frame_size(*im.size, "image", path)
+            im.load()
+            return to_rgb8(im)
+    except FileProblem:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any decoder error means this file, named, not the run
+        raise FileProblem(f"cannot read {path}: {_image_reason(exc)}", path) from exc
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from an image's header, or None if it cannot be read (reported later)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except Exception:  # noqa: BLE001 - read_frame names the file when its turn comes
+        return None
+
+
+# --------------------------------------------------------------------------- reading video
+_FFMPEG_TAG = re.compile(r"^\[[^\]]*\]\s*")  # ffmpeg's "[in#0 @ 0x55d1f8d38040] " line prefix
+
+
+def _short(text: str, limit: int = 120) -> str:
+    """One trimmed line, lower-case first letter, no final full stop, at most ``limit`` characters."""
+    text = " ".join(text.split()).rstrip(".")
+    text = text[:1].lower() + text[1:]
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def ffmpeg_reason(exc: BaseException) -> str:
+    """A few words on why ffmpeg could not read a video, never its banner or log: ffmpeg's own
+    "Error opening input: <reason>" line where there is one, else the first line of the
+    reader's message that says something (e.g. "end of file reached before full frame ...")."""
+    head, _, log = str(exc).partition("=== stderr ===")
+    for line in (_FFMPEG_TAG.sub("", ln).strip() for ln in log.splitlines()):
+        if "does not contain any stream" in line:
+            return "no video stream in it"
+        if line.startswith("Error opening input:"):
+            return _short(line.partition(":")[2])
+    lines = [ln.strip() for ln in head.splitlines() if ln.strip()]
+    said = [ln for ln in lines if not re.fullmatch(r"Could not read frame \d+:", ln)]
+    return _short((said or lines or [exc.__class__.__name__])[0])
+
+
+def video_error(path: Path, frames_read: int, exc: BaseException) -> str:
+    """The one-line message for a video that failed after ``frames_read`` good frames."""
+    if frames_read == 0:
+        return f"cannot read video {path}: not a readable video ({ffmpeg_reason(exc)})"
+    return f"cannot read video {path} after frame {frames_read - 1}: {ffmpeg_reason(exc)}"
+
+
+def read_video(path: Path) -> Iterator[np.ndarray]:
+    """The frames (H x W x 3 uint8) of a video file, decoded by ffmpeg (``imageio_ffmpeg``);
+    ffmpeg is stopped when the iteration ends or is abandoned."""
+    import imageio_ffmpeg
+
+    with contextlib.closing(imageio_ffmpeg.read_frames(str(path))) as reader:
+        width, height = next(reader)["size"]
+        for data in reader:
+            yield np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3).copy()
+
+
+def video_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a video's frames; a FileProblem naming it if ffmpeg cannot read it or
+    its frames are too small."""
+    import imageio_ffmpeg
+
+    try:
+        with contextlib.closing(imageio_ffmpeg.read_frames(str(path))) as reader:
+            width, height = next(reader)["size"]
+    except Exception as exc:  # noqa: BLE001 - ffmpeg's errors come in many types; the message says why
+        raise FileProblem(video_error(path, 0, exc), path) from exc
+    check_frame_size(width, height, "video", path)
+    return width, height
+
+
+def first_frame_size(files: list[Path], kind: str) -> tuple[int, int]:
+    """(width, height) of the first frame that can be sized, (0, 0) if none; a video that cannot
+    be read is refused here, before any output is made."""
+    if kind == "video":
+        return video_size(files[0])
+    return next((s for s in map(_image_size, files) if s is not None), (0, 0))
+
+
+def frame_output_bytes(width: int, height: int, ply: str = "points", stride: int = 1) -> int:
+    """An upper bound on the bytes of one frame's outputs: .npy (4 B a pixel), uncompressed PNG
+    (3 B), PLY (15 B a point; a mesh 27 B a point and two 13 B triangles)."""
+    n = width * height
+    points = -(-width // stride) * -(-height // stride)
+    ply_bytes = {"points": 15 * points, "mesh": 53 * points, "none": 0}[ply]
+    return 4 * n + 3 * n + height + ply_bytes + 4096
+
+
+def iter_frames(files: list[Path], kind: str, failures: list[str]) -> Iterator[tuple[str, np.ndarray]]:
+    """(output name, H x W x 3 uint8) per frame; a file that cannot be used adds one message
+    naming it to ``failures`` and the others are still read."""
+    if kind == "video":
+        yield from _video_frames(files[0], failures)
         return
     names = _output_stems(files)
     for f in files:
         try:
-            with Image.open(f) as im:
-                im.load()
-                rgb = np.array(im.convert("RGB"))
-        except Exception as exc:  # noqa: BLE001 - a corrupt file must not stop the others
-            failures.append(f"{f.name}: cannot read image ({exc.__class__.__name__}: {exc})")
+            rgb = read_frame(f)
+        except FileProblem as exc:
+            failures.append(str(exc))
             continue
         yield names[f], rgb
+
+
+def _video_frames(video: Path, failures: list[str]) -> Iterator[tuple[str, np.ndarray]]:
+    """iter_frames for a video: frames until the end, or until ffmpeg fails (one message in
+    ``failures`` naming the last good frame)."""
+    done = 0
+    try:
+        for frame in read_video(video):
+            yield f"{video.stem}_{done:06d}", frame
+            done += 1
+    except Exception as exc:  # noqa: BLE001 - report it; the frames read so far are kept
+        failures.append(video_error(video, done, exc))
+        return
+    if done == 0:
+        failures.append(f"cannot read video {video}: no frame in it")
 
 
 def _batches(frames, batch_size: int):
@@ -179,22 +393,125 @@ def predict_frames(model, frames: list[np.ndarray], image_size, flips: str = "no
     return out
 
 
+def save_npy(array: np.ndarray, path) -> Path:
+    """``np.save``, atomically, through one Python write: numpy writing to a file itself reports a
+    full disk as "4096 requested and 3040 written", without the system's reason."""
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    path = Path(path)
+    with utils.atomic_path(path) as tmp:
+        tmp.write_bytes(buf.getbuffer())
+    return path
+
+
+def output_paths(out_dir: Path, name: str, ply: str = "points") -> list[Path]:
+    """The files one frame gets: depth .npy, colorized depth .png and (unless ply is "none") .ply."""
+    paths = [out_dir / f"{name}_depth.npy", out_dir / f"{name}{OUTPUT_SUFFIX}"]
+    return paths + ([out_dir / f"{name}.ply"] if ply != "none" else [])
+
+
 def write_outputs(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray,
                   ply: str = "points", stride: int = 1) -> list[Path]:
-    """The three files of one frame, each written atomically."""
+    """The files of one frame (``output_paths``), each written atomically, and all or none: if
+    one fails after another was written, the frame's files are all removed again (those an
+    earlier run left under these names too, which would no longer match), then it re-raises."""
     from . import viz
 
-    paths = []
-    p = out_dir / f"{name}_depth.npy"
-    with utils.atomic_path(p) as tmp:
-        with open(tmp, "wb") as fh:
-            np.save(fh, depth.astype(np.float32))
-    paths.append(p)
-    paths.append(recon.save_png(viz.colorize_depth(depth), out_dir / f"{name}_depth.png"))
-    if ply != "none":
-        poly = (recon.depth_mesh if ply == "mesh" else recon.point_cloud)(depth, K, rgb, stride=stride)
-        paths.append(recon.save_ply(poly, out_dir / f"{name}.ply"))
+    paths = output_paths(out_dir, name, ply)
+    written = 0
+    try:
+        save_npy(depth.astype(np.float32), paths[0])
+        written += 1
+        recon.save_png(viz.colorize_depth(depth), paths[1])
+        written += 1
+        if ply != "none":
+            poly = (recon.depth_mesh if ply == "mesh" else recon.point_cloud)(depth, K, rgb, stride=stride)
+            recon.save_ply(poly, paths[2])
+    except BaseException:
+        if written:
+            for p in paths:
+                with contextlib.suppress(OSError):
+                    p.unlink(missing_ok=True)
+        raise
     return paths
+
+
+def stops_the_run(exc: BaseException) -> bool:
+    """Whether a write failure is the disk's (full, over quota, read-only) rather than one frame's."""
+    cause = exc.__cause__ if isinstance(exc, FileProblem) else exc
+    return isinstance(cause, OSError) and cause.errno in DISK_ERRNOS
+
+
+# --------------------------------------------------------------------------- a run
+@dataclass
+class Tally:
+    """What a run did: frames written, one message per failed file or frame, and the write
+    failure that stopped it early (None if it ran to the end)."""
+
+    written: int = 0
+    failures: list[str] = field(default_factory=list)
+    stopped: str | None = None
+
+
+def _save_frame(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, args, calib, tally: Tally) -> None:
+    """Write one frame's outputs and count it; a failure is added to ``tally`` (a disk failure
+    as ``tally.stopped``), never raised."""
+    H, W = depth.shape
+    K = frame_intrinsics(W, H, calib, args.fov)
+    try:
+        write_outputs(out_dir, name, rgb, depth, K, args.ply, args.ply_stride)
+    except OSError as exc:  # utils.FileProblem: "cannot write <file>: <reason>"
+        if stops_the_run(exc):
+            tally.stopped = str(exc)
+        else:
+            tally.failures.append(str(exc))
+        return
+    except Exception as exc:  # noqa: BLE001 - a frame the reconstruction cannot handle is that frame's failure
+        tally.failures.append(f"cannot write the outputs of {name}: {exc.__class__.__name__}: {exc}")
+        return
+    tally.written += 1
+
+
+def _refuse_non_finite(batch, depths, ckpt: Path) -> None:
+    """A ValueError if the model predicted NaN or inf for any frame of the batch (nothing of it written)."""
+    for (name, _), depth in zip(batch, depths):
+        if not np.isfinite(depth).all():
+            raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {name}: "
+                             f"nothing written for it; the model is unusable")
+
+
+def predict_into(out_dir: Path, files: list[Path], kind: str, model, cfg: dict, calib, args) -> Tally:
+    """Predict and write every frame of ``files`` into ``out_dir``, in batches; stops early only
+    when the disk refuses a write (``stops_the_run``)."""
+    from tqdm.auto import tqdm
+
+    tally = Tally()
+    total = len(files) if kind == "images" else None
+    frames = iter_frames(files, kind, tally.failures)
+    with contextlib.closing(frames), tqdm(total=total, unit="frame", desc="predict", disable=args.no_progress,
+                                          file=sys.stderr) as bar:
+        for batch in _batches(frames, args.batch_size):
+            depths = predict_frames(model, [rgb for _, rgb in batch], cfg["image_size"], args.flips)
+            _refuse_non_finite(batch, depths, Path(args.checkpoint))
+            for (name, rgb), depth in zip(batch, depths):
+                _save_frame(out_dir, name, rgb, depth, args, calib, tally)
+                if tally.stopped:
+                    return tally
+            bar.update(len(batch))
+    return tally
+
+
+def report(tally: Tally, out_dir: Path) -> int:
+    """One ``error:`` line per failure on stderr, then the summary; the exit status (2 if anything failed)."""
+    for msg in tally.failures + ([tally.stopped] if tally.stopped else []):
+        print(f"error: {msg}", file=sys.stderr)
+    summary = f"{tally.written} frame(s) written to {out_dir}" if tally.written else "no frame written"
+    if tally.failures:
+        summary += f"; {len(tally.failures)} failed (the error lines above)"
+    if tally.stopped:
+        summary += "; stopped at the write that failed: the frames after it were not processed"
+    print(summary)
+    return 2 if tally.failures or tally.stopped else 0
 
 
 # --------------------------------------------------------------------------- CLI
@@ -222,12 +539,8 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def run_predict(args: argparse.Namespace) -> int:
-    from tqdm.auto import tqdm
-
-    from .checkpoint import load_model
-    from .inference import pick_device
-
+def _check_options(args: argparse.Namespace) -> None:
+    """ValueErrors for option values that cannot work, before anything is read."""
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.ply_stride < 1:
@@ -236,32 +549,30 @@ def run_predict(args: argparse.Namespace) -> int:
         raise ValueError(f"--fov must be between 0 and 180 degrees, got {args.fov}")
     if args.intrinsics is not None and args.fov is not None:
         raise ValueError("give either --intrinsics or --fov, not both")
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    """The ``predict`` command: inputs and options checked, then --out made and probed, then the
+    model loaded and every frame written (the module docstring says what fails how); exit status."""
+    from .checkpoint import load_model
+    from .inference import pick_device
+
+    _check_options(args)
     calib = load_intrinsics(args.intrinsics) if args.intrinsics else None
     files, kind = list_inputs(args.input)
+    check_out_is_not_input(args.out, args.input)
     ckpt = Path(args.checkpoint)
     if not ckpt.is_file():
         raise FileNotFoundError(f"--checkpoint not found: {ckpt}")
-    model, cfg = load_model(ckpt, device=pick_device(args.device))
-    out_dir = utils.make_dir(args.out)
-
-    failures: list[str] = []
-    done = 0
-    total = len(files) if kind == "images" else None
-    bar = tqdm(total=total, unit="frame", desc="predict", disable=args.no_progress, file=sys.stderr)
-    for batch in _batches(iter_frames(files, kind, failures), args.batch_size):
-        depths = predict_frames(model, [rgb for _, rgb in batch], cfg["image_size"], args.flips)
-        for (name, _), depth in zip(batch, depths):
-            if not np.isfinite(depth).all():  # refuse before writing anything of this batch
-                raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {name}: "
-                                 f"nothing written for it; the model is unusable")
-        for (name, rgb), depth in zip(batch, depths):
-            H, W = depth.shape
-            # an output that cannot be written (read-only, disk full) stops the run: utils.FileProblem
-            write_outputs(out_dir, name, rgb, depth, frame_intrinsics(W, H, calib, args.fov), args.ply, args.ply_stride)
-            done += 1
-        bar.update(len(batch))
-    bar.close()
-    for msg in failures:
-        print(f"failed: {msg}", file=sys.stderr)
-    print(f"{done} frame(s) written to {out_dir}" + (f"; {len(failures)} failed" if failures else ""))
-    return 1 if failures else 0
+    need = frame_output_bytes(*first_frame_size(files, kind), args.ply, args.ply_stride) + ROOM_MARGIN
+    new_folders = utils.missing_dirs(args.out)
+    out_dir = utils.check_output_dir(args.out, need)  # creates --out; removes it again if it refuses
+    try:
+        stale = utils.remove_stale_temps(out_dir)
+        if stale:
+            print(f"removed {stale} half-written temporary file(s) of an interrupted run from {out_dir}")
+        model, cfg = load_model(ckpt, device=pick_device(args.device))
+        tally = predict_into(out_dir, files, kind, model, cfg, calib, args)
+    finally:  # a run that wrote nothing leaves no folder it made
+        utils.remove_empty_dirs(new_folders)
+    return report(tally, out_dir)

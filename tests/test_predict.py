@@ -35,7 +35,7 @@ def test_folder_with_a_corrupt_file_processes_the_others_and_names_it(tmp_path, 
     code = _cli(["predict", "--checkpoint", str(checkpoint), "--input", str(src), "--out", str(out),
                      "--batch-size", "2", "--no-progress"])
     err = capsys.readouterr().err
-    assert code == 1
+    assert code == 2
     assert "broken.png" in err and "a.png" not in err
     for name, (h, w) in {"a": (40, 56), "b": (33, 47), "c": (64, 64)}.items():
         depth = np.load(out / f"{name}_depth.npy")

@@ -1,0 +1,389 @@
+"""``predict`` against a hostile user: 16-bit images, frames too small, bad video, full disk,
+stale temporary files, --out inside --input, symbolic link loops, and refused runs.
+
+Every failure is one line ``error: <message naming the file>`` on stderr; a folder run
+processes the other files and exits with status 2 if any failed.
+"""
+
+import errno
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+from types import SimpleNamespace
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from conftest import save_untrained_checkpoint
+from PIL import Image
+
+from geodepth_lite import checkpoint, cli, predict, recon, utils
+
+
+@pytest.fixture(scope="module")
+def ckpt(untrained_checkpoint):
+    return untrained_checkpoint
+
+
+def _run(ckpt, src, out, *extra):
+    """``python -m geodepth_lite predict`` in-process; its exit status."""
+    return cli.main(["predict", "--checkpoint", str(ckpt), "--input", str(src), "--out", str(out),
+                     "--no-progress", *extra])
+
+
+def _errors(capsys) -> tuple[list[str], str]:
+    """(the ``error:`` lines of stderr, stdout); stderr holds nothing else (no traceback, no ffmpeg log)."""
+    captured = capsys.readouterr()
+    err = [line for line in captured.err.strip().splitlines() if line.strip()]
+    errors = [line for line in err if line.startswith("error: ")]
+    assert errors == err, err
+    return errors, captured.out
+
+
+def _frame(h, w, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, size=(h, w, 3), dtype=np.uint8)
+
+
+def _folder(root: Path, images: dict) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    for name, array in images.items():
+        Image.fromarray(array).save(root / name)
+    return root
+
+
+def _outputs(out: Path, name: str) -> list[str]:
+    return sorted(p.name for p in out.glob(f"{name}*"))
+
+
+# --------------------------------------------------------------------------- 1. 16-bit images
+
+
+def _png16_rgb(path: Path, rgb16: np.ndarray) -> Path:
+    """A 16-bit RGB PNG written by hand (PIL cannot write one)."""
+    h, w, _ = rgb16.shape
+    raw = b"".join(b"\x00" + rgb16[y].astype(">u2").tobytes() for y in range(h))
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", w, h, 16, 2, 0, 0, 0)  # bit depth 16, colour type 2 (RGB)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def _grey16(h=12, w=20) -> np.ndarray:
+    """Left half 26000 (26000 / 257 = 101.2 -> 101), right half 65535 (-> 255)."""
+    a = np.full((h, w), 26000, np.uint16)
+    a[:, w // 2:] = 65535
+    return a
+
+
+def _write_16bit(kind: str, folder: Path) -> Path:
+    import tifffile
+
+    g = _grey16()
+    if kind == "grey PNG (I;16)":
+        Image.fromarray(g).save(folder / "g.png")
+        return folder / "g.png"
+    if kind == "grey TIFF (I;16)":
+        tifffile.imwrite(folder / "g.tif", g)
+        return folder / "g.tif"
+    if kind == "grey in 32 bits (I)":
+        tifffile.imwrite(folder / "i.tif", g.astype(np.int32))
+        return folder / "i.tif"
+    if kind == "RGB PNG 16-bit":
+        return _png16_rgb(folder / "c.png", np.repeat(g[..., None], 3, axis=-1))
+    if kind == "RGB TIFF 16-bit":
+        tifffile.imwrite(folder / "c.tif", np.repeat(g[..., None], 3, axis=-1), photometric="rgb")
+        return folder / "c.tif"
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize("kind", ["grey PNG (I;16)", "grey TIFF (I;16)", "grey in 32 bits (I)",
+                                  "RGB PNG 16-bit", "RGB TIFF 16-bit"])
+def test_16_bit_images_are_scaled_to_8_bits_not_clipped(tmp_path, kind):
+    rgb = predict.read_frame(_write_16bit(kind, tmp_path))
+    assert rgb.shape == (12, 20, 3) and rgb.dtype == np.uint8
+    assert (rgb[:, :10] == 101).all(), np.unique(rgb[:, :10])  # PIL's convert("RGB") gave 255
+    assert (rgb[:, 10:] == 255).all()
+
+
+def test_float_images_in_0_1_are_scaled(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "f.tif", np.full((4, 6), 0.4, np.float32))
+    assert (predict.read_frame(tmp_path / "f.tif") == 102).all()  # convert("RGB") gave 0
+
+
+def test_the_cli_colours_a_16_bit_png_by_its_8_bit_values(tmp_path, ckpt, capsys):
+    Image.fromarray(np.full((12, 20), 26000, np.uint16)).save(tmp_path / "g16.png")
+    out = tmp_path / "out"
+    assert _run(ckpt, tmp_path / "g16.png", out) == 0
+    assert _errors(capsys)[0] == []
+    colours = np.asarray(recon.load_ply(out / "g16.ply").point_data["RGB"])
+    assert colours.shape == (240, 3) and (colours == 101).all(), np.unique(colours)
+
+
+# --------------------------------------------------------------------------- 2, 3. per-file failures
+
+
+def test_too_small_images_are_refused_by_name_and_the_folder_still_runs(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a_flat.png": _frame(1, 30), "b_thin.png": _frame(30, 1),
+                                    "c_ok.png": _frame(20, 24), "d_tiny.png": _frame(2, 2)})
+    out = tmp_path / "out"
+    assert _run(ckpt, src, out, "--batch-size", "3") == 2
+    errors, stdout = _errors(capsys)
+    assert errors == [f"error: cannot use image {src / 'a_flat.png'}: 30 x 1 pixels is too small "
+                      f"(predict needs at least 2 x 2)",
+                      f"error: cannot use image {src / 'b_thin.png'}: 1 x 30 pixels is too small "
+                      f"(predict needs at least 2 x 2)"]
+    assert stdout.strip().splitlines()[-1] == f"2 frame(s) written to {out}; 2 failed (the error lines above)"
+    assert _outputs(out, "a_") == [] and _outputs(out, "b_") == []  # no stray _depth.npy
+    assert _outputs(out, "c_") == ["c_ok.ply", "c_ok_depth.npy", "c_ok_depth.png"]
+    assert np.load(out / "d_tiny_depth.npy").shape == (2, 2)  # the minimum size works
+
+
+def test_all_frames_written_exits_0_with_no_error_line(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "b.png": _frame(16, 16)})
+    assert _run(ckpt, src, tmp_path / "out", "--ply", "none") == 0
+    errors, stdout = _errors(capsys)
+    assert errors == [] and stdout.strip() == f"2 frame(s) written to {tmp_path / 'out'}"
+
+
+def test_a_frame_that_fails_after_its_first_file_leaves_none_of_its_files(tmp_path, ckpt, capsys, monkeypatch):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24, 0), "b.png": _frame(20, 24, 1), "c.png": _frame(8, 8)})
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "b.ply").write_text("an earlier run's b.ply: it would no longer match b's depth")
+    real_save_ply = recon.save_ply
+
+    def save_ply(poly, path, binary=True):
+        if Path(path).name == "b.ply":
+            raise ValueError("mesh went wrong")
+        return real_save_ply(poly, path, binary)
+
+    monkeypatch.setattr(recon, "save_ply", save_ply)
+    assert _run(ckpt, src, out) == 2
+    errors, stdout = _errors(capsys)
+    assert errors == ["error: cannot write the outputs of b: ValueError: mesh went wrong"]
+    assert _outputs(out, "b") == []  # b_depth.npy and b_depth.png were written, then removed
+    assert _outputs(out, "a") == ["a.ply", "a_depth.npy", "a_depth.png"]
+    assert _outputs(out, "c") == ["c.ply", "c_depth.npy", "c_depth.png"]  # the frame after it still ran
+    assert "2 frame(s) written" in stdout and not list(out.glob(utils.TEMP_GLOB))
+
+
+def test_a_file_that_cannot_be_written_is_named_and_the_others_go_on(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24, 0), "b.png": _frame(20, 24, 1)})
+    out = tmp_path / "out"
+    (out / "a_depth.png").mkdir(parents=True)  # a folder in the way of one output
+    assert _run(ckpt, src, out, "--ply", "none") == 2
+    errors, _ = _errors(capsys)
+    assert len(errors) == 1 and errors[0].startswith(f"error: cannot write {out / 'a_depth.png'}: "), errors
+    assert _outputs(out, "a") == ["a_depth.png"] and (out / "a_depth.png").is_dir()  # a_depth.npy removed
+    assert _outputs(out, "b") == ["b_depth.npy", "b_depth.png"]
+
+
+# --------------------------------------------------------------------------- 4. video
+
+
+def test_a_garbage_video_is_one_line_and_makes_no_folder(tmp_path, ckpt, capsys):
+    video = tmp_path / "x.mp4"
+    video.write_bytes(np.random.default_rng(0).integers(0, 256, 5000, dtype=np.uint8).tobytes())
+    out = tmp_path / "out"
+    assert _run(ckpt, video, out) == 2
+    errors, _ = _errors(capsys)  # the only stderr line: no ffmpeg banner, no "frame -1"
+    assert errors == [f"error: cannot read video {video}: not a readable video "
+                      f"(invalid data found when processing input)"]
+    assert not out.exists()
+
+
+def test_a_video_without_a_video_stream_says_so(tmp_path, ckpt, capsys):
+    import imageio_ffmpeg
+
+    audio = tmp_path / "sound.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-f", "lavfi", "-i", "sine", "-t", "0.2",
+                    str(audio)], check=True, capture_output=True)
+    assert _run(ckpt, audio, tmp_path / "out") == 2
+    assert _errors(capsys)[0] == [f"error: cannot read video {audio}: not a readable video (no video stream in it)"]
+
+
+def test_a_video_that_breaks_midway_names_the_last_good_frame(tmp_path, ckpt, capsys, monkeypatch):
+    video = tmp_path / "clip.mp4"
+    iio.imwrite(video, np.stack([_frame(48, 64, k) for k in range(5)]), fps=10)
+    real_read_video = predict.read_video
+
+    def breaks_after_3(path):
+        for k, frame in enumerate(real_read_video(path)):
+            if k == 3:  # what imageio_ffmpeg raises when ffmpeg dies mid-stream
+                raise RuntimeError("Could not read frame 4:\nEnd of file reached before full frame could be read."
+                                   "\n=== stderr ===\nffmpeg version n9\n  built with gcc\n[in#0 @ 0x5] decode error")
+            yield frame
+
+    monkeypatch.setattr(predict, "read_video", breaks_after_3)
+    out = tmp_path / "out"
+    assert _run(ckpt, video, out, "--ply", "none", "--batch-size", "2") == 2
+    errors, stdout = _errors(capsys)
+    assert errors == [f"error: cannot read video {video} after frame 2: "
+                      f"end of file reached before full frame could be read"]
+    assert sorted(p.name for p in out.glob("*.npy")) == [f"clip_{k:06d}_depth.npy" for k in range(3)]
+    assert stdout.strip() == f"3 frame(s) written to {out}; 1 failed (the error lines above)"
+
+
+# --------------------------------------------------------------------------- 5. full disk
+
+
+def test_a_full_disk_names_the_file_and_stops(tmp_path, ckpt, capsys, monkeypatch):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24, 0), "b.png": _frame(20, 24, 1)})
+    out = tmp_path / "out"
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(utils.os, "fsync", full)  # every atomic write fails at its data flush
+    assert _run(ckpt, src, out) == 2
+    errors, stdout = _errors(capsys)
+    assert errors == [f"error: cannot write {out / 'a_depth.npy'}: no space left on device"]
+    assert "no frame written" in stdout and "not processed" in stdout  # b was not tried
+    assert not out.exists()  # nothing written: the folder this run made is gone
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_FSIZE and SIGXFSZ as on Linux")
+def test_a_short_write_gives_the_systems_reason(tmp_path, ckpt, capsys):
+    """numpy writing a file itself reported a write the system cut short as "4096 requested and
+    3040 written"; a file size limit cuts writes short the way a nearly full disk does."""
+    import resource
+    import signal
+
+    src = _folder(tmp_path / "in", {"a.png": _frame(40, 56)})  # a_depth.npy: 9088 bytes
+    out = tmp_path / "out"
+    limits = resource.getrlimit(resource.RLIMIT_FSIZE)
+    old_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, limits[1]))
+    try:
+        code = _run(ckpt, src, out, "--ply", "none")
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, old_handler)
+    assert code == 2
+    assert _errors(capsys)[0] == [f"error: cannot write {out / 'a_depth.npy'}: file too large"]
+    assert not out.exists()
+
+
+def test_no_room_for_one_frame_is_refused_before_the_model_is_loaded(tmp_path, ckpt, capsys, monkeypatch):
+    src = _folder(tmp_path / "in", {"a.png": _frame(200, 300)})
+    out = tmp_path / "new" / "out"
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: SimpleNamespace(total=10**9, used=10**9 - 2**20, free=2**20))
+    monkeypatch.setattr(checkpoint, "load_model", lambda *a, **k: pytest.fail("loaded the model"))
+    assert _run(ckpt, src, out) == 2
+    errors, _ = _errors(capsys)
+    want = f"error: cannot write into {out}: no space left on device (1.0 MB free, "
+    assert len(errors) == 1 and errors[0].startswith(want), errors
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("ply", ["points", "mesh", "none"])
+def test_the_room_asked_for_covers_one_frames_outputs(tmp_path, ckpt, ply):
+    src = _folder(tmp_path / "in", {"a.png": _frame(48, 64)})
+    assert _run(ckpt, src, tmp_path / "out", "--ply", ply) == 0
+    written = sum(p.stat().st_size for p in (tmp_path / "out").iterdir())
+    assert written <= predict.frame_output_bytes(64, 48, ply) <= 4 * written + 8192
+
+
+# --------------------------------------------------------------------------- 6. stale temporary files
+
+
+def test_stale_temporary_files_in_out_are_removed_and_counted(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in (".a_depth.npy.k1ll3d.tmp", ".a.ply.x7.tmp"):  # what a kill during a write leaves
+        (out / name).write_bytes(b"\x00" * 1000)
+    (out / "notes.tmp").write_text("not hidden: not ours")
+    assert _run(ckpt, src, out, "--ply", "none") == 0
+    _, stdout = _errors(capsys)
+    assert f"removed 2 half-written temporary file(s) of an interrupted run from {out}" in stdout
+    assert sorted(p.name for p in out.iterdir()) == ["a_depth.npy", "a_depth.png", "notes.tmp"]
+
+
+# --------------------------------------------------------------------------- 7. outputs as inputs
+
+
+def test_out_is_the_input_folder_is_refused(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    for out in (src, tmp_path / "in" / ".", tmp_path / "in" / ".." / "in"):
+        assert _run(ckpt, src, out) == 2
+        errors, _ = _errors(capsys)
+        assert errors == [f"error: --out {out} is the --input folder: the outputs would be mixed with the images "
+                          f"(and read as images by the next run); choose another --out"]
+    assert sorted(p.name for p in src.iterdir()) == ["a.png"]
+
+
+def test_predicts_own_outputs_in_the_input_folder_are_skipped(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "scan_depth.png": _frame(20, 24, 1)})
+    (src / "a_depth.png").write_bytes((tmp_path / "in" / "a.png").read_bytes())  # an old run's output pair
+    np.save(src / "a_depth.npy", np.ones((20, 24), np.float32))
+    files, _ = predict.list_inputs(src)
+    assert [f.name for f in files] == ["a.png", "scan_depth.png"]  # a photo named *_depth.png stays an input
+    out = src / "pred"  # --out inside --input: the listing is not recursive
+    for _ in range(2):
+        assert _run(ckpt, src, out, "--ply", "none") == 0
+        assert _errors(capsys)[1].strip() == f"2 frame(s) written to {out}"
+    assert sorted(p.name for p in out.iterdir()) == ["a_depth.npy", "a_depth.png",
+                                                     "scan_depth_depth.npy", "scan_depth_depth.png"]
+
+
+# --------------------------------------------------------------------------- 8. symbolic links
+
+
+def test_a_symbolic_link_loop_and_a_broken_link_are_named(tmp_path, ckpt, capsys):
+    (tmp_path / "loop1").symlink_to(tmp_path / "loop2")
+    (tmp_path / "loop2").symlink_to(tmp_path / "loop1")
+    (tmp_path / "broken.png").symlink_to(tmp_path / "moved" / "frame.png")
+    cases = {tmp_path / "loop1": f"error: --input {tmp_path / 'loop1'}: a symbolic link loop "
+                                 f"(too many levels of symbolic links)",
+             tmp_path / "loop1" / "x.png": f"error: --input {tmp_path / 'loop1' / 'x.png'}: a symbolic link loop "
+                                           f"(too many levels of symbolic links)",
+             tmp_path / "broken.png": f"error: --input {tmp_path / 'broken.png'}: a broken symbolic link to "
+                                      f"{tmp_path / 'moved' / 'frame.png'}",
+             tmp_path / "nope.png": f"error: --input not found: {tmp_path / 'nope.png'}"}
+    for src, line in cases.items():
+        assert _run(ckpt, src, tmp_path / "out") == 2
+        assert _errors(capsys)[0] == [line]
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_broken_link_in_a_folder_is_named_not_skipped(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    (src / "b.png").symlink_to(tmp_path / "gone.png")
+    assert _run(ckpt, src, tmp_path / "out", "--ply", "none") == 2
+    assert _errors(capsys)[0] == [f"error: cannot read {src / 'b.png'}: no such file or directory"]
+    assert (tmp_path / "out" / "a_depth.npy").exists()
+
+
+# --------------------------------------------------------------------------- 9. refused runs leave nothing
+
+
+def test_refused_runs_leave_no_output_folder(tmp_path, ckpt, capsys):
+    nan_ckpt = save_untrained_checkpoint(tmp_path / "nan.pt")
+    state = torch.load(nan_ckpt, weights_only=False)
+    key = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][key] = state["model"][key].clone().fill_(float("nan"))
+    torch.save(state, nan_ckpt)
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    (tmp_path / "bad.mp4").write_bytes(b"not a video" * 100)
+    runs = {"non-finite weights": (nan_ckpt, src),  # refused after --out was made: removed again
+            "--checkpoint not found": (tmp_path / "none.pt", src),
+            "not a readable video": (ckpt, tmp_path / "bad.mp4"),
+            "holds no images": (ckpt, tmp_path / "new")}
+    (tmp_path / "new").mkdir()
+    for needle, (model, inputs) in runs.items():
+        assert _run(model, inputs, tmp_path / "new" / "deeper" / "out") == 2
+        errors, _ = _errors(capsys)
+        assert len(errors) == 1 and needle in errors[0], errors
+        assert list((tmp_path / "new").iterdir()) == [], needle
