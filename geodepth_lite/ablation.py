@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, synth
+from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, run_cache, synth
 
 CASE_NAMES = {1: "depth + smooth", 2: "+ grad + normal", 3: "+ SDF", 4: "all five"}
 # Section 4.3: the paper's reduction against Case 1, in percent (negative = better)
@@ -55,7 +55,7 @@ def baseline_scores(profile: str, sets: dict[str, Any]) -> dict[str, dict[str, d
     """{set: {baseline: overall metrics}}; the mean depth map is fitted on the profile's training split."""
     root = dataset.resolve_dataset(config.make_config(profile, 1, 0))
     mean_map = baselines.fit_mean_depth_map(root, "train")
-    return {name: {b: r["overall"] for b, r in baselines.evaluate_baselines(ds, mean_map).items()}
+    return {name: {b: r["overall"] for b, r in evaluate.evaluate_baselines(ds, mean_map).items()}
             for name, ds in sets.items()}
 
 
@@ -67,7 +67,7 @@ def run(profile: str, cases: list[int], seeds: list[int], *, workers: int | None
     "baselines": {set: {baseline: overall metrics}}, "frames": {set: n}, "checkpoints": {...}}.
     """
     runs = [(c, s) for c in cases for s in seeds]
-    paths = checkpoint.ensure_checkpoints(profile, runs, workers=workers)
+    paths = run_cache.ensure_checkpoints(profile, runs, workers=workers)
     sets = evaluation_sets(profile, progress=progress)
     scores = {}
     for run_key, path in paths.items():

@@ -11,14 +11,14 @@ torch or numpy) to depth N x H x W float32 at the frames' own size:
 - ``shading_prior``: depth from brightness alone, 1 / sqrt(blurred luminance): the light
   sits at the lens, so brightness falls with the inverse square of distance.
 
-``evaluate_baselines`` returns, for each, the same result dict as ``evaluate.evaluate_model``,
-so baseline rows sit beside model rows (the ``evaluate`` CLI adds them to its tables).
+``evaluate.evaluate_baselines`` scores them, each with the same result dict as
+``evaluate.evaluate_model``, so baseline rows sit beside model rows (the ``evaluate`` CLI adds
+them to its tables). This module holds the predictors only.
 """
 
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
@@ -26,7 +26,6 @@ import torch
 import torch.nn.functional as F
 
 from geodepth_lite import utils
-from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH
 
 # name -> what it predicts (one line; shown in the evaluate tables' notes)
 BASELINES: dict[str, str] = {
@@ -148,108 +147,3 @@ def shading_prior(images: Any, sigma: float = 2.0) -> np.ndarray:
     top = gray.max(axis=(1, 2), keepdims=True)
     eps = np.where(top > 0, SHADING_EPS_REL * top, 1.0)
     return (1.0 / np.sqrt(np.maximum(gray, eps))).astype(np.float32)
-
-
-# --------------------------------------------------------------------------- evaluation
-
-
-def mean_map_training_root(dataset, cfg: dict | None = None, progress: bool = False) -> tuple[Path | None, str]:
-    """Where the ``evaluate`` CLI fits the mean depth map for ``dataset``: (dataset root, note).
-
-    The synthetic dataset's own train split when it has one; otherwise (public datasets,
-    held-out sets with a test split only) the checkpoint's training dataset ``cfg["dataset"]``
-    (built with ``synth.ensure_dataset`` if missing). (None, why) when neither is available.
-    """
-    from geodepth_lite.dataset import SyntheticDepthDataset
-
-    base = dataset
-    while isinstance(base, torch.utils.data.Subset):
-        base = base.dataset
-    if isinstance(base, SyntheticDepthDataset) and (base.root / "train" / "frames.jsonl").is_file():
-        note = "mean depth map fitted on the evaluated dataset's own train split"
-        if base.split == "train":
-            note += " (the evaluated frames themselves: an optimistic row)"
-        return base.root, note
-    if not (cfg or {}).get("dataset"):
-        return None, ("mean depth map not fitted: the dataset has no train split "
-                      "and the checkpoint names no training dataset")
-    from geodepth_lite.dataset import resolve_dataset
-
-    try:
-        root = resolve_dataset(cfg, progress=progress)
-    except (FileNotFoundError, ValueError) as exc:
-        return None, (f"mean depth map not fitted: the checkpoint's training dataset {cfg['dataset']!r} "
-                      f"is unavailable ({exc})")
-    return root, (f"mean depth map fitted on the checkpoint's training dataset {cfg['dataset']!r} (train split; "
-                  "the evaluated dataset has no train split of its own)")
-
-
-def evaluate_baselines(dataset, train_root_or_mean_map: str | os.PathLike | np.ndarray | None, *,
-                       names: Iterable[str] | None = None, sigma: float = 2.0, batch_size: int = 8,
-                       min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, progress: bool = False,
-                       mean_map_note: str | None = None) -> dict[str, dict]:
-    """Score the baselines ``names`` (default: all of ``BASELINES``) on ``dataset`` in one pass.
-
-    train_root_or_mean_map: a synthetic dataset folder whose train split fits the mean depth map,
-    an H x W map already fitted, or None (the mean map row is then left empty: n 0, NaN).
-    Returns {name: result} with the keys of ``evaluate.evaluate_model``'s result ("name", "n",
-    "overall", "by_group", "by_organ", "frames") plus "description" and "notes".
-    """
-    from geodepth_lite import evaluate
-
-    names = list(BASELINES) if names is None else list(names)
-    unknown = [n for n in names if n not in BASELINES]
-    if unknown:
-        raise ValueError(f"unknown baseline(s) {unknown}: choose from {', '.join(BASELINES)}")
-    notes: dict[str, list[str]] = {n: [] for n in names}
-    predictors: dict[str, Any] = {}
-    skipped: set[str] = set()
-    for name in names:
-        if name == "constant":
-            predictors[name] = constant_depth
-        elif name == "shading_prior":
-            predictors[name] = lambda images: shading_prior(images, sigma=sigma)
-            if sigma != 2.0:
-                notes[name].append(f"Gaussian sigma {sigma:g} px")
-        elif name == "mean_depth_map":
-            if mean_map_note:
-                notes[name].append(mean_map_note)
-            if train_root_or_mean_map is None:
-                skipped.add(name)
-                if not mean_map_note:
-                    notes[name].append("mean depth map not fitted: no training depths given")
-                continue
-            if isinstance(train_root_or_mean_map, (str, os.PathLike)):
-                root = Path(train_root_or_mean_map)
-                mean_map = fit_mean_depth_map(root, "train")
-                n_train = sum(1 for line in (root / "train" / "frames.jsonl").read_text().splitlines() if line.strip())
-                notes[name].append(f"fitted on the {n_train} frames of {root}/train "
-                                   f"at {mean_map.shape[0]}x{mean_map.shape[1]}")
-            else:
-                mean_map = np.asarray(train_root_or_mean_map, dtype=np.float32)
-                if mean_map.ndim != 2:
-                    raise ValueError(f"a mean depth map must be H x W, got shape {mean_map.shape}")
-                notes[name].append(f"a given {mean_map.shape[0]}x{mean_map.shape[1]} map")
-            sizes: set[tuple[int, int]] = set()
-
-            def predict_mean(images, mean_map=mean_map, sizes=sizes):
-                sizes.add(tuple(int(s) for s in images.shape[-2:]))
-                return apply_mean_depth_map(images, mean_map)
-
-            predictors[name] = predict_mean
-    results = evaluate.evaluate_predictors(predictors, dataset, batch_size=batch_size, min_depth=min_depth,
-                                           max_depth=max_depth, progress=progress) if predictors else {}
-    if "mean_depth_map" in predictors:
-        other = sorted(sizes - {tuple(mean_map.shape)})
-        if other:
-            notes["mean_depth_map"].append("resized (nearest) to the evaluated frames: "
-                                           + ", ".join(f"{h}x{w}" for h, w in other))
-    out = {}
-    for name in names:
-        if name in skipped:
-            res = {"name": name, "n": 0, "overall": evaluate.summarize([]), "by_group": {}, "by_organ": {},
-                   "frames": []}
-        else:
-            res = results[name]
-        out[name] = {**res, "description": BASELINES[name], "notes": notes[name]}
-    return out

@@ -33,9 +33,9 @@ from typing import Any, Callable, Iterable, Iterator
 import numpy as np
 import torch
 
-from geodepth_lite import utils
+from geodepth_lite import baselines, utils
 from geodepth_lite.inference import FLIPS, check_flips, collate
-from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
+from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES, eval_mask, median_scale
 
 METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.3, named once in metrics.py
 METRIC_LABELS = {"abs_rel": "Abs Rel", "sq_rel": "Sq Rel", "rmse": "RMSE", "rmse_log": "RMSE log",
@@ -142,9 +142,7 @@ def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, 
                     raise NonFiniteDepth(f"{name or 'the predictor'} gives non-finite depth (NaN or inf) for frame "
                                      f"{frame_name(dataset, index)}: nothing written")
                 record = {"index": index, "organ": str(batch["organ"][j]), "group": str(batch["group"][j])}
-                frame_valid = np.isfinite(gt[j]) & (gt[j] > min_depth) & (gt[j] < max_depth)
-                if valid is not None:
-                    frame_valid &= valid[j]
+                frame_valid = eval_mask(gt[j], min_depth, max_depth, None if valid is None else valid[j])
                 if not frame_valid.any():  # skipped, named, counted; the other frames are still scored
                     if name == first:
                         warnings.warn(f"skipping frame {frame_name(dataset, index)}: no valid ground-truth pixel",
@@ -209,7 +207,7 @@ def evaluate_predictor(predict_fn: Callable, dataset, *, batch_size: int = 8,
     Returns {"name", "n", "overall": {metric: mean}, "by_group": {group: {...}},
     "by_organ": {organ: {...}}, "frames": [one dict per frame: index, organ, group,
     seven metrics, median-scaling ratio]}. ``baselines`` ({name: result} from
-    ``baselines.evaluate_baselines``) is kept under "baselines" and adds rows to the overall
+    ``evaluate_baselines``) is kept under "baselines" and adds rows to the overall
     table. With ``out_dir`` also writes metrics.json, frames.csv, tables.md and
     ``error_maps`` PNGs (input | GT | prediction | Abs Rel map), as one set or none
     (``write_results``).
@@ -311,9 +309,7 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
     seen = 0
     for batch in tqdm(loader, desc="border error map", disable=not progress, leave=False):
         gt = batch["depth"].numpy()[:, 0].astype(np.float64)  # (B, H, W)
-        valid = (gt > min_depth) & (gt < max_depth)
-        if "valid" in batch:
-            valid &= batch["valid"].numpy()[:, 0].astype(bool)
+        valid = eval_mask(gt, min_depth, max_depth, batch["valid"].numpy()[:, 0] if "valid" in batch else None)
         pred = _as_depth_batch(predict_fn(batch["image"])).astype(np.float64)  # (B, H, W)
         if pred.shape != gt.shape:
             raise ValueError(f"predictor returned depth of shape {pred.shape} for ground truth {gt.shape}")
@@ -325,7 +321,7 @@ def border_error_map(predict_fn: Callable, dataset, *, batch_size: int = 8, band
             v = valid[j] & (pred[j] > 0) & np.isfinite(pred[j])
             if not v.any():
                 continue
-            ratio = np.median(gt[j][v]) / np.median(pred[j][v])  # the protocol's median scaling
+            ratio = median_scale(pred[j][v], gt[j][v])
             e = np.where(v, np.log(np.where(v, pred[j] * ratio, 1.0)) - np.log(np.where(v, gt[j], 1.0)), 0.0)
             signed += e
             absolute += np.abs(e)
@@ -456,10 +452,9 @@ def evaluate_checkpoint(checkpoint: str | os.PathLike, dataset: str = "scenario_
     max_depth = getattr(ds, "max_depth", EVAL_MAX_DEPTH)  # a public dataset's own encoding bounds the mask
     base = None
     if baselines:
-        from geodepth_lite import baselines as bl
 
-        train_root, note = bl.mean_map_training_root(ds, cfg, progress=progress)
-        base = bl.evaluate_baselines(ds, train_root, batch_size=batch_size, progress=progress, mean_map_note=note,
+        train_root, note = mean_map_training_root(ds, cfg, progress=progress)
+        base = evaluate_baselines(ds, train_root, batch_size=batch_size, progress=progress, mean_map_note=note,
                                      max_depth=max_depth)
     try:
         return evaluate_model(model, ds, image_size=cfg["image_size"], batch_size=batch_size, out_dir=out_dir,
@@ -709,9 +704,7 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: Iterable[d
 def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, min_depth: float = EVAL_MIN_DEPTH,
                 max_depth: float = EVAL_MAX_DEPTH) -> np.ndarray:
     """Per-pixel |gt - pred| / gt (NaN outside the valid mask) of a median-scaled prediction."""
-    mask = (gt > min_depth) & (gt < max_depth)
-    if valid is not None:
-        mask &= valid
+    mask = eval_mask(gt, min_depth, max_depth, valid)
     err = np.abs(gt - np.clip(pred, min_depth, max_depth)) / np.where(mask, gt, 1.0)
     return np.where(mask, err, np.nan)
 
@@ -750,6 +743,109 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
             axes[i, 0].set_ylabel(row_labels[i], fontsize=8)
     fig.tight_layout()
     return fig
+
+
+# --------------------------------------------------------------------------- the baselines, scored
+
+
+def mean_map_training_root(dataset, cfg: dict | None = None, progress: bool = False) -> tuple[Path | None, str]:
+    """Where the ``evaluate`` CLI fits the mean depth map for ``dataset``: (dataset root, note).
+
+    The synthetic dataset's own train split when it has one; otherwise (public datasets,
+    held-out sets with a test split only) the checkpoint's training dataset ``cfg["dataset"]``
+    (built with ``synth.ensure_dataset`` if missing). (None, why) when neither is available.
+    """
+    from geodepth_lite.dataset import SyntheticDepthDataset
+
+    base = dataset
+    while isinstance(base, torch.utils.data.Subset):
+        base = base.dataset
+    if isinstance(base, SyntheticDepthDataset) and (base.root / "train" / "frames.jsonl").is_file():
+        note = "mean depth map fitted on the evaluated dataset's own train split"
+        if base.split == "train":
+            note += " (the evaluated frames themselves: an optimistic row)"
+        return base.root, note
+    if not (cfg or {}).get("dataset"):
+        return None, ("mean depth map not fitted: the dataset has no train split "
+                      "and the checkpoint names no training dataset")
+    from geodepth_lite.dataset import resolve_dataset
+
+    try:
+        root = resolve_dataset(cfg, progress=progress)
+    except (FileNotFoundError, ValueError) as exc:
+        return None, (f"mean depth map not fitted: the checkpoint's training dataset {cfg['dataset']!r} "
+                      f"is unavailable ({exc})")
+    return root, (f"mean depth map fitted on the checkpoint's training dataset {cfg['dataset']!r} (train split; "
+                  "the evaluated dataset has no train split of its own)")
+
+
+def evaluate_baselines(dataset, train_root_or_mean_map: str | os.PathLike | np.ndarray | None, *,
+                       names: Iterable[str] | None = None, sigma: float = 2.0, batch_size: int = 8,
+                       min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, progress: bool = False,
+                       mean_map_note: str | None = None) -> dict[str, dict]:
+    """Score the baselines ``names`` (default: all of ``baselines.BASELINES``) on ``dataset`` in one pass.
+
+    train_root_or_mean_map: a synthetic dataset folder whose train split fits the mean depth map,
+    an H x W map already fitted, or None (the mean map row is then left empty: n 0, NaN).
+    Returns {name: result} with the keys of ``evaluate.evaluate_model``'s result ("name", "n",
+    "overall", "by_group", "by_organ", "frames") plus "description" and "notes".
+    """
+    names = list(baselines.BASELINES) if names is None else list(names)
+    unknown = [n for n in names if n not in baselines.BASELINES]
+    if unknown:
+        raise ValueError(f"unknown baseline(s) {unknown}: choose from {', '.join(baselines.BASELINES)}")
+    notes: dict[str, list[str]] = {n: [] for n in names}
+    predictors: dict[str, Any] = {}
+    skipped: set[str] = set()
+    for name in names:
+        if name == "constant":
+            predictors[name] = baselines.constant_depth
+        elif name == "shading_prior":
+            predictors[name] = lambda images: baselines.shading_prior(images, sigma=sigma)
+            if sigma != 2.0:
+                notes[name].append(f"Gaussian sigma {sigma:g} px")
+        elif name == "mean_depth_map":
+            if mean_map_note:
+                notes[name].append(mean_map_note)
+            if train_root_or_mean_map is None:
+                skipped.add(name)
+                if not mean_map_note:
+                    notes[name].append("mean depth map not fitted: no training depths given")
+                continue
+            if isinstance(train_root_or_mean_map, (str, os.PathLike)):
+                root = Path(train_root_or_mean_map)
+                mean_map = baselines.fit_mean_depth_map(root, "train")
+                n_train = sum(1 for line in (root / "train" / "frames.jsonl").read_text().splitlines() if line.strip())
+                notes[name].append(f"fitted on the {n_train} frames of {root}/train "
+                                   f"at {mean_map.shape[0]}x{mean_map.shape[1]}")
+            else:
+                mean_map = np.asarray(train_root_or_mean_map, dtype=np.float32)
+                if mean_map.ndim != 2:
+                    raise ValueError(f"a mean depth map must be H x W, got shape {mean_map.shape}")
+                notes[name].append(f"a given {mean_map.shape[0]}x{mean_map.shape[1]} map")
+            sizes: set[tuple[int, int]] = set()
+
+            def predict_mean(images, mean_map=mean_map, sizes=sizes):
+                sizes.add(tuple(int(s) for s in images.shape[-2:]))
+                return baselines.apply_mean_depth_map(images, mean_map)
+
+            predictors[name] = predict_mean
+    results = evaluate_predictors(predictors, dataset, batch_size=batch_size, min_depth=min_depth,
+                                  max_depth=max_depth, progress=progress) if predictors else {}
+    if "mean_depth_map" in predictors:
+        other = sorted(sizes - {tuple(mean_map.shape)})
+        if other:
+            notes["mean_depth_map"].append("resized (nearest) to the evaluated frames: "
+                                           + ", ".join(f"{h}x{w}" for h, w in other))
+    out = {}
+    for name in names:
+        if name in skipped:
+            res = {"name": name, "n": 0, "overall": summarize([]), "by_group": {}, "by_organ": {},
+                   "frames": []}
+        else:
+            res = results[name]
+        out[name] = {**res, "description": baselines.BASELINES[name], "notes": notes[name]}
+    return out
 
 
 # --------------------------------------------------------------------------- CLI

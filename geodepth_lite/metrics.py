@@ -37,6 +37,24 @@ def _as_frames(x, name: str) -> np.ndarray:
     return x
 
 
+def eval_mask(gt, min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, valid=None) -> np.ndarray:
+    """The pixels the protocol scores: finite ground truth with ``min_depth < gt < max_depth``,
+    and ``valid`` where the dataset marks its own invalid pixels. Any shape; a boolean array."""
+    gt = np.asarray(gt)
+    with np.errstate(invalid="ignore"):
+        mask = np.isfinite(gt) & (gt > min_depth) & (gt < max_depth)
+    if valid is not None:
+        mask &= np.asarray(valid, dtype=bool).reshape(mask.shape)
+    return mask
+
+
+def median_scale(pred: np.ndarray, gt: np.ndarray) -> float:
+    """The protocol's median scaling: ``median(gt) / median(pred)`` over the same scored pixels
+    (two 1-D arrays, e.g. ``gt[mask]`` and ``pred[mask]``). Monocular depth has no scale; this
+    factor gives each frame the ground truth's."""
+    return float(np.median(gt) / np.median(pred))
+
+
 def frame_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     """The seven metrics of one frame, for 1-D arrays of valid, positive depths of equal length."""
     thresh = np.maximum(gt / pred, pred / gt)
@@ -73,8 +91,7 @@ def compute_depth_metrics(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_de
     n = p.shape[0]
     ratios = np.full(n, np.nan)
     per_frame = {k: np.full(n, np.nan) for k in METRIC_NAMES}
-    with np.errstate(invalid="ignore"):
-        valid_all = np.isfinite(g) & (g > min_depth) & (g < max_depth)
+    valid_all = eval_mask(g, min_depth, max_depth)
     for i in range(n):
         valid = valid_all[i]
         if not valid.any():
@@ -87,7 +104,7 @@ def compute_depth_metrics(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_de
             med = np.median(pi)
             if not med > 0:
                 raise ValueError(f"pred frame {i}: median depth on valid pixels is {med}, must be positive")
-            ratio = float(np.median(gi) / med)
+            ratio = median_scale(pi, gi)
             pi = pi * ratio
         pi = np.clip(pi, min_depth, max_depth)
         if not np.all(pi > 0):

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import camera, utils
+from .metrics import median_scale
 
 # A triangle between neighbouring pixels is kept only if a smooth surface could produce its
 # depth spread: a surface seen at grazing angle a changes depth between pixels one ray step
@@ -397,7 +398,7 @@ def median_scale_ratios(preds, gts, valids=None) -> np.ndarray:
         ok = _valid_mask(g, None if valids is None else valids[i]) & np.isfinite(p) & (p > 0)
         if not ok.any():
             raise ValueError(f"frame {i}: no pixel with valid ground truth and positive prediction")
-        ratios.append(np.median(g[ok]) / np.median(p[ok]))
+        ratios.append(median_scale(p[ok], g[ok]))
     return np.asarray(ratios)
 
 

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from geodepth_lite import config, utils
+from geodepth_lite import config, run_cache, utils
 
 MARKER_DIR = ".reproduce"
 
@@ -197,19 +197,17 @@ def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
 
 def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tuple[int, int, dict]], int | None]:
     """The models that the notebooks of ``plan`` ([(notebook, its parameters)]) train or load, as
-    (case, seed, overrides) runs for ``checkpoint.ensure_runs``, and the worker count notebook 05
+    (case, seed, overrides) runs for ``run_cache.ensure_runs``, and the worker count notebook 05
     asks for (None: one per core). Trained together before the notebooks run, the longest (the
     ``predict`` model of notebooks 04, 06 and 07) overlaps the ablation's runs instead of running alone."""
-    from geodepth_lite import checkpoint
-
     runs: list[tuple[int, int, dict]] = []
     workers = None
     for nb, given in plan:
         stem, p = nb.stem, {**notebook_parameters(nb), **given}
         if stem.startswith(("04_", "06_")):
-            runs.append((int(p["case"]), int(p["seed"]), checkpoint.predict_settings(profile)))
+            runs.append((int(p["case"]), int(p["seed"]), run_cache.predict_settings(profile)))
         elif stem.startswith("07_"):
-            runs.append((4, 0, checkpoint.predict_settings(profile)))
+            runs.append((4, 0, run_cache.predict_settings(profile)))
         elif stem.startswith("05_"):
             runs += [(int(c), int(s), {}) for c in p["cases"] for s in p["seeds"]]
             workers = int(p["workers"]) or None
@@ -249,15 +247,13 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
     log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
     runs, workers = training_runs(profile, [(nb, p) for nb, p, done in plan if not done])
     if runs:
-        from geodepth_lite import checkpoint
-
-        folders = {checkpoint.checkpoint_dir(profile, c, s, **o): (c, s, o) for c, s, o in runs}
-        todo = [r for r in folders.values() if not checkpoint.is_complete(profile, r[0], r[1], **r[2])]
+        folders = {run_cache.checkpoint_dir(profile, c, s, **o): (c, s, o) for c, s, o in runs}
+        todo = [r for r in folders.values() if not run_cache.is_complete(profile, r[0], r[1], **r[2])]
         if todo:
             print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
                   "(an interrupted one continues from its last epoch) ...", flush=True)
             t0 = time.perf_counter()
-            checkpoint.ensure_runs(profile, todo, workers=workers, progress=progress)
+            run_cache.ensure_runs(profile, todo, workers=workers, progress=progress)
             print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
     for nb, p, done in plan:
         if done:

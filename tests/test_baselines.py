@@ -83,7 +83,7 @@ def test_constant_depth_scores_known_abs_rel():
     assert m["abs_rel"] == pytest.approx(2 / 3)
     assert (m["a1"], m["a2"]) == (0.0, 0.5)
     # the same numbers through the evaluation protocol (one pass, per-frame rows, summaries)
-    res = baselines.evaluate_baselines(_frames(np.concatenate([flat, two])), None, names=["constant"])
+    res = evaluate.evaluate_baselines(_frames(np.concatenate([flat, two])), None, names=["constant"])
     assert [r["abs_rel"] for r in res["constant"]["frames"]] == pytest.approx([0.0, 2 / 3])
     assert res["constant"]["overall"]["abs_rel"] == pytest.approx(1 / 3)
     assert res["constant"]["by_organ"]["colon"]["n"] == 2
@@ -118,7 +118,7 @@ def test_mean_depth_map_is_the_pixelwise_mean_over_valid_pixels():
 def test_mean_map_is_resized_nearest_and_scores_zero_on_its_own_layout():
     layout = _smooth_depth(8, 8).astype(np.float32)
     ds = _frames(np.stack([2 * layout, 5 * layout]))  # every frame: the same layout up to scale
-    res = baselines.evaluate_baselines(ds, baselines.mean_depth_map([2 * layout, 5 * layout]),
+    res = evaluate.evaluate_baselines(ds, baselines.mean_depth_map([2 * layout, 5 * layout]),
                                        names=["mean_depth_map"])
     assert res["mean_depth_map"]["overall"]["abs_rel"] == pytest.approx(0.0, abs=1e-6)
     up = baselines.apply_mean_depth_map(np.zeros((3, 3, 16, 16)), layout)
@@ -132,7 +132,7 @@ def test_all_baselines_on_the_smoke_dataset(smoke_root):
     from geodepth_lite.dataset import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(smoke_root, "test")
-    res = baselines.evaluate_baselines(ds, smoke_root, batch_size=4)
+    res = evaluate.evaluate_baselines(ds, smoke_root, batch_size=4)
     assert list(res) == list(baselines.BASELINES)
     for name, r in res.items():
         assert r["n"] == len(ds) and len(r["frames"]) == len(ds)

@@ -278,7 +278,7 @@ WRITERS = {"endoslam": _write_endoslam, "colondepth": _write_colondepth, "simcol
 @pytest.mark.parametrize("name", loaders.DATASETS)
 def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untrained_checkpoint, capsys,
                                                         monkeypatch):
-    from geodepth_lite import baselines, cli
+    from geodepth_lite import cli
 
     bounds = {}  # the mask's max_depth that the model's and the baselines' rows are scored with
 
@@ -289,7 +289,7 @@ def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untraine
         return wrapper
 
     monkeypatch.setattr(evaluate, "evaluate_model", recording(evaluate.evaluate_model))
-    monkeypatch.setattr(baselines, "evaluate_baselines", recording(baselines.evaluate_baselines))
+    monkeypatch.setattr(evaluate, "evaluate_baselines", recording(evaluate.evaluate_baselines))
     root = tmp_path / "data"
     WRITERS[name](root)
     n = len(loaders.open_dataset(name, root))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from geodepth_lite import metrics
 from geodepth_lite.metrics import compute_depth_metrics
 
 GT = np.array([[1.0, 2.0], [4.0, 8.0]])
@@ -75,3 +76,15 @@ def test_errors():
         compute_depth_metrics(np.ones(4), np.ones(4))
     with pytest.raises(ValueError, match="min_depth"):
         compute_depth_metrics(np.ones((4, 4)), np.ones((4, 4)), min_depth=5, max_depth=1)
+
+
+def test_the_evaluation_mask_and_median_scaling_by_hand():
+    gt = np.array([[np.nan, 0.0005, 2.0], [4.0, 100.0, np.inf]])
+    assert metrics.eval_mask(gt).tolist() == [[False, False, True], [True, False, False]]
+    valid = np.array([[1, 1, 0], [1, 1, 1]])
+    assert metrics.eval_mask(gt, valid=valid).tolist() == [[False, False, False], [True, False, False]]
+    assert metrics.eval_mask(gt, max_depth=200.0).tolist() == [[False, False, True], [True, True, False]]
+    # median(gt) = 3, median(pred) = 1.5: the factor that gives the prediction the ground truth's scale
+    assert metrics.median_scale(np.array([1.0, 1.5, 9.0]), np.array([2.0, 3.0, 4.0])) == 2.0
+    # an outlier moves a mean-based scale (3 / 3.83) but not the median's
+    assert metrics.median_scale(np.array([1.0, 1.5, 90.0]), np.array([2.0, 3.0, 4.0])) == 2.0

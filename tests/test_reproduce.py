@@ -114,10 +114,10 @@ def test_a_failing_notebook_is_named_and_not_marked_complete(fake_notebooks, cap
 def test_the_models_of_the_real_notebooks_are_trained_together():
     """reproduce trains what notebooks 04-07 load before it runs them: the predict model of 04, 06
     and 07 (one run folder) and 05's case x seed runs, with 05's worker count."""
-    from geodepth_lite import checkpoint
+    from geodepth_lite import run_cache
 
     nbs = {p.name[:2]: p for p in reproduce.list_notebooks()}
-    predict = checkpoint.predict_settings("teach")
+    predict = run_cache.predict_settings("teach")
     runs, workers = reproduce.training_runs("teach", [(nbs["04"], {}), (nbs["05"], {"seeds": [0, 1], "workers": 1}),
                                                      (nbs["06"], {"seed": 2}), (nbs["07"], {})])
     assert runs[0] == (4, 0, predict) and runs[-1] == (4, 2, predict) and len(runs) == 10

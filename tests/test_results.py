@@ -169,13 +169,13 @@ def use_real_workspace(monkeypatch) -> None:
 def teach_models():
     """Every model the recorded notebooks will train, trained first in one pool (as ``reproduce``
     does), so that notebook 04's long ``predict`` model overlaps notebook 05's ablation runs."""
-    from geodepth_lite import checkpoint, reproduce
+    from geodepth_lite import reproduce, run_cache
 
     with pytest.MonkeyPatch.context() as mp:
         use_real_workspace(mp)
         todo = [(p, {}) for p in NOTEBOOKS if reproduced_copy(p, nbformat.read(str(p), as_version=4)) is None]
         runs, workers = reproduce.training_runs("teach", todo)
-        checkpoint.ensure_runs("teach", runs, workers=workers)
+        run_cache.ensure_runs("teach", runs, workers=workers)
 
 
 @pytest.mark.slow

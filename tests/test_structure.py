@@ -66,6 +66,58 @@ def test_train_py_is_the_loop_alone():
     assert not names & {"make_config", "save_checkpoint", "load_model", "predict_depth", "add_arguments_train"}
 
 
+def _import_graph() -> dict[str, set[str]]:
+    """{module: package modules it imports}, counting imports inside functions too."""
+    modules = _first_party_modules()
+    graph = {}
+    for path in PACKAGE.glob("*.py"):
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("geodepth_lite")):
+                sub = (node.module or "").split(".")[-1]
+                deps |= {sub} if sub in modules else {a.name for a in node.names if a.name in modules}
+            elif isinstance(node, ast.Import):
+                deps |= {a.name.split(".")[1] for a in node.names if a.name.startswith("geodepth_lite.")}
+        graph[path.stem] = deps - {path.stem}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One import cycle of ``graph`` as [a, b, ..., a], or [] when there is none (depth-first search)."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str]:
+        state[node] = 1
+        path.append(node)
+        for dep in sorted(graph.get(node, ())):
+            if state.get(dep) == 1:
+                return path[path.index(dep):] + [dep]
+            if dep not in state and (found := visit(dep)):
+                return found
+        state[node] = 2
+        path.pop()
+        return []
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return []
+
+
+def test_the_package_has_no_import_cycle():
+    """Every import between package modules counts, the ones inside functions included."""
+    assert not _cycle(_import_graph()), " -> ".join(_cycle(_import_graph()))
+
+
+def test_the_cycle_check_finds_a_cycle():
+    """The check can fail: a cycle hidden behind a function-level import is found."""
+    assert _cycle({"checkpoint": {"utils"}, "train": {"checkpoint"}, "utils": set()}) == []
+    assert _cycle({"checkpoint": {"train"}, "train": {"checkpoint", "utils"}, "utils": set()}) == [
+        "checkpoint", "train", "checkpoint"]
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+
+
 def test_no_benchmark_ships_inside_the_package():
     assert not list(PACKAGE.glob("bench*.py"))
     assert {"bench_render.py", "bench_sdf.py"} <= {p.name for p in (ROOT / "benchmarks").glob("*.py")}

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import augment, checkpoint, config, dataset, inference, metrics, train, utils
+from geodepth_lite import augment, checkpoint, config, dataset, inference, metrics, run_cache, train, utils
 
 
 def _cfg(root, case=4, seed=0, **kw):
@@ -250,9 +250,9 @@ def test_camera_augmentation_changes_the_image_only_and_repeats_under_the_same_s
 
 
 def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
-    path = checkpoint.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    path = run_cache.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
     stamp = path.stat().st_mtime_ns
-    again = checkpoint.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    again = run_cache.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
     assert again == path and path.stat().st_mtime_ns == stamp
     assert path.parent.parent == utils.runs_dir() / "smoke" / "checkpoints"
     model, cfg = checkpoint.load_model(path)
@@ -335,15 +335,15 @@ def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, sm
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], predict_image_size=32,
                                                          predict_overrides={"input_pad": 16, "border_weight": 2.0},
                                                          dataset=str(smoke_root)))
-    path = checkpoint.predict_checkpoint("smoke", case=1, seed=0)
+    path = run_cache.predict_checkpoint("smoke", case=1, seed=0)
     net, cfg = checkpoint.load_model(path)
     assert cfg["image_size"] == 32 and cfg["case"] == 1 and cfg["border_weight"] == 2.0
     assert cfg["input_pad"] == 16 and net.input_pad == 16
-    assert path.parent == checkpoint.checkpoint_dir("smoke", 1, 0, image_size=32, input_pad=16, border_weight=2.0)
-    assert path.parent != checkpoint.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
+    assert path.parent == run_cache.checkpoint_dir("smoke", 1, 0, image_size=32, input_pad=16, border_weight=2.0)
+    assert path.parent != run_cache.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
     assert config.PROFILES["teach"]["predict_image_size"] % 32 == 0
     for name in config.PROFILES:  # every profile's predict model is a valid configuration
-        config.make_config(name, 4, 0, **checkpoint.predict_settings(name))
+        config.make_config(name, 4, 0, **run_cache.predict_settings(name))
 
 
 def test_a_sixth_loss_term_is_one_table_entry(monkeypatch, smoke_root, tmp_path):
@@ -413,7 +413,6 @@ def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smok
     """One job per run folder (notebooks 04, 06 and 07 ask for the same model; an override equal
     to the profile's value is the same run), finished runs skipped, the largest input first; the
     paths come back in the order asked."""
-    import geodepth_lite.dataset
     from geodepth_lite import config
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
@@ -422,13 +421,13 @@ def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smok
     def fake_ensure(profile, case, seed, progress=False, **overrides):
         calls.append((case, seed, overrides.get("image_size")))
 
-    monkeypatch.setattr(checkpoint, "ensure_checkpoint", fake_ensure)
-    monkeypatch.setattr(geodepth_lite.dataset, "resolve_dataset", lambda cfg, progress=False: smoke_root)
-    monkeypatch.setattr(checkpoint, "is_complete", lambda profile, c, s, **o: (c, s) == (2, 0))
+    monkeypatch.setattr(run_cache, "ensure_checkpoint", fake_ensure)
+    monkeypatch.setattr(run_cache, "resolve_dataset", lambda cfg, progress=False: smoke_root)
+    monkeypatch.setattr(run_cache, "is_complete", lambda profile, c, s, **o: (c, s) == (2, 0))
     assert config.PROFILES["smoke"]["image_size"] == 64
     runs = [(1, 0, {}), (4, 0, {"image_size": 96}), (1, 1, {}), (4, 0, {"image_size": 96}),
             (1, 0, {"image_size": 64}), (2, 0, {})]
-    paths = checkpoint.ensure_runs("smoke", runs, workers=1)
+    paths = run_cache.ensure_runs("smoke", runs, workers=1)
     assert calls == [(4, 0, 96), (1, 0, None), (1, 1, None)]
-    assert paths == [checkpoint.checkpoint_dir("smoke", c, s, **o) / "checkpoint.pt" for c, s, o in runs]
+    assert paths == [run_cache.checkpoint_dir("smoke", c, s, **o) / "checkpoint.pt" for c, s, o in runs]
     assert paths[1] == paths[3] and paths[0] == paths[4] and len(set(paths)) == 4
