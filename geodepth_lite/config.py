@@ -17,6 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from geodepth_lite.augment import AUGMENTS
+from geodepth_lite.losses import DEPTH_TERMS, group_weights
+from geodepth_lite.model import PADDINGS
+
 PROFILES: dict[str, dict] = {
     "smoke": {
         "dataset": "scenario_smoke",   # manifest in data_manifests/
@@ -191,48 +195,44 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
     return validate_config(cfg)
 
 
+CONFIG_DEFAULTS = {"dataset_overrides": None, "train_frames": None, "val_frames": None, "encoder_weights": None,
+                   "threads": None, "betas": [0.9, 0.999], "lr_schedule": "constant", "optimizer": "adam",
+                   "depth_term": "l1", "augment": "none", "padding": "zeros", "border_weight": 0.0, "input_pad": 0}
+
+
 def validate_config(cfg: dict) -> dict:
     """Check a training configuration; a clear error naming the field. Returns a normalised copy."""
-    cfg = dict(cfg)
-    for key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights", "threads"):
-        cfg.setdefault(key, None)
-    cfg.setdefault("betas", [0.9, 0.999])
-    cfg.setdefault("lr_schedule", "constant")
-    cfg.setdefault("optimizer", "adam")
-    cfg.setdefault("depth_term", "l1")
-    cfg.setdefault("augment", "none")
-    cfg.setdefault("padding", "zeros")
-    cfg.setdefault("border_weight", 0.0)
-    cfg.setdefault("input_pad", 0)
-    from geodepth_lite.augment import AUGMENTS
-    from geodepth_lite.losses import DEPTH_TERMS, group_weights
-    from geodepth_lite.model import PADDINGS
-
+    cfg = {**{k: (list(v) if isinstance(v, list) else v) for k, v in CONFIG_DEFAULTS.items()}, **cfg}
     for key, allowed in (("optimizer", OPTIMIZERS), ("depth_term", tuple(DEPTH_TERMS)), ("augment", AUGMENTS),
-                         ("padding", PADDINGS)):
+                         ("padding", PADDINGS), ("lr_schedule", LR_SCHEDULES)):
         if cfg[key] not in allowed:
             raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
-    if cfg["lr_schedule"] not in LR_SCHEDULES:
-        raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     missing = [k for k in IDENTITY_KEYS if k not in cfg]
     if missing:
         raise ValueError(f"training config is missing {', '.join(missing)}")
+    _check_sizes(cfg)
+    _check_optimizer(cfg)
+    _check_data(cfg)
+    return cfg
 
-    def positive_int(key):
-        v = cfg[key]
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
-            raise ValueError(f"{key} must be a positive integer, got {v!r}")
-        cfg[key] = int(v)
 
-    for key in ("epochs", "batch_size", "sdf_grid"):
-        positive_int(key)
-    positive_int("image_size")
+def _positive_int(cfg: dict, key: str) -> None:
+    v = cfg[key]
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
+        raise ValueError(f"{key} must be a positive integer, got {v!r}")
+    cfg[key] = int(v)
+
+
+def _check_sizes(cfg: dict) -> None:
+    """Epochs, batch, SDF grid, input size and padding, frame limits, threads, border weight (in place)."""
+    for key in ("epochs", "batch_size", "sdf_grid", "image_size"):
+        _positive_int(cfg, key)
     if cfg["image_size"] % 32:
         raise ValueError("image_size must be a multiple of 32 (the encoder downsamples 5 times), "
                          f"got {cfg['image_size']}")
     for key in ("train_frames", "val_frames", "threads"):
         if cfg.get(key) is not None:
-            positive_int(key)
+            _positive_int(cfg, key)
     bw = cfg["border_weight"]
     if isinstance(bw, bool) or not isinstance(bw, (int, float, np.floating, np.integer)) or not 0 <= bw < float("inf"):
         raise ValueError(f"border_weight must be a non-negative number, got {bw!r}")
@@ -241,6 +241,10 @@ def validate_config(cfg: dict) -> dict:
     if isinstance(pad, bool) or not isinstance(pad, (int, np.integer)) or pad < 0 or pad % 16:
         raise ValueError(f"input_pad must be a non-negative multiple of 16 (pixels), got {pad!r}")
     cfg["input_pad"] = int(pad)
+
+
+def _check_optimizer(cfg: dict) -> None:
+    """Learning rate, weight decay, betas and loss weights: finite numbers in range (in place)."""
     for key in ("lr", "weight_decay"):
         v = cfg[key]
         if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0
@@ -257,6 +261,10 @@ def validate_config(cfg: dict) -> dict:
     cfg["lambdas"] = list(group_weights(lam).values())  # in group order: [lambda1, lambda2, lambda3]
     if not all(math.isfinite(float(w)) and float(w) >= 0 for w in cfg["lambdas"]):
         raise ValueError(f"lambdas must be finite non-negative numbers, got {lam!r}")
+
+
+def _check_data(cfg: dict) -> None:
+    """Seed, dataset, its overrides and the encoder's weights file (in place)."""
     if isinstance(cfg["seed"], bool) or not isinstance(cfg["seed"], (int, np.integer)) or cfg["seed"] < 0:
         raise ValueError(f"seed must be a non-negative integer, got {cfg['seed']!r}")
     cfg["seed"] = int(cfg["seed"])
@@ -269,7 +277,6 @@ def validate_config(cfg: dict) -> dict:
         cfg["encoder_weights"] = str(cfg["encoder_weights"])
         if not Path(cfg["encoder_weights"]).is_file():
             raise FileNotFoundError(f"encoder_weights: no such file {cfg['encoder_weights']}")
-    return cfg
 
 
 def config_identity(cfg: dict) -> dict:

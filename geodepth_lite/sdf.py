@@ -357,25 +357,31 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
             out.append(None)
             continue
         sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
-        p_pts = S_pred[b] if sel is None else S_pred[b, sel]  # (N, 3)
-        g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
-        key = hit = None
+        key = None
         if cache is not None and cache.max_bytes > 0:
             key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule)
-            hit = cache.get(key)
-        if hit is not None:
-            lower, upper = hit[0].to(S_gt), hit[1].to(S_gt)  # (3,) each
-        else:
-            lower, upper = g_pts.min(0).values, g_pts.max(0).values  # (3,) each: X_lb, X_ub of the ground truth
-        q = grid_points(lower, upper, shape)  # (M, 3)
-        phi_pred = signed_distance(p_pts, q, method, signed, pred[b, 0].detach() if view else None, Kb[b],
-                                   valid[b, 0])  # (M,)
-        if hit is not None:
-            phi_gt = hit[2].to(phi_pred)  # (M,)
-        else:
-            phi_gt = signed_distance(g_pts, q, method, signed, gt_safe[b, 0] if view else None, Kb[b],
-                                     valid[b, 0]).to(phi_pred)  # (M,)
-            if key is not None:
-                cache.put(key, lower, upper, phi_gt)
-        out.append({"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt})
+        out.append(_image_fields(S_pred[b] if sel is None else S_pred[b, sel],  # (N, 3)
+                                 S_gt[b] if sel is None else S_gt[b, sel],  # (N, 3)
+                                 pred[b, 0].detach() if view else None, gt_safe[b, 0] if view else None,
+                                 Kb[b], valid[b, 0], shape, method, signed, cache, key))
     return out
+
+
+def _image_fields(p_pts, g_pts, pred_depth, gt_depth, K, valid, shape, method: str, signed: bool,
+                  cache: GTFieldCache | None, key) -> dict:
+    """One image of :func:`sdf_fields`: the grid over the ground truth's points and both fields
+    (the ground truth's from ``cache`` under ``key`` when it holds them, else computed and stored)."""
+    hit = cache.get(key) if key is not None else None
+    if hit is not None:
+        lower, upper = hit[0].to(g_pts), hit[1].to(g_pts)  # (3,) each
+    else:
+        lower, upper = g_pts.min(0).values, g_pts.max(0).values  # (3,) each: X_lb, X_ub of the ground truth
+    q = grid_points(lower, upper, shape)  # (M, 3)
+    phi_pred = signed_distance(p_pts, q, method, signed, pred_depth, K, valid)  # (M,)
+    if hit is not None:
+        phi_gt = hit[2].to(phi_pred)  # (M,)
+    else:
+        phi_gt = signed_distance(g_pts, q, method, signed, gt_depth, K, valid).to(phi_pred)  # (M,)
+        if key is not None:
+            cache.put(key, lower, upper, phi_gt)
+    return {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt}

@@ -41,6 +41,7 @@ from geodepth_lite import config, distributed, inference, losses, utils
 from geodepth_lite.augment import augment_batch
 from geodepth_lite.dataset import MemoryDataset, load_split, resolve_dataset
 from geodepth_lite.metrics import METRIC_NAMES, compute_depth_metrics
+from geodepth_lite.model import DepthNet
 
 
 def log_keys() -> tuple[str, ...]:
@@ -102,15 +103,31 @@ def validate(model, dataset, cfg: dict, device: torch.device, batch_size: int | 
     return out
 
 
+def build_network(cfg: dict, network=None) -> torch.nn.Module:
+    """The network ``fit`` trains: ``DepthNet`` when ``network`` is None; else ``network``, either a
+    class taking DepthNet's keyword arguments (``encoder_weights``, ``padding``, ``input_pad``), such
+    as a DepthNet subclass, or a callable ``(cfg) -> nn.Module``. Its initial weights are drawn from
+    the random generators as they stand (``fit`` seeds them first)."""
+    network = DepthNet if network is None else network
+    if not isinstance(network, type):
+        return network(cfg)
+    return network(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"], input_pad=cfg["input_pad"])
+
+
 def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True,
         device: str | torch.device | None = None, num_workers: int | None = None,
-        cache: str | bool = "auto", stop_after: int | None = None) -> Path:
+        cache: str | bool = "auto", stop_after: int | None = None, network=None) -> Path:
     """Train DepthNet with ``cfg`` (see ``config.make_config``) into ``run_dir``; return the checkpoint path.
 
     resume: continue from ``run_dir/checkpoint.pt`` when it exists (same configuration
         required); without it an existing checkpoint is an error, so nothing is overwritten.
     stop_after: stop after this many epochs of this call (used to test resuming).
+    network: train this network instead of DepthNet (see ``build_network``); None (the default)
+        trains DepthNet, with the same weights as ever. The configuration does not record it: a run
+        folder holds one network, and its checkpoint loads into that network (``checkpoint.load_weights``).
     """
+    if network is not None and not callable(network):
+        raise TypeError(f"network must be a class or a callable (cfg) -> nn.Module, got {network!r}")
     cfg = config.validate_config(cfg)
     threads_before = torch.get_num_threads()
     if cfg["threads"] and inference.pick_device(device).type == "cpu":
@@ -118,7 +135,7 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
         # repeatable on any machine with the same CPU instruction set.
         torch.set_num_threads(cfg["threads"])
     try:
-        return Trainer(cfg, Path(run_dir), device=device, progress=progress).train(
+        return Trainer(cfg, Path(run_dir), device=device, progress=progress, network=network).train(
             resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
     finally:
         torch.set_num_threads(threads_before)
@@ -144,8 +161,8 @@ class TrainingDiverged(ValueError):
 class Trainer:
     """One training run: ``train`` -> ``run_epoch`` -> ``process_batch`` -> ``compute_losses``."""
 
-    def __init__(self, cfg: dict, run_dir: Path, *, device=None, progress: bool = True):
-        self.cfg, self.run_dir = cfg, run_dir
+    def __init__(self, cfg: dict, run_dir: Path, *, device=None, progress: bool = True, network=None):
+        self.cfg, self.run_dir, self.network = cfg, run_dir, network
         self.device = inference.pick_device(device)
         self.distributed = distributed.init_distributed(self.device)
         self.rank, self.world, _ = distributed.dist_env()
@@ -181,11 +198,8 @@ class Trainer:
         # 2. data (rank 0 builds a missing dataset; the others wait for it)
         self.load_data(cache, num_workers)
         # 3. model, optimizer, learning-rate schedule, in the order that fixes the random draws
-        from geodepth_lite.model import DepthNet
-
         utils.seed_everything(cfg["seed"])
-        self.model = DepthNet(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"],
-                              input_pad=cfg["input_pad"]).to(self.device)
+        self.model = build_network(cfg, self.network).to(self.device)
         opt_cls = torch.optim.AdamW if cfg["optimizer"] == "adamw" else torch.optim.Adam
         self.opt = opt_cls(self.model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]),
                            weight_decay=cfg["weight_decay"])

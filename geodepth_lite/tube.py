@@ -295,43 +295,64 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
     depth, width = float(preset["fold_depth"]) * R, float(preset["fold_width"]) * R
     kind = preset["fold_kind"]
     if kind == "haustral" and depth > 0:
-        n_sec = max(int(preset["teniae"]), 1)
-        sector_w = 2 * np.pi / n_sec
-        local = (theta - feats.tenia_offset) % (2 * np.pi)
-        sector = np.minimum((local // sector_w).astype(int), n_sec - 1)
-        u = (local - sector * sector_w) / sector_w  # 0..1 across the sector between two teniae
-        crescent = np.sin(np.pi * u) ** FOLD_CRESCENT_EXPONENT  # semilunar: highest mid-sector, vanishing at the teniae
-        fold = np.zeros_like(r)
-        for k in range(n_sec):  # per sector only the two nearest folds matter (spacing >> width)
-            fk = sorted((fs, st) for fs, _, fsec, st in feats.folds if fsec == k)
-            if not fk:
-                continue
-            pos, strength = np.array([f[0] for f in fk]), np.array([f[1] for f in fk])
-            j = np.clip(np.searchsorted(pos, s), 1, len(pos)) - 1
-            near = np.maximum(strength[j] * _sech2((s - pos[j]) / width),
-                              strength[np.minimum(j + 1, len(pos) - 1)]
-                              * _sech2((s - pos[np.minimum(j + 1, len(pos) - 1)]) / width))
-            fold = np.where(sector == k, near, fold)
-        # haustra bulge outwards between folds; teniae are flat bands slightly inside
-        r = r - depth * crescent * fold + HAUSTRUM_BULGE * depth * crescent * (1.0 - fold)
-        tenia = (np.exp(-((u * sector_w) ** 2) / (TENIA_WIDTH**2))
-                 + np.exp(-(((1 - u) * sector_w) ** 2) / (TENIA_WIDTH**2)))
-        r = r - TENIA_DEPTH * depth * tenia
+        r = _haustral_folds(r, s, theta, int(preset["teniae"]), feats, depth, width)
     elif kind == "circular" and depth > 0:
-        fold = np.zeros_like(r)
-        for fs, ftheta, _, strength in feats.folds:
-            # plicae are often not full circles
-            around = CIRCULAR_FOLD_AROUND[0] + CIRCULAR_FOLD_AROUND[1] * np.cos(theta - ftheta)
-            fold = np.maximum(fold, strength * around * _sech2((s - fs) / width))
-        r = r - depth * fold
+        r = _circular_folds(r, s, theta, feats, depth, width)
     elif kind == "longitudinal" and depth > 0:
-        fold = np.zeros_like(r)
-        for theta0, wander, phase, strength in feats.rugae:
-            centre = theta0 + wander * np.sin(2 * np.pi * s / (RUGA_WANDER_PERIOD * L) + phase)
-            along = RUGA_HEIGHT_MODULATION[0] + RUGA_HEIGHT_MODULATION[1] * np.sin(
-                2 * np.pi * s / (RUGA_HEIGHT_PERIOD * L) + phase * RUGA_PHASE_RATIO)
-            fold = np.maximum(fold, strength * along * _sech2(R * _wrap(theta - centre) / width))
-        r = r - depth * fold
+        r = _longitudinal_folds(r, s, theta, R, L, feats, depth, width)
+    r = _local_structures(r, s, theta, R, feats)
+    return np.maximum(r, MIN_RADIUS_FRACTION * R)
+
+
+def _haustral_folds(r, s, theta, teniae: int, feats: WallFeatures, depth: float, width: float) -> np.ndarray:
+    """The colon's semilunar folds between the teniae, the haustra bulging between folds, the teniae."""
+    n_sec = max(teniae, 1)
+    sector_w = 2 * np.pi / n_sec
+    local = (theta - feats.tenia_offset) % (2 * np.pi)
+    sector = np.minimum((local // sector_w).astype(int), n_sec - 1)
+    u = (local - sector * sector_w) / sector_w  # 0..1 across the sector between two teniae
+    crescent = np.sin(np.pi * u) ** FOLD_CRESCENT_EXPONENT  # semilunar: highest mid-sector, vanishing at the teniae
+    fold = np.zeros_like(r)
+    for k in range(n_sec):  # per sector only the two nearest folds matter (spacing >> width)
+        fk = sorted((fs, st) for fs, _, fsec, st in feats.folds if fsec == k)
+        if not fk:
+            continue
+        pos, strength = np.array([f[0] for f in fk]), np.array([f[1] for f in fk])
+        j = np.clip(np.searchsorted(pos, s), 1, len(pos)) - 1
+        near = np.maximum(strength[j] * _sech2((s - pos[j]) / width),
+                          strength[np.minimum(j + 1, len(pos) - 1)]
+                          * _sech2((s - pos[np.minimum(j + 1, len(pos) - 1)]) / width))
+        fold = np.where(sector == k, near, fold)
+    # haustra bulge outwards between folds; teniae are flat bands slightly inside
+    r = r - depth * crescent * fold + HAUSTRUM_BULGE * depth * crescent * (1.0 - fold)
+    tenia = (np.exp(-((u * sector_w) ** 2) / (TENIA_WIDTH**2))
+             + np.exp(-(((1 - u) * sector_w) ** 2) / (TENIA_WIDTH**2)))
+    return r - TENIA_DEPTH * depth * tenia
+
+
+def _circular_folds(r, s, theta, feats: WallFeatures, depth: float, width: float) -> np.ndarray:
+    """The small intestine's plicae: ring-shaped folds, often not full circles."""
+    fold = np.zeros_like(r)
+    for fs, ftheta, _, strength in feats.folds:
+        around = CIRCULAR_FOLD_AROUND[0] + CIRCULAR_FOLD_AROUND[1] * np.cos(theta - ftheta)
+        fold = np.maximum(fold, strength * around * _sech2((s - fs) / width))
+    return r - depth * fold
+
+
+def _longitudinal_folds(r, s, theta, R: float, L: float, feats: WallFeatures, depth: float,
+                        width: float) -> np.ndarray:
+    """The stomach's rugae: folds along the axis that wander around it and vary in height."""
+    fold = np.zeros_like(r)
+    for theta0, wander, phase, strength in feats.rugae:
+        centre = theta0 + wander * np.sin(2 * np.pi * s / (RUGA_WANDER_PERIOD * L) + phase)
+        along = RUGA_HEIGHT_MODULATION[0] + RUGA_HEIGHT_MODULATION[1] * np.sin(
+            2 * np.pi * s / (RUGA_HEIGHT_PERIOD * L) + phase * RUGA_PHASE_RATIO)
+        fold = np.maximum(fold, strength * along * _sech2(R * _wrap(theta - centre) / width))
+    return r - depth * fold
+
+
+def _local_structures(r, s, theta, R: float, feats: WallFeatures) -> np.ndarray:
+    """Polyps (inward domes), diverticula (outward cups), papillae (a dome with a pit), ridges."""
     for ps, pth, size in feats.polyps:  # caps: inward, smooth dome
         d2 = ((s - ps) ** 2 + (R * _wrap(theta - pth)) ** 2) / size**2
         r = r - POLYP_HEIGHT * size * np.clip(1.0 - d2, 0.0, None) ** DOME_PROFILE_EXPONENT
@@ -348,7 +369,7 @@ def radius_field(s: np.ndarray, theta: np.ndarray, preset: dict, feats: WallFeat
         across = -ds_ * np.sin(angle) + dt * np.cos(angle)
         envelope = np.clip(1.0 - (along / (0.5 * length)) ** 2, 0.0, None)
         r = r - height * envelope * _sech2(across / (RIDGE_WIDTH * R))
-    return np.maximum(r, MIN_RADIUS_FRACTION * R)
+    return r
 
 
 # ----------------------------------------------------------------------------- the mesh
@@ -433,8 +454,6 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     resolution: {"n_theta": points per ring, "ring_step": ring spacing as a fraction of the
     radius}. Deterministic in (preset, seed, resolution).
     """
-    import pyvista as pv
-
     if isinstance(preset, str):
         if preset not in PRESETS:
             raise ValueError(f"unknown organ preset {preset!r}: choose one of {', '.join(PRESETS)}")
@@ -444,17 +463,30 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     n_theta = int(res["n_theta"])
     R, L = float(preset["radius"]), float(preset["length"])
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), TUBE_RNG_TAG]))
+    s_grid, pts = _sample_centerline(preset, rng, max(int(math.ceil(L / (float(res["ring_step"]) * R))) + 1, 2))
+    T, N, B = parallel_transport_frames(pts)
+    feats = _draw_features(preset, rng)
+    S, TH, wall, normals = _wall_grid(s_grid, pts, N, B, n_theta, preset, feats)
+    tile = 2 * np.pi * R
+    mesh = _tube_polydata(S, TH, wall, normals, s_grid, pts, T, tile)
+    return TubeMesh(preset=preset, seed=int(seed), mesh=mesh, s_grid=s_grid, points=pts, T=T, N=N, B=B,
+                    features=feats, texture_tile=tile)
 
-    # centerline: sample densely, re-parametrize by arc length
+
+def _sample_centerline(preset: dict, rng: np.random.Generator, n_rings: int) -> tuple[np.ndarray, np.ndarray]:
+    """(arc lengths, points) of ``n_rings`` rings along the centerline: sampled densely, then
+    re-parametrized by arc length."""
+    L = float(preset["length"])
     t_dense = np.linspace(0.0, L * CENTERLINE_OVERSHOOT, 4000)
     dense = _centerline_points(t_dense, preset, rng)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
-    n_rings = max(int(math.ceil(L / (float(res["ring_step"]) * R))) + 1, 2)
     s_grid = np.linspace(0.0, L, n_rings)
-    pts = np.stack([np.interp(s_grid, arc, dense[:, k]) for k in range(3)], axis=1)
-    T, N, B = parallel_transport_frames(pts)
-    feats = _draw_features(preset, rng)
+    return s_grid, np.stack([np.interp(s_grid, arc, dense[:, k]) for k in range(3)], axis=1)
 
+
+def _wall_grid(s_grid, pts, N, B, n_theta: int, preset: dict, feats: WallFeatures):
+    """(S, TH, wall points, unit normals) on the rings x (n_theta + 1) grid; the last column
+    duplicates the first (the texture seam). Normals dP/ds x dP/dtheta point into the lumen."""
     theta = np.linspace(0.0, 2 * np.pi, n_theta + 1)  # last column = seam duplicate of the first
     S, TH = np.meshgrid(s_grid, theta, indexing="ij")  # n_rings x (n_theta+1)
     r = radius_field(S, TH, preset, feats)
@@ -462,48 +494,45 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     cos_t, sin_t = np.cos(TH), np.sin(TH)
     cos_t[:, -1], sin_t[:, -1] = 1.0, 0.0
     wall = pts[:, None, :] + r[..., None] * (cos_t[..., None] * N[:, None, :] + sin_t[..., None] * B[:, None, :])
-
-    # analytic-grid normals (periodic in theta): dP/ds x dP/dtheta points into the lumen
+    # analytic-grid normals (periodic in theta)
     core = wall[:, :-1]
     d_s = np.gradient(core, s_grid, axis=0)
     d_t = (np.roll(core, -1, axis=1) - np.roll(core, 1, axis=1))
     normals = np.cross(d_s, d_t)
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    normals = np.concatenate([normals, normals[:, :1]], axis=1)
+    return S, TH, wall, np.concatenate([normals, normals[:, :1]], axis=1)
 
-    n_cols = n_theta + 1
+
+def _tube_polydata(S, TH, wall, normals, s_grid, pts, T, tile: float):
+    """The wall grid as triangles, closed by a fan at each end, with normals, texture coordinates,
+    and the arc length ``s`` and angle ``theta`` of every point."""
+    import pyvista as pv  # VTK: imported where a mesh is built
+
+    n_rings, n_cols = wall.shape[:2]
     idx = np.arange(n_rings * n_cols).reshape(n_rings, n_cols)
     a, b_, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
     # winding chosen so right-hand-rule face normals point into the lumen
     tris = np.concatenate([np.stack([a, c, b_], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
-
-    # end caps: a fan to the centre point of each end ring
-    verts = [wall.reshape(-1, 3)]
-    nrm = [normals.reshape(-1, 3)]
-    tile = 2 * np.pi * R
+    verts, nrm = [wall.reshape(-1, 3)], [normals.reshape(-1, 3)]
     tex = [np.stack([S.ravel() / tile, TH.ravel() / (2 * np.pi)], axis=1)]
     s_arr, th_arr = [S.ravel()], [TH.ravel()]
     base = n_rings * n_cols
-    for k, (ring, sign) in enumerate(((0, 1.0), (n_rings - 1, -1.0))):
+    for k, (ring, sign) in enumerate(((0, 1.0), (n_rings - 1, -1.0))):  # end caps: a fan to each end's centre
         centre = base + k
         verts.append(pts[ring][None])
         nrm.append((sign * T[ring])[None])
         tex.append(np.array([[s_grid[ring] / tile, 0.5]]))
         s_arr.append([s_grid[ring]])
         th_arr.append([0.0])
-        ring_idx = idx[ring]
-        j0, j1 = ring_idx[:-1], ring_idx[1:]
+        j0, j1 = idx[ring][:-1], idx[ring][1:]
         fan = (np.stack([np.full_like(j0, centre), j0, j1], -1) if ring == 0
                else np.stack([np.full_like(j0, centre), j1, j0], -1))
         tris = np.concatenate([tris, fan])
-
-    points = np.concatenate(verts).astype(np.float64)
     faces = np.hstack([np.full((len(tris), 1), 3), tris]).astype(np.int64).ravel()
-    mesh = pv.PolyData(points, faces)
+    mesh = pv.PolyData(np.concatenate(verts).astype(np.float64), faces)
     mesh.point_data["Normals"] = np.concatenate(nrm).astype(np.float32)
     mesh.point_data.active_normals_name = "Normals"
     mesh.active_texture_coordinates = np.concatenate(tex).astype(np.float32)
     mesh.point_data["s"] = np.concatenate(s_arr).astype(np.float32)
     mesh.point_data["theta"] = np.concatenate(th_arr).astype(np.float32)
-    return TubeMesh(preset=preset, seed=int(seed), mesh=mesh, s_grid=s_grid, points=pts, T=T, N=N, B=B,
-                    features=feats, texture_tile=tile)
+    return mesh

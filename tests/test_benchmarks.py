@@ -1,10 +1,14 @@
-"""The scripts in benchmarks/ still run, at tiny sizes (the README's figures come from full runs)."""
+"""The scripts in benchmarks/ still run, at tiny sizes (the README's figures come from full runs),
+and ``train.fit`` trains the network it is given (what ``tune_teach.py --network`` relies on)."""
 
 import json
 import runpy
 from pathlib import Path
 
-from geodepth_lite import sdf
+import pytest
+import torch
+
+from geodepth_lite import checkpoint, config, evaluate, model, sdf, train, utils
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -35,113 +39,11 @@ def test_bench_render_runs(capsys):
     assert "frames/s" in capsys.readouterr().out
 
 
-def test_symmetric_downsampling_samples_both_edges_alike():
-    """The experiment's encoder has DepthNet's parameters; with left-right symmetric kernels it
-    maps a mirrored image to mirrored features (known answer), which the package's stride-2
-    encoder does not: its windows sit at columns 0, 2, ..., W-2."""
-    import torch
-
-    from geodepth_lite import model
-
-    def mirror_symmetric(net):
-        for m in net.modules():
-            if isinstance(m, torch.nn.Conv2d):
-                m.weight.data = (m.weight.data + m.weight.data.flip(-1)) / 2
-        return net.eval()
-
-    torch.manual_seed(0)
-    sym = mirror_symmetric(load("exp_symmetric_downsampling.py")["SymmetricDepthNet"]())
-    base = mirror_symmetric(model.DepthNet())
-    assert sum(p.numel() for p in sym.parameters()) == sum(p.numel() for p in base.parameters())
-    x = torch.rand(1, 3, 64, 64, dtype=torch.float64)
-    sym, base = sym.double(), base.double()
-    with torch.no_grad():
-        for net, equivariant in ((sym, True), (base, False)):
-            f, f_mirror = net.encode(x)[-1], net.encode(x.flip(-1))[-1]
-            gap = float((f_mirror - f.flip(-1)).abs().max()) / float(f.abs().max())
-            assert (gap < 1e-9) if equivariant else (gap > 1e-3), gap
-
-
-def test_partial_padding_gives_a_constant_image_the_same_response_at_the_border():
-    """Known answer: a 3x3 all-ones kernel on a constant image c sums 9c under every window once the
-    border outputs are rescaled (zero padding gives 4c at the corners, 6c on the edges). The
-    network variant keeps DepthNet's parameters and rescales every zero-padded convolution."""
-    import torch
-
-    from geodepth_lite import model
-
-    g = load("exp_partial_padding.py")
-    conv = g["PartialConv2d"](1, 1, 3, padding=1, bias=False)
-    plain = torch.nn.Conv2d(1, 1, 3, padding=1, bias=False)
-    conv.weight.data.fill_(1.0)
-    plain.weight.data.fill_(1.0)
-    x = torch.full((1, 1, 6, 5), 2.0)
-    with torch.no_grad():
-        assert torch.equal(conv(x), torch.full((1, 1, 6, 5), 18.0))
-        edge = plain(x)[0, 0]
-        assert edge[0, 0] == 8.0 and edge[0, 2] == 12.0 and edge[2, 2] == 18.0
-        # stride 2 with the 7x7 stem's padding: windows over the top-left corner see 16 of 49 inputs
-        stem = g["PartialConv2d"](1, 1, 7, stride=2, padding=3, bias=True)
-        stem.weight.data.fill_(1.0)
-        stem.bias.data.fill_(0.5)
-        assert torch.allclose(stem(torch.ones(1, 1, 8, 8)), torch.full((1, 1, 4, 4), 49.5))
-    net, base = g["PartialPaddingDepthNet"](), model.DepthNet()
-    assert sum(p.numel() for p in net.parameters()) == sum(p.numel() for p in base.parameters())
-    padded = [m for m in base.modules() if isinstance(m, torch.nn.Conv2d) and any(p > 0 for p in m.padding)]
-    assert sum(type(m).__name__ == "PartialConv2d" for m in net.modules()) == len(padded) > 20
-
-
-def test_coordinate_channels_and_a_coordconv_net_that_starts_as_depthnet():
-    """Known answer: pixel centres of a 2 x 4 image at x = -0.75, -0.25, 0.25, 0.75 and y = -0.5, 0.5.
-    The experiment's network has DepthNet's parameters plus two zero-initialised input channels, so
-    with DepthNet's weights copied in it predicts exactly what DepthNet predicts."""
-    import torch
-
-    from geodepth_lite import model
-
-    g = load("exp_coord_channels.py")
-    xy = g["coordinate_channels"](3, 2, 4, torch.zeros(1, dtype=torch.float64))
-    assert xy.shape == (3, 2, 2, 4)
-    assert torch.equal(xy[0, 0, 1], torch.tensor([-0.75, -0.25, 0.25, 0.75], dtype=torch.float64))
-    assert torch.equal(xy[2, 1, :, 0], torch.tensor([-0.5, 0.5], dtype=torch.float64))
-    torch.manual_seed(0)
-    base = model.DepthNet().double().eval()
-    torch.manual_seed(1)
-    coord = g["CoordDepthNet"]().double().eval()
-    state = base.state_dict()
-    w = torch.zeros(64, 5, 7, 7, dtype=torch.float64)
-    w[:, :3] = state["encoder.conv1.weight"]
-    coord.load_state_dict(dict(state, **{"encoder.conv1.weight": w}))
-    x = torch.rand(2, 3, 64, 64, dtype=torch.float64)
-    with torch.no_grad():
-        assert torch.allclose(coord(x), base(x), rtol=1e-12, atol=0)
-        coord.encoder.conv1.weight[:, 3:] = 0.1  # once the coordinates count, the output changes
-        assert not torch.allclose(coord(x), base(x), rtol=1e-6, atol=0)
-
-
-def test_border_context_windows_put_the_crops_edge_where_asked():
-    """A 96 px crop of a 128 px frame, 32 px in from each side: its band (outer 10%, 10 px) covers
-    frame columns 32-41 for the left side; median scaling makes a prediction of 2 x gt error-free."""
-    import numpy as np
-
-    g = load("exp_border_context.py")
-    win = g["crop_windows"](128, 128, 96, 32)
-    assert win["left"] == (slice(16, 112), slice(32, 128))
-    assert win["right"] == (slice(16, 112), slice(0, 96))
-    assert win["top"] == (slice(32, 128), slice(16, 112)) and win["bottom"] == (slice(0, 96), slice(16, 112))
-    cols = np.arange(128)[win["left"][1]][g["regions"](96, "left")["band"][1]]
-    assert cols[0] == 32 and cols[-1] == 41
-    gt = np.random.default_rng(0).uniform(1, 5, (8, 8))
-    assert np.allclose(g["abs_log_error"](2 * gt, gt, np.ones((8, 8), bool)), 0)
-
-
 def test_every_evidence_row_is_a_logged_run():
     """The tables that justify the teach recipe (config.TEACH_EVIDENCE, LAMBDA_SEARCH, VIEW_EVIDENCE;
     notebook 04 and the README show them) quote benchmarks/tuning_log.jsonl: each row's validation
     Abs Rel and RMSE are those of a logged run of its name, and its close-up score that of the run or
     of its "<run>_closeups" scoring row."""
-    from geodepth_lite import config
-
     log = [json.loads(line) for line in (BENCHMARKS / "tuning_log.jsonl").read_text().splitlines()]
     rows = [*config.TEACH_EVIDENCE, *config.LAMBDA_SEARCH, *config.VIEW_EVIDENCE]
     assert len(rows) > 20
@@ -154,29 +56,36 @@ def test_every_evidence_row_is_a_logged_run():
             assert any(abs(c - row["closeup_abs_rel"]) <= 5e-4 for c in scored), row
 
 
-def test_padded_training_experiment_builds_the_packages_mirrored_network():
-    """The experiment's network is DepthNet with input_pad forced on, whatever the caller passes:
-    the same parameters and, with the same weights, the same depth as DepthNet(input_pad=16)."""
-    import torch
-
-    from geodepth_lite import model
-
-    g = load("exp_padded_training.py")
-    torch.manual_seed(0)
-    net = g["padded_network"](16)(padding="zeros").eval()
-    ref = model.DepthNet(input_pad=16).eval()
-    ref.load_state_dict(net.state_dict())
-    x = torch.rand(1, 3, 32, 32)
-    with torch.no_grad():
-        assert net.input_pad == 16 and torch.equal(net(x), ref(x))
-        plain = model.DepthNet().eval()
-        plain.load_state_dict(net.state_dict())
-        assert not torch.allclose(net(x), plain(x))  # the mirrored border changes the depth
+def test_tune_teach_parses_its_commands_with_train_the_default(tmp_path):
+    """``tune_teach.py NAME ...`` is ``tune_teach.py train NAME ...`` (the README's commands); --set
+    values are JSON where they parse; --network names a class in a file or a module."""
+    g = load("tune_teach.py")
+    args = g["parse_args"](["tiny", "--case", "4", "--set", "image_size=96", "--set", "lambdas=[1,0.1,0.1]",
+                            "--set", "augment=camera", "--set", "train_frames=null", "--border"])
+    assert args.command == "train" and args.name == "tiny" and args.case == 4 and args.seed == 0 and args.border
+    assert args.settings == {"image_size": 96, "lambdas": [1, 0.1, 0.1], "augment": "camera", "train_frames": None}
+    assert g["parse_args"](["train", "tiny"]).settings == {}
+    flips = g["parse_args"](["flips", "a", "b", "--flips", "none", "hv", "--input-pad", "16"])
+    assert flips.runs == ["a", "b"] and flips.flips == ["none", "hv"] and flips.input_pad == 16
+    assert g["parse_args"](["closeups", "a"]).runs == ["a"]
+    with pytest.raises(SystemExit):
+        g["parse_args"](["flips", "a", "--flips", "sideways"])
+    assert g["load_network"]("") is None
+    assert g["load_network"]("geodepth_lite.model:DepthNet") is model.DepthNet
+    variant = tmp_path / "variant.py"
+    variant.write_text("from geodepth_lite import model\n\n\nclass Wide(model.DepthNet):\n"
+                       "    \"\"\"DepthNet, renamed.\"\"\"\n")
+    wide = g["load_network"](f"{variant}:Wide")
+    assert issubclass(wide, model.DepthNet)
+    assert g["describe_network"]("variant.py:Wide", wide) == "variant.py:Wide: DepthNet, renamed."
+    for bad in (f"{variant}:Narrow", "Wide", f"{tmp_path / 'none.py'}:Wide"):
+        with pytest.raises(SystemExit, match="--network"):
+            g["load_network"](bad)
 
 
 def test_a_logged_row_says_which_kernel_cap_it_ran_under(tmp_path, monkeypatch):
     """append_row adds {"env": {"ONEDNN_MAX_CPU_ISA": ...}} when the cap is set, nothing otherwise."""
-    g = load("network_experiment.py")
+    g = load("tune_teach.py")
     log = tmp_path / "log.jsonl"
     monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
     g["append_row"]({"name": "a"}, log)
@@ -186,24 +95,94 @@ def test_a_logged_row_says_which_kernel_cap_it_ran_under(tmp_path, monkeypatch):
     assert rows == [{"name": "a"}, {"name": "b", "env": {"ONEDNN_MAX_CPU_ISA": "AVX2"}}]
 
 
-def test_score_run_records_closeups_and_test_border(tmp_path, monkeypatch, smoke_root):
-    """score_run.py scores a tune run on heldout_closeup and the test split and logs one row; a run
-    of exp_padded_training.py is scored with its mirror padding; a missing run is named."""
-    import pytest
-    from conftest import save_untrained_checkpoint
+def _smoke_cfg(root):
+    """One epoch of the smoke profile at 32x32 (the smallest size the encoder takes)."""
+    return config.make_config("smoke", 4, 0, dataset=str(root), epochs=1, batch_size=4, image_size=32)
 
-    from geodepth_lite import config, utils
+
+class MarkedDepthNet(model.DepthNet):
+    """DepthNet with one more parameter, so that its checkpoint tells it apart; records its arguments."""
+
+    built: list = []
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.marker = torch.nn.Parameter(torch.zeros(1))
+        MarkedDepthNet.built.append(kwargs)
+
+
+def _weights(path) -> dict:
+    return torch.load(path, weights_only=False)["model"]
+
+
+def test_fit_trains_the_network_it_is_given(smoke_root, tmp_path, monkeypatch):
+    """A class is built with DepthNet's keyword arguments from the configuration, a callable with the
+    configuration; either way the checkpoint holds that network's weights, not DepthNet's."""
+    monkeypatch.setattr(MarkedDepthNet, "built", [])
+    cfg = _smoke_cfg(smoke_root)
+    by_class = _weights(train.fit(cfg, tmp_path / "class", progress=False, network=MarkedDepthNet))
+    assert MarkedDepthNet.built == [{"encoder_weights": None, "padding": "zeros", "input_pad": 0}]
+    seen = []
+    by_callable = _weights(train.fit(cfg, tmp_path / "callable", progress=False,
+                                     network=lambda c: seen.append(c) or MarkedDepthNet(padding=c["padding"])))
+    assert len(seen) == 1 and seen[0]["seed"] == 0 and seen[0]["image_size"] == 32
+    for weights in (by_class, by_callable):
+        assert "marker" in weights and weights.keys() - {"marker"} == model.DepthNet().state_dict().keys()
+    with pytest.raises(TypeError, match="network must be"):
+        train.fit(cfg, tmp_path / "bad", progress=False, network="DepthNet")
+
+
+def test_fit_without_a_network_trains_depthnet_bit_for_bit(smoke_root, tmp_path):
+    """network=None is the default path, and DepthNet passed as the class gives the same weights too:
+    the network is built with the same arguments at the same point of the seeded random draws."""
+    cfg = _smoke_cfg(smoke_root)
+    default = _weights(train.fit(cfg, tmp_path / "default", progress=False))
+    for name, network in (("none", None), ("class", model.DepthNet)):
+        other = _weights(train.fit(cfg, tmp_path / name, progress=False, network=network))
+        assert other.keys() == default.keys()
+        for k, v in default.items():
+            assert torch.equal(v, other[k]), (name, k)
+
+
+def test_tune_teach_trains_a_network_variant_and_scores_it_again(smoke_root, tmp_path, monkeypatch):
+    """``train NAME --network FILE.py:NAME`` trains the variant and logs its validation row; its run
+    loads into that variant only (DepthNet refuses its weights)."""
+    g = load("tune_teach.py")
+    variant = tmp_path / "variant.py"
+    variant.write_text("import torch\n\nfrom geodepth_lite import model\n\n\nclass Marked(model.DepthNet):\n"
+                       "    \"\"\"DepthNet with a marker parameter.\"\"\"\n\n"
+                       "    def __init__(self, **kwargs):\n        super().__init__(**kwargs)\n"
+                       "        self.marker = torch.nn.Parameter(torch.zeros(1))\n")
+    log = tmp_path / "log.jsonl"
+    assert g["main"](["tiny", "--case", "4", "--set", f"dataset={smoke_root}", "--set", "image_size=32",
+                      "--set", "epochs=1", "--set", "batch_size=4", "--network", f"{variant}:Marked",
+                      "--log", str(log)]) == 0
+    (row,) = [json.loads(line) for line in log.read_text().splitlines()]
+    assert row["name"] == "tiny" and row["network"] == f"{variant}:Marked: DepthNet with a marker parameter."
+    assert row["settings"]["image_size"] == 32 and 0 < row["val_abs_rel"] and 0 < row["val_rmse"]
+    ckpt = utils.runs_dir() / "tune" / "tiny" / checkpoint.CHECKPOINT_NAME
+    assert "marker" in checkpoint.read_checkpoint(ckpt)["model"]
+    net, cfg, name = g["load_run"]("tiny", g["load_network"](f"{variant}:Marked"))
+    assert type(net).__name__ == "Marked" and name == "tiny" and cfg["image_size"] == 32
+    with pytest.raises(ValueError, match="does not fit this network"):
+        g["load_run"]("tiny")
+
+
+def test_tune_teach_closeups_records_closeups_and_test_border(tmp_path, monkeypatch, smoke_root):
+    """``closeups`` scores a tune run on heldout_closeup and the test split and logs one row; a run
+    trained before input_pad was a setting is scored with its mirror padding; a missing run is named."""
+    from conftest import save_untrained_checkpoint
 
     monkeypatch.setitem(config.PROFILES, "teach", dict(config.PROFILES["teach"],
                                                          closeup_overrides=config.PROFILES["smoke"]["closeup_overrides"]))
-    g = load("score_run.py")
+    g = load("tune_teach.py")
     run = utils.runs_dir() / "tune" / "tiny"
     run.mkdir(parents=True)
     save_untrained_checkpoint(run / "checkpoint.pt", {"image_size": 32, "case": 4, "seed": 0,
                                                       "dataset": str(smoke_root)})
     log = tmp_path / "log.jsonl"
-    assert g["main"](["tiny", "--log", str(log)]) == 0
-    assert g["main"](["tiny", "--input-pad", "16", "--log", str(log)]) == 0
+    assert g["main"](["closeups", "tiny", "--log", str(log)]) == 0
+    assert g["main"](["closeups", "tiny", "--input-pad", "16", "--log", str(log)]) == 0
     plain, padded = (json.loads(line) for line in log.read_text().splitlines())
     assert plain["name"] == "tiny_closeups" and "input_pad" not in plain["settings"]
     assert padded["settings"]["input_pad"] == 16
@@ -214,83 +193,39 @@ def test_score_run_records_closeups_and_test_border(tmp_path, monkeypatch, smoke
     assert plain["closeup_shading_prior_abs_rel"] == padded["closeup_shading_prior_abs_rel"]
     assert plain["closeup_border_worst"] != padded["closeup_border_worst"]  # the padded network sees more
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
-        g["main"](["missing", "--log", str(log)])
+        g["main"](["closeups", "missing", "--log", str(log)])
 
 
-def test_score_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, smoke_root):
-    """score_flips.py scores a tune run or a checkpoint path with each test-time flips setting: one row
-    each, validation fields beside the recorded close-up and test fields; "none" is the network's own
-    single pass, so its validation Abs Rel is score_validation's; a missing run is named."""
-    import pytest
-    import torch
+def test_tune_teach_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, smoke_root):
+    """``flips`` scores a tune run or a checkpoint path with each test-time flips setting: one row each,
+    validation fields beside the recorded close-up and test fields; "none" is the network's own single
+    pass, so its validation Abs Rel is score_validation's; a missing run is named."""
     from conftest import save_untrained_checkpoint
-
-    from geodepth_lite import checkpoint, config, utils
 
     monkeypatch.setitem(config.PROFILES, "teach", dict(config.PROFILES["teach"],
                                                          closeup_overrides=config.PROFILES["smoke"]["closeup_overrides"]))
-    g = load("score_flips.py")
+    g = load("tune_teach.py")
     run = utils.runs_dir() / "tune" / "tiny"
     run.mkdir(parents=True)
     save_untrained_checkpoint(run / "checkpoint.pt", {"image_size": 32, "case": 4, "seed": 0,
                                                       "dataset": str(smoke_root)})
     log = tmp_path / "log.jsonl"
-    assert g["main"](["tiny", str(run / "checkpoint.pt"), "--flips", "none", "hv", "--log", str(log)]) == 0
+    assert g["main"](["flips", "tiny", str(run / "checkpoint.pt"), "--flips", "none", "hv", "--log", str(log)]) == 0
     rows = [json.loads(line) for line in log.read_text().splitlines()]
     assert [r["name"] for r in rows] == ["tiny_flips_none", "tiny_flips_hv"] * 2
     assert rows[0] | {"minutes": 0} == rows[2] | {"minutes": 0}  # by name or by path: the same run
     net, cfg = checkpoint.load_model(run / "checkpoint.pt")
     torch.set_num_threads(1)
-    plain = load("network_experiment.py")["score_validation"](net, cfg)
+    plain = g["score_validation"](net, cfg)
     assert rows[0]["val_abs_rel"] == plain["val_abs_rel"] and rows[0]["val_rmse"] == plain["val_rmse"]
     assert rows[1]["val_abs_rel"] != rows[0]["val_abs_rel"]
-    from geodepth_lite import evaluate
     n_test = len(evaluate.open_eval_dataset(str(smoke_root), split="test"))
     for row in rows:
         assert row["test_border_worst"] == max(row["test_border"].values()) and 0 < row["closeup_abs_rel"]
         assert row["test_frames"] == n_test
-    assert g["main"](["tiny", "--flips", "none", "--tag", "t2", "--log", str(log)]) == 0
+    assert g["main"](["flips", "tiny", "--flips", "none", "--tag", "t2", "--log", str(log)]) == 0
     tagged = json.loads(log.read_text().splitlines()[-1])
     same = {"name": 0, "minutes": 0}
     assert tagged["name"] == "tiny_flips_none_t2" and tagged | same == rows[0] | same
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
-        g["main"](["missing", "--log", str(log)])
-
-
-def test_border_anatomy_known_answers_and_a_logged_row(tmp_path, smoke_root):
-    """A prediction with twice the true log-depth contrast: its median-scaled log error is exactly
-    log gt - median log gt, so each region's |e| equals its spread of true log depth, each band whose
-    depths all lie beyond the median is wrong as a whole (coherence 1), and a per-frame contrast fit
-    leaves nothing. The script then logs one row for a checkpoint, every test frame counted."""
-    import numpy as np
-    import pytest
-    from conftest import save_untrained_checkpoint
-
-    from geodepth_lite import evaluate
-
-    g = load("exp_border_anatomy.py")
-    H = W = 40
-    yy, xx = np.mgrid[:H, :W]
-    # flat over the centre (the middle half), farther toward the border, as in a wall-facing view: every
-    # band pixel lies beyond the frame's median depth
-    gt = np.exp(0.05 * np.maximum(0.0, np.maximum(abs(yy - 19.5), abs(xx - 19.5)) - 10.0))
-    s = g["frame_stats"](gt**2, gt, gt)
-    m = np.median(np.log(gt))
-    for region, (rows, cols) in evaluate.band_regions(H, W).items():
-        assert s[region]["abs"] == pytest.approx(np.abs(np.log(gt[rows, cols]) - m).mean())
-        assert s[region]["spread"] == pytest.approx(s[region]["abs"])
-        assert s[region]["contrast"] == pytest.approx(0.0, abs=1e-9) and s[region]["floor"] == 0.0
-    row = g["summarize"]([s, s])
-    assert row["ratio"] == pytest.approx(row["spread"]) and row["frames"] == 2 and row["floor_share"] == 0.0
-    assert row["coherence"] == pytest.approx(1.0)  # the bands' depths all lie beyond the median
-    # a prediction right up to scale has no error, whatever the depth range
-    assert g["frame_stats"](3.0 * gt, gt, gt)["left"]["abs"] == pytest.approx(0.0, abs=1e-9)
-
-    ckpt = save_untrained_checkpoint(tmp_path / "checkpoint.pt", {"image_size": 32, "case": 4, "seed": 0,
-                                                                  "dataset": str(smoke_root)})
-    log = tmp_path / "log.jsonl"
-    assert g["main"]([str(ckpt), "--flips", "none", "--name", "tiny", "--log", str(log)]) == 0
-    (logged,) = [json.loads(line) for line in log.read_text().splitlines()]
-    n = len(evaluate.open_eval_dataset(str(smoke_root), split="test"))
-    assert logged["name"] == "tiny_border_anatomy_test" and logged["all"]["frames"] == n
-    assert sum(r["frames"] for r in logged["by_view"].values()) == n
+        g["main"](["flips", "missing", "--log", str(log)])
