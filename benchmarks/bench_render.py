@@ -24,15 +24,15 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
     ``resolution`` ({"n_theta", "ring_step"}) overrides its mesh resolution.
     """
     from geodepth_lite import appearance as ap
+    from geodepth_lite import manifest as mf
     from geodepth_lite import render as rd
-    from geodepth_lite import synth
     from geodepth_lite import tube as tb
 
     overrides = {"camera": {"width": size, "height": size}}
     if resolution:
         overrides["resolution"] = resolution
-    m = synth.load_manifest("scenario_paper", overrides)
-    K = synth.intrinsics_of(m)
+    m = mf.load_manifest("scenario_paper", overrides)
+    K = mf.intrinsics_of(m)
     lighting = m["lighting_sets"][m["lightings"][0]]
     t0 = time.perf_counter()
     tube = tb.build_tube(m["organ_presets"][organ], seed, m["resolution"])
@@ -46,7 +46,7 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
         for rep in range(repeats + 1):
             t = time.perf_counter()
             for _ in range(frames):
-                T, _ = rd.sample_pose(tube, rng, synth.split_path(m, "train"))
+                T, _ = rd.sample_pose(tube, rng, mf.split_path(m, "train"))
                 lights, tint = rd.sample_lighting(lighting, rng, float(tube.preset["radius"]),
                                                   rd.exposure_distance(tube, T, K, size, size))
                 look = ap.sample_appearance(m["appearance"], rng)

@@ -15,7 +15,7 @@ train (the default command: the word ``train`` may be left out)
     interrupted run continues) and logs {name, case, seed, settings, the metrics on the whole
     validation split, minutes}. ``--set`` values are JSON: ``--set image_size=96 --set
     lambdas=[1,0.1,0.1]``. ``--border`` adds the validation split's border band / centre error ratios
-    (``evaluate.border_error_map``); ``--closeups`` the model's and the shading prior's Abs Rel on
+    (``border.border_error_map``); ``--closeups`` the model's and the shading prior's Abs Rel on
     ``heldout_closeup``. ``--network FILE.py:NAME`` (or ``package.module:NAME``) trains a variant
     instead of DepthNet (``train.fit(..., network=...)``): a class taking DepthNet's keyword arguments
     (``encoder_weights``, ``padding``, ``input_pad``; e.g. a DepthNet subclass) or a callable
@@ -59,6 +59,8 @@ import numpy as np
 import torch
 
 from geodepth_lite import checkpoint, config, dataset, evaluate, inference, synth, train, utils
+from geodepth_lite import manifest as mf
+from geodepth_lite.border import border_error_map
 from geodepth_lite.metrics import compute_depth_metrics
 
 LOG = Path(__file__).with_name("tuning_log.jsonl")
@@ -228,7 +230,7 @@ def validation_metrics(net, cfg: dict) -> dict:
 def border_scores(predict, frames) -> dict:
     """The border error map of ``predict`` on ``frames`` as log-row fields: band / centre ratios, the
     worst ratio, each band's mean |log error|, and the mean |log error| of the first and last 3 columns."""
-    border = evaluate.border_error_map(predict, frames, n_boot=0)
+    border = border_error_map(predict, frames, n_boot=0)
     columns = np.nanmean(border["abs"], axis=0)
     return {"val_border": {k: round(v, 3) for k, v in border["ratios"].items()},
             "val_border_worst": round(max(border["ratios"].values()), 3),
@@ -256,7 +258,7 @@ def recorded_scores(predict, closeups, test) -> dict:
     with torch.no_grad():
         close = evaluate.evaluate_predictor(predict, closeups, error_maps=0)
         t = evaluate.evaluate_predictor(predict, test, error_maps=0)
-        test_border = evaluate.border_error_map(predict, test, n_boot=0)
+        test_border = border_error_map(predict, test, n_boot=0)
     return {"closeup_abs_rel": round(close["overall"]["abs_rel"], 4),
             "test_abs_rel": round(t["overall"]["abs_rel"], 4),
             "test_border": {k: round(v, 3) for k, v in test_border["ratios"].items()},
@@ -277,12 +279,12 @@ def closeups_row(net, cfg: dict, name: str, closeups) -> dict:
     recorded = recorded_scores(predict, closeups, test)
     with torch.no_grad():
         prior = evaluate.evaluate_baselines(closeups, None, names=["shading_prior"])["shading_prior"]
-        close_border = evaluate.border_error_map(predict, closeups, n_boot=0)
+        close_border = border_error_map(predict, closeups, n_boot=0)
     row = row_head(f"{name}_closeups", cfg) | {
         "closeup_abs_rel": recorded.pop("closeup_abs_rel"),
         "closeup_shading_prior_abs_rel": round(prior["overall"]["abs_rel"], 4),
         "closeup_border_worst": round(max(close_border["ratios"].values()), 3)}
-    return row | recorded | {"generator": synth.GENERATOR_VERSION, "note": CLOSEUPS_NOTE.format(name=name)}
+    return row | recorded | {"generator": mf.GENERATOR_VERSION, "note": CLOSEUPS_NOTE.format(name=name)}
 
 
 def flips_row(net, cfg: dict, name: str, flips: str, closeups, test, tag: str = "") -> dict:
@@ -294,7 +296,7 @@ def flips_row(net, cfg: dict, name: str, flips: str, closeups, test, tag: str = 
     row = row_head(f"{name}_flips_{flips}" + (f"_{tag}" if tag else ""), cfg) | {"flips": flips}
     row |= score_validation(net, cfg, flips) | recorded_scores(predict, closeups, test)
     return row | {"test_frames": len(test), "minutes": round((time.perf_counter() - start) / 60, 2),
-                  "generator": synth.GENERATOR_VERSION, "note": FLIPS_NOTE.format(name=name, flips=flips)}
+                  "generator": mf.GENERATOR_VERSION, "note": FLIPS_NOTE.format(name=name, flips=flips)}
 
 
 # --------------------------------------------------------------------------- the commands
@@ -308,7 +310,7 @@ def run_train(args, network) -> None:
         row["network"] = describe_network(args.network, network)
     row |= validation_metrics(net, cfg)
     row |= {"train_depth_last": round(hist[-1]["train_depth"], 4), "minutes": round(minutes, 2),
-            "frames_per_s": round(hist[-1]["train_frames_per_s"], 1), "generator": synth.GENERATOR_VERSION}
+            "frames_per_s": round(hist[-1]["train_frames_per_s"], 1), "generator": mf.GENERATOR_VERSION}
     if args.border:
         val = evaluate.open_eval_dataset(str(dataset.resolve_dataset(cfg)), split="val")
         with torch.no_grad():

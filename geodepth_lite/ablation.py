@@ -26,8 +26,9 @@ import math
 from typing import Any
 
 import numpy as np
+import torch
 
-from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, run_cache, synth
+from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, run_cache, synth, tables
 
 CASE_NAMES = {1: "depth + smooth", 2: "+ grad + normal", 3: "+ SDF", 4: "all five"}
 # Section 4.3: the paper's reduction against Case 1, in percent (negative = better)
@@ -46,8 +47,6 @@ def evaluation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
     parts = [evaluate.open_eval_dataset(str(synth.ensure_dataset(m, overrides=prof["heldout_overrides"],
                                                                   progress=progress)), split="test")
              for m in HELDOUT_GROUPS.values()]
-    import torch
-
     return {IN_DOMAIN: test, HELDOUT: torch.utils.data.ConcatDataset(parts)}
 
 
@@ -84,7 +83,7 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float]:
 
     With fewer than two values the interval is infinite (nothing is known about the spread).
     """
-    from scipy import stats
+    from scipy import stats  # heavy to import, needed for the intervals only
 
     x = np.asarray(values, dtype=np.float64)
     m = float(x.mean())
@@ -154,7 +153,7 @@ def comparisons(result: dict):
 def claims(result: dict, margin: float = 0.2) -> list[str]:
     """The ablation's conclusions as sentences: verdict per claim and set, and how every run stands
     against the baselines. Computed from the numbers; the notebook prints them as they come."""
-    lines = [f"{set_name}, {evaluate.METRIC_LABELS[metric]}: Case {c} vs Case 1 -> {p['verdict']}"
+    lines = [f"{set_name}, {tables.METRIC_LABELS[metric]}: Case {c} vs Case 1 -> {p['verdict']}"
              for set_name, metric, c, p in comparisons(result)]
     for set_name in result["baselines"]:
         ok = beats_baselines(result, set_name, "abs_rel", 0.0)
@@ -174,7 +173,7 @@ def record(result: dict, digits: int = 4) -> dict[str, float]:
     """
     tree = {f"case{c} seed{s}": sets for (c, s), sets in sorted(result["scores"].items())}
     tree["baselines"] = result["baselines"]
-    out = evaluate.flat_record(tree, digits)
+    out = tables.flat_record(tree, digits)
     out |= paired_bounds(result)
     return out
 

@@ -53,7 +53,12 @@ RING_ALPHA, RING_VALUE = 0.8, 1.0  # bubble rims: thin, bright, nearly white
 MUCUS_ALPHA = 0.55         # blend towards white at full strength, full patch, full light
 MUCUS_GRID = 8             # mucus patches: nodes of a 9 x 9 random grid, smoothly interpolated
 IRWIN_HALL_STD = math.sqrt(4 * (256**2 - 1) / 12)  # std of a sum of four uniform bytes
-N_DRAWS = 14               # uniform draws per frame in ``sample_appearance`` (plus one seed)
+# The uniform draws of ``sample_appearance``, by name, in the order they are taken from the frame's
+# generator (one seed follows). The order is part of every dataset: reordering or adding a draw changes
+# the frames (bump manifest.GENERATOR_VERSION).
+DRAWS = ("exposure_stops", "gamma", "color_cast", "vignetting", "specular_flecks", "bubbles", "mucus", "noise",
+         "blur", "blur_kind", "blur_px", "blur_angle", "jpeg", "jpeg_quality")
+N_DRAWS = len(DRAWS)       # 14 uniform draws per frame
 
 _PAIRS = {  # key: (lo, hi, lo_open, integer)
     "exposure_stops": (-5.0, 5.0, False, False),
@@ -108,37 +113,38 @@ def check_appearance(field: str, a: dict) -> None:
 def sample_appearance(a: dict, rng: np.random.Generator) -> dict:
     """One frame's appearance: a JSON-serializable record for ``apply_appearance``.
 
-    Always draws ``N_DRAWS`` uniforms and one seed, whatever the settings, so that changing
-    one parameter does not shift the other draws (or those that follow in ``rng``).
+    Always draws the ``N_DRAWS`` uniforms named in ``DRAWS`` (in that order) and one seed,
+    whatever the settings, so that changing one parameter does not shift the other draws (or
+    those that follow in ``rng``).
     ``bubble_radius`` (the range) is carried along: bubbles' radii are drawn per pixel seed.
     """
-    u = rng.random(N_DRAWS)
+    u = dict(zip(DRAWS, rng.random(N_DRAWS)))
     seed = int(rng.integers(0, 2**31 - 1))
 
-    def uniform(key, x):
+    def uniform(key):  # a[key] = [lo, hi]: a number in that range, from the draw of that name
         lo, hi = a[key]
-        return round(float(lo + (hi - lo) * x), 10)
+        return round(float(lo + (hi - lo) * u[key]), 10)
 
-    def integer(key, x):
+    def integer(key):  # a[key] = [lo, hi]: an integer in lo..hi, from the draw of that name
         lo, hi = (int(v) for v in a[key])
-        return lo + min(int(x * (hi - lo + 1)), hi - lo)
+        return lo + min(int(u[key] * (hi - lo + 1)), hi - lo)
 
     blur = None
-    if u[8] < a["p_blur"]:
-        blur = {"kind": "motion" if u[9] < 0.5 else "defocus", "px": uniform("blur_px", u[10]),
-                "angle_deg": round(float(180.0 * u[11]), 10)}
+    if u["blur"] < a["p_blur"]:
+        blur = {"kind": "motion" if u["blur_kind"] < 0.5 else "defocus", "px": uniform("blur_px"),
+                "angle_deg": round(float(180.0 * u["blur_angle"]), 10)}
     return {
-        "exposure_stops": uniform("exposure_stops", u[0]),
-        "gamma": uniform("gamma", u[1]),
-        "color_cast": uniform("color_cast", u[2]),
-        "vignetting": uniform("vignetting", u[3]),
-        "specular_flecks": integer("specular_flecks", u[4]),
-        "bubbles": integer("bubbles", u[5]),
+        "exposure_stops": uniform("exposure_stops"),
+        "gamma": uniform("gamma"),
+        "color_cast": uniform("color_cast"),
+        "vignetting": uniform("vignetting"),
+        "specular_flecks": integer("specular_flecks"),
+        "bubbles": integer("bubbles"),
         "bubble_radius": [round(float(v), 10) for v in a["bubble_radius"]],
-        "mucus": uniform("mucus", u[6]),
-        "noise": uniform("noise", u[7]),
+        "mucus": uniform("mucus"),
+        "noise": uniform("noise"),
         "blur": blur,
-        "jpeg_quality": integer("jpeg_quality", u[13]) if u[12] < a["p_jpeg"] else None,
+        "jpeg_quality": integer("jpeg_quality") if u["jpeg"] < a["p_jpeg"] else None,
         "seed": seed,
     }
 
@@ -365,6 +371,30 @@ def is_identity(rec: dict) -> bool:
             and rec["blur"] is None and rec["jpeg_quality"] is None)
 
 
+def _highlights(x: np.ndarray, rec: dict, rng) -> None:
+    """Saturating highlights in place: specular flecks, and bubbles (a ring and a glint each);
+    ``rng(i)`` is effect i's generator (0 flecks, 1 bubbles)."""
+    H, W = x.shape[:2]
+    spec, touched = np.zeros(H * W, np.float32), []
+    if rec["specular_flecks"] > 0:
+        touched.append(_flecks(x, int(rec["specular_flecks"]), rng(0), spec))
+    if rec["bubbles"] > 0:
+        ring = np.zeros(H * W, np.float32)
+        touched_ring, touched_spec = _bubbles(H, W, int(rec["bubbles"]), rec["bubble_radius"], rng(1), ring, spec)
+        _blend_sparse(x, ring, [touched_ring], RING_VALUE)
+        touched.append(touched_spec)
+    _blend_sparse(x, spec, touched, FLECK_VALUE)
+
+
+def _vignetting(x2: np.ndarray, strength: float, H: int, W: int, t: np.ndarray) -> None:
+    """Darken ``x2`` (H x 3W) towards the corners in place: 1 - strength * (r / r_corner)^2."""
+    dy2 = (np.arange(H) - (H - 1) / 2) ** 2
+    dx2 = (np.arange(W) - (W - 1) / 2) ** 2
+    k = strength / max(dy2[0] + dx2[0], 1e-12)  # r_corner: the corner pixel's centre
+    np.subtract((1.0 - k * dy2).astype(np.float32)[:, None], np.repeat(k * dx2, 3).astype(np.float32), out=t)
+    x2 *= t
+
+
 def apply_appearance(rgb: np.ndarray, rec: dict) -> np.ndarray:
     """uint8 H x W x 3 -> uint8 H x W x 3 with the effects of ``rec`` (from ``sample_appearance``).
 
@@ -398,22 +428,9 @@ def apply_appearance(rgb: np.ndarray, rec: dict) -> np.ndarray:
         if rec["mucus"] > 0:
             _mucus(x, float(rec["mucus"]), rng(2), t)
         if rec["specular_flecks"] > 0 or rec["bubbles"] > 0:
-            spec, touched = np.zeros(H * W, np.float32), []  # saturating highlights: flecks, bubbles' glints
-            if rec["specular_flecks"] > 0:
-                touched.append(_flecks(x, int(rec["specular_flecks"]), rng(0), spec))
-            if rec["bubbles"] > 0:
-                ring = np.zeros(H * W, np.float32)
-                touched_ring, touched_spec = _bubbles(H, W, int(rec["bubbles"]), rec["bubble_radius"], rng(1), ring,
-                                                      spec)
-                _blend_sparse(x, ring, [touched_ring], RING_VALUE)
-                touched.append(touched_spec)
-            _blend_sparse(x, spec, touched, FLECK_VALUE)
+            _highlights(x, rec, rng)
         if rec["vignetting"] > 0:
-            dy2 = (np.arange(H) - (H - 1) / 2) ** 2
-            dx2 = (np.arange(W) - (W - 1) / 2) ** 2
-            k = rec["vignetting"] / max(dy2[0] + dx2[0], 1e-12)  # r_corner: the corner pixel's centre
-            np.subtract((1.0 - k * dy2).astype(np.float32)[:, None], np.repeat(k * dx2, 3).astype(np.float32), out=t)
-            x2 *= t
+            _vignetting(x2, float(rec["vignetting"]), H, W, t)
         np.clip(x2, 0.0, 1.0, out=x2)  # the sensor saturates
         if rec["gamma"] != 1:
             np.power(x2, np.float32(1.0 / rec["gamma"]), out=x2)

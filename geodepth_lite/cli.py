@@ -19,9 +19,9 @@ import traceback
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("geodepth_lite.synth", "generate a synthetic RGB-depth dataset from a manifest"),
-    "verify": ("geodepth_lite.synth", "check a generated dataset against its checksums"),
+    "verify": ("geodepth_lite.integrity", "check a generated dataset against its checksums"),
     "train": ("geodepth_lite.train_cli", "train the depth network (a profile, or your own settings)"),
-    "evaluate": ("geodepth_lite.evaluate", "evaluate a checkpoint with the seven depth metrics"),
+    "evaluate": ("geodepth_lite.evaluate_cli", "evaluate a checkpoint with the seven depth metrics"),
     "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
     "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
     "convert-checkpoint": ("geodepth_lite.checkpoint", "rewrite checkpoints of the first format so they load safely"),

@@ -17,6 +17,9 @@ Shape of the network (Manydepth/monodepth2-style, with the paper's modifications
     head: 3x3 conv -> sigmoid s -> depth = exp(log d_min + s (log d_max - log d_min))
       depth: B x 1 x H x W, between d_min = 0.01 and d_max = 100 (the dataset's range, Sec. 3.A)
 
+The head is this workbook's own: the paper does not say how its last layer turns features into
+depth. A sigmoid mapped to log depth keeps every prediction positive.
+
 The encoder keeps torchvision's ``resnet18`` parameter names (``conv1``, ``bn1``,
 ``layer1.0.conv1``, ..., ``layer2.0.downsample.0``, ...), so a user's ImageNet
 state dict loads with :func:`load_encoder_weights` (its ``fc.*`` entries are ignored).

@@ -329,14 +329,15 @@ def synthetic_sequence(manifest: str = "heldout_T2L2", organ: str = "colon", n_f
     Returns {"images": list of H x W x 3 uint8, "depths": list of H x W float32,
     "K": 3x3, "poses": list of 4x4 T_world_cam, "tube": tube.TubeMesh}.
     """
-    from . import render, synth
+    from . import manifest as mf
+    from . import render
     from . import tube as tube_mod
 
     if not isinstance(n_frames, int) or n_frames < 2:
         raise ValueError(f"n_frames must be an integer >= 2, got {n_frames!r}")
     if not step > 0:
         raise ValueError(f"step must be positive, got {step!r}")
-    m = synth.load_manifest(manifest)
+    m = mf.load_manifest(manifest)
     if organ not in m["organ_presets"]:
         raise ValueError(f"organ {organ!r} is not in manifest {manifest} (has {', '.join(m['organ_presets'])})")
     preset = m["organ_presets"][organ]

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from geodepth_lite import config, run_cache, utils
+from geodepth_lite.tables import markdown_table
 
 MARKER_DIR = ".reproduce"
 
@@ -54,8 +55,6 @@ def resolve_run_dir(profile: str, run_dir: str | os.PathLike = "") -> Path:
 def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: list[list[Any]], *,
                title: str = "", notes: str = "", digits: int = 3) -> Path:
     """Write ``tables/<name>.json`` (+ ``.md``) under ``run_dir``; return the JSON path."""
-    from geodepth_lite.evaluate import markdown_table
-
     if not name or "/" in name or name.startswith("."):
         raise ValueError(f"table name must be a plain file name, got {name!r}")
     if any(len(r) != len(columns) for r in rows):
@@ -297,8 +296,6 @@ def _read_json(path: Path) -> dict:
 
 def write_report(run_dir: Path, profile: str, notebook_log: dict | None = None) -> Path:
     """Collect ``tables/*.json`` and ``figures/*.png`` under ``run_dir`` into report.md and report.json."""
-    from geodepth_lite.evaluate import markdown_table
-
     run_dir = Path(run_dir)
     tables = {p.stem: _read_json(p) for p in sorted((run_dir / "tables").glob("*.json"))}
     figures = sorted(p.relative_to(run_dir).as_posix() for p in (run_dir / "figures").glob("*.png"))

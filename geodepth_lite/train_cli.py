@@ -62,9 +62,9 @@ def run_train(args: argparse.Namespace) -> int:
         utils.check_output_dir(run_dir)
         utils.remove_empty_dirs(created)  # fit creates it again under its lock; a refused run leaves none
         if not args.no_verify:
-            from geodepth_lite import synth
+            from geodepth_lite import integrity
 
-            synth.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
+            integrity.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
     path = train.fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,
                      num_workers=args.num_workers, cache=False if args.no_cache else "auto")
     if distributed.is_main_process():

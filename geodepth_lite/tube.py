@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-# Organ presets (scene units). Every key is a manifest parameter (synth.py validates them).
+# Organ presets (scene units). Every key is a manifest parameter (manifest.py validates them).
 # fold_kind: "haustral" (colon), "circular" (small intestine), "longitudinal" (stomach), "none".
 PRESETS: dict[str, dict] = {
     "colon": {

@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from . import camera as cam
+from .metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask
 
 
 def colorize_depth(depth, vmin=None, vmax=None, cmap: str = "magma") -> np.ndarray:
@@ -255,3 +256,72 @@ def tube_view(tube, poses=(), size=(800, 320), frustum: float | None = None, cam
     finally:
         pl.close()
     return np.asarray(img)[..., :3].copy()
+
+
+# ----------------------------------------------------------------------------- error maps (Fig. 7), border maps
+
+
+def abs_rel_map(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None, min_depth: float = EVAL_MIN_DEPTH,
+                max_depth: float = EVAL_MAX_DEPTH) -> np.ndarray:
+    """Per-pixel |gt - pred| / gt (NaN outside the valid mask) of a median-scaled prediction."""
+    mask = eval_mask(gt, min_depth, max_depth, valid)
+    err = np.abs(gt - np.clip(pred, min_depth, max_depth)) / np.where(mask, gt, 1.0)
+    return np.where(mask, err, np.nan)
+
+
+def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", "ground truth", "prediction", "error"),
+                     min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, err_max: float = 0.5,
+                     row_labels: list[str] | None = None):
+    """The paper's Fig. 7 layout: one row per frame, input | GT | (median-scaled) prediction | Abs Rel map.
+
+    Each example: {"image": HxWx3 in [0,1], "gt": HxW, "pred": HxW already median-scaled,
+    optional "preds": {label: HxW} for extra prediction columns (ablation), "valid"}.
+    """
+    import matplotlib.pyplot as plt  # heavy and needed for figures only
+
+    extra = list(examples[0].get("preds", {}))
+    cols = ["input", "ground truth"] + (extra if extra else ["prediction"]) + (["error"] if "error" in columns else [])
+    fig, axes = plt.subplots(len(examples), len(cols), figsize=(2.2 * len(cols), 2.2 * len(examples)), squeeze=False)
+    for i, ex in enumerate(examples):
+        gt = ex["gt"]
+        finite = gt[np.isfinite(gt) & (gt > min_depth)]
+        vmin, vmax = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (0, 1)
+        preds = ex.get("preds") or {"prediction": ex["pred"]}
+        panels = [("input", ex["image"], {}), ("ground truth", gt, dict(cmap="magma_r", vmin=vmin, vmax=vmax))]
+        panels += [(k, v, dict(cmap="magma_r", vmin=vmin, vmax=vmax)) for k, v in preds.items()]
+        if "error" in cols:
+            last = list(preds.values())[-1]
+            panels.append(("Abs Rel error", abs_rel_map(last, gt, ex.get("valid"), min_depth, max_depth),
+                           dict(cmap="inferno", vmin=0, vmax=err_max)))
+        for j, (title, img, kw) in enumerate(panels):
+            ax = axes[i, j]
+            ax.imshow(np.clip(img, 0, 1) if title == "input" else img, **kw)
+            ax.set_xticks([]), ax.set_yticks([])
+            if i == 0:
+                ax.set_title(title, fontsize=9)
+        if row_labels:
+            axes[i, 0].set_ylabel(row_labels[i], fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def border_map_figure(maps: dict, title: str = ""):
+    """Two panels of ``border.border_error_map``'s result: the mean signed log error (diverging colours)
+    and the mean |log error| per pixel."""
+    import matplotlib.pyplot as plt  # heavy and needed for figures only
+
+    fig, axes = plt.subplots(1, 2, figsize=(8.4, 3.6))
+    lim = float(np.nanmax(np.abs(maps["signed"]))) or 1.0
+    im = axes[0].imshow(maps["signed"], cmap="RdBu_r", vmin=-lim, vmax=lim)
+    axes[0].set_title("mean signed log error\n(red: too far, blue: too near)")
+    fig.colorbar(im, ax=axes[0], fraction=0.046)
+    im = axes[1].imshow(maps["abs"], cmap="magma", vmin=0)
+    ratios = ", ".join(f"{k} {v:.2f}" for k, v in maps["ratios"].items())
+    axes[1].set_title(f"mean |log error|\nborder / centre: {ratios}", fontsize=9)
+    fig.colorbar(im, ax=axes[1], fraction=0.046)
+    for ax in axes:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import cli, config, synth
+from geodepth_lite import cli, config, integrity, synth
+from geodepth_lite import manifest as mf
 from geodepth_lite.utils import FileProblem
 
 
@@ -26,7 +27,7 @@ def _one_error_line(err: str) -> str:
 @pytest.fixture
 def interrupted(tmp_path, monkeypatch):
     """scenario_smoke generated into tmp_path/ds and killed part-way (in the middle of the val split)."""
-    m = synth.load_manifest("scenario_smoke")
+    m = mf.load_manifest("scenario_smoke")
     calls = {"n": 0}
     real = synth.write_bytes_atomic
 
@@ -64,15 +65,15 @@ def test_verify_and_synth_report_an_interrupted_dataset(interrupted, capsys):
 
 def test_verify_names_a_missing_or_unreadable_manifest(tmp_path):
     (tmp_path / "empty").mkdir()
-    problems = synth.verify(tmp_path / "empty")
+    problems = integrity.verify(tmp_path / "empty")
     assert len(problems) == 1 and problems[0].startswith("missing: manifest.json")
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "manifest.json").write_text("{not json")
-    problems = synth.verify(tmp_path / "bad")
+    problems = integrity.verify(tmp_path / "bad")
     assert len(problems) == 1 and problems[0].startswith("unreadable: manifest.json (not valid JSON")
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(FileProblem, match="a_file"):
-        synth.verify(tmp_path / "a_file")
+        integrity.verify(tmp_path / "a_file")
 
 
 def test_synth_out_that_is_a_file_or_under_one_is_a_one_line_error(tmp_path, capsys):
@@ -89,11 +90,11 @@ def test_synth_out_that_is_a_file_or_under_one_is_a_one_line_error(tmp_path, cap
 
 def test_check_dataset_names_five_problems_then_counts_the_rest(smoke_root, tmp_path):
     root = Path(shutil.copytree(smoke_root, tmp_path / "ds"))
-    synth.check_dataset(root)  # intact: no error
+    integrity.check_dataset(root)  # intact: no error
     for i in range(7):
         (root / "train" / "rgb" / f"{i:06d}.png").unlink()
     with pytest.raises(ValueError) as exc:
-        synth.check_dataset(root)
+        integrity.check_dataset(root)
     msg = str(exc.value)
     assert "\n" not in msg and "and 2 more" in msg and "--no-verify" in msg and "synth" in msg
     assert "missing: train/rgb/000004.png" in msg and "000005.png" not in msg
@@ -102,20 +103,20 @@ def test_check_dataset_names_five_problems_then_counts_the_rest(smoke_root, tmp_
 def test_check_dataset_looks_at_the_splits_that_are_used(smoke_root, tmp_path):
     root = Path(shutil.copytree(smoke_root, tmp_path / "ds"))
     (root / "test" / "rgb" / "000000.png").write_bytes(b"garbage")
-    synth.check_dataset(root, ("train", "val"))  # training reads no test frame
+    integrity.check_dataset(root, ("train", "val"))  # training reads no test frame
     with pytest.raises(ValueError, match="changed: test/rgb/000000.png"):
-        synth.check_dataset(root, ("test",))
+        integrity.check_dataset(root, ("test",))
     # a held-out set put together by hand (manifest and one split, no checksums): complete, so usable
     heldout = tmp_path / "heldout"
     heldout.mkdir()
     shutil.copy(smoke_root / "manifest.json", heldout / "manifest.json")
     shutil.copytree(smoke_root / "test", heldout / "test")
-    synth.check_dataset(heldout, ("test",))
+    integrity.check_dataset(heldout, ("test",))
     with pytest.raises(ValueError, match="incomplete: train 0/12 frames, val 0/6, test 6/6"):
-        synth.check_dataset(heldout)
+        integrity.check_dataset(heldout)
     (heldout / "test" / "rgb" / "000005.png").unlink()
     with pytest.raises(ValueError, match="test 5/6"):
-        synth.check_dataset(heldout, ("test",))
+        integrity.check_dataset(heldout, ("test",))
 
 
 def test_train_refuses_a_changed_dataset_and_synth_repairs_it(smoke_root, tmp_path, capsys):
@@ -137,7 +138,7 @@ def test_train_refuses_a_changed_dataset_and_synth_repairs_it(smoke_root, tmp_pa
     out = capsys.readouterr().out
     assert "rendered 1 frame, kept 23 from an earlier run (1 changed file rendered again)" in out
     assert bad.read_bytes() == (smoke_root / "train" / "rgb" / "000003.png").read_bytes()
-    assert synth.verify(root) == []
+    assert integrity.verify(root) == []
 
 
 def test_evaluate_refuses_a_changed_dataset_unless_no_verify(smoke_root, tmp_path, capsys):

@@ -19,6 +19,7 @@ import torch
 from conftest import save_untrained_checkpoint
 
 from geodepth_lite import checkpoint, cli, config, dataset, evaluate, synth, train, utils
+from geodepth_lite import manifest as mf
 
 
 def _one_line_error(capsys, *needles):
@@ -272,7 +273,7 @@ def test_atomic_writes_flush_the_data_then_the_folder(tmp_path, monkeypatch):
 def test_outputs_are_readable_by_others_under_umask_022(smoke_root, tmp_path, untrained_checkpoint):
     old = os.umask(0o022)
     try:
-        data = Path(synth.generate(synth.load_manifest("scenario_smoke"), tmp_path / "data", progress=False))
+        data = Path(synth.generate(mf.load_manifest("scenario_smoke"), tmp_path / "data", progress=False))
         cfg = config.make_config("smoke", 1, 0, dataset=str(smoke_root), image_size=32)
         run = tmp_path / "run"
         train.fit(cfg, run, progress=False)

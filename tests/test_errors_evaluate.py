@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geodepth_lite import baselines, checkpoint, cli, evaluate, utils
+from geodepth_lite import baselines, checkpoint, cli, evaluate, tables, utils
 
 
 class RunsCode:
@@ -156,7 +156,7 @@ def test_a_full_disk_is_refused_before_the_model_loads(smoke_root, untrained_che
     out = tmp_path / "eval"
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out, "--error-maps", "4")) == 2
     line = _one_line_error(capsys, f"error: cannot write {out}: no space left on device", "1.0 MB free")
-    assert f"{evaluate.output_bytes_needed(4) / 2**20:.1f} MB needed" in line
+    assert f"{tables.output_bytes_needed(4) / 2**20:.1f} MB needed" in line
     assert not out.exists()
 
 
@@ -229,7 +229,7 @@ def test_a_failed_swap_puts_the_earlier_set_back(smoke_root, untrained_checkpoin
     swapped = []
 
     def replace(src, dst, **kwargs):  # the second rename of a new file into --out fails
-        if Path(src).parent.name.startswith(evaluate.STAGING_PREFIX) and Path(dst).parent == out:
+        if Path(src).parent.name.startswith(tables.STAGING_PREFIX) and Path(dst).parent == out:
             swapped.append(dst)
             if len(swapped) == 2:
                 raise OSError(errno.EIO, os.strerror(errno.EIO))

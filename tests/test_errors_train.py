@@ -20,7 +20,7 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import checkpoint, cli, config, reproduce, synth, train, utils
+from geodepth_lite import checkpoint, cli, config, integrity, reproduce, synth, train, utils
 
 
 def _one_line_error(capsys, *needles) -> str:
@@ -261,7 +261,7 @@ def test_diverged_weights_are_caught_before_validation(smoke_root, tmp_path, cap
 
 def test_an_unwritable_run_folder_is_found_before_the_dataset_check(smoke_root, tmp_path, capsys, monkeypatch):
     checked = []
-    monkeypatch.setattr(synth, "check_dataset", lambda *a, **k: checked.append(a))
+    monkeypatch.setattr(integrity, "check_dataset", lambda *a, **k: checked.append(a))
 
     def read_only(*a, **k):
         raise OSError(30, "Read-only file system")
@@ -326,7 +326,7 @@ def test_an_interrupted_dataset_of_the_same_manifest_is_completed(tmp_path):
     rgb.unlink()
     (root / "checksums.sha256").unlink()
     assert synth.ensure_dataset("scenario_smoke", overrides=tiny, root=tmp_path, progress=False) == root
-    assert rgb.exists() and not synth.verify(root)
+    assert rgb.exists() and not integrity.verify(root)
 
 
 def test_dry_run_refuses_what_the_real_run_refuses(capsys):

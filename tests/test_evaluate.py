@@ -8,7 +8,7 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import checkpoint, config, evaluate, inference
+from geodepth_lite import border, checkpoint, config, evaluate, inference, tables
 from geodepth_lite.metrics import compute_depth_metrics
 
 
@@ -130,7 +130,7 @@ def test_bad_requests_are_named(smoke, tmp_path):
 
 
 def test_markdown_table_rounds_to_three_decimals():
-    md = evaluate.markdown_table(["a", "b"], [["x", 0.123456], ["y", float("nan")]])
+    md = tables.markdown_table(["a", "b"], [["x", 0.123456], ["y", float("nan")]])
     assert md.splitlines() == ["| a | b |", "|---|---|", "| x | 0.123 |", "| y | nan |"]
 
 
@@ -159,14 +159,14 @@ def test_border_error_map_known_answer():
     def pred(images):
         return (2.0 * torch.exp(e)).expand(images.shape[0], 1, H, W)
 
-    out = evaluate.border_error_map(pred, ds, batch_size=2)
+    out = border.border_error_map(pred, ds, batch_size=2)
     np.testing.assert_allclose(out["signed"], e.numpy(), atol=1e-6)
     np.testing.assert_allclose(out["count"], np.full((H, W), 3.0))
     assert out["bands"]["top"] == pytest.approx(0.2) and out["bands"]["centre"] == pytest.approx(0.1)
     assert out["ratios"]["top"] == pytest.approx(2.0) and out["ratios"]["bottom"] == pytest.approx(0.0)
     assert out["ratios"]["left"] == pytest.approx(0.2 * 4 / 40 / 0.1)  # the band's top 4 rows of 40
     # a prediction right up to scale has no error anywhere
-    scaled = evaluate.border_error_map(lambda images: torch.full((images.shape[0], 1, H, W), 7.0), ds)
+    scaled = border.border_error_map(lambda images: torch.full((images.shape[0], 1, H, W), 7.0), ds)
     assert np.abs(scaled["abs"]).max() == pytest.approx(0.0, abs=1e-6)
 
 
@@ -191,7 +191,7 @@ def test_border_error_map_by_group_known_answer():
     def pred(images):
         return torch.stack([2.0 * torch.exp(errors[int(x[0, 0, 0])])[None] for x in images])
 
-    out = evaluate.border_error_map(pred, ds, batch_size=3, groups=["wall", "lumen", "wall", "lumen"])
+    out = border.border_error_map(pred, ds, batch_size=3, groups=["wall", "lumen", "wall", "lumen"])
     wall, lumen = out["groups"]["wall"], out["groups"]["lumen"]
     assert wall["frames"] == 2 and lumen["frames"] == 2
     assert wall["signed"]["left"] == pytest.approx(-0.3) and wall["bands"]["left"] == pytest.approx(0.3)
@@ -201,7 +201,7 @@ def test_border_error_map_by_group_known_answer():
     # the pooled map is the frame-weighted mean of the groups'
     assert out["bands"]["left"] == pytest.approx(0.15) and out["bands"]["centre"] == pytest.approx(0.025)
     with pytest.raises(ValueError, match="3 group labels for 4 frames"):
-        evaluate.border_error_map(pred, ds, groups=["a", "b", "c"])
+        border.border_error_map(pred, ds, groups=["a", "b", "c"])
 
 
 def test_border_ratio_intervals_resample_frames():
@@ -212,7 +212,7 @@ def test_border_ratio_intervals_resample_frames():
     e = torch.zeros(H, W)
     e[:, :4] = 0.2
     e[10:30, 10:30] = 0.1
-    same = evaluate.border_error_map(lambda x: (2.0 * torch.exp(e)).expand(x.shape[0], 1, H, W), _ConstantFrames())
+    same = border.border_error_map(lambda x: (2.0 * torch.exp(e)).expand(x.shape[0], 1, H, W), _ConstantFrames())
     assert same["ratios"]["left"] == pytest.approx(0.2 / 0.1)
     for band, (lo, hi) in same["intervals"].items():
         assert lo == pytest.approx(same["ratios"][band]) and hi == pytest.approx(same["ratios"][band])
@@ -224,13 +224,13 @@ def test_border_ratio_intervals_resample_frames():
     def pred(images):
         return torch.stack([2.0 * torch.exp(errors[int(x[0, 0, 0])])[None] for x in images])
 
-    out = evaluate.border_error_map(pred, _NumberedFrames(n=2), n_boot=4000)
+    out = border.border_error_map(pred, _NumberedFrames(n=2), n_boot=4000)
     assert out["ratios"]["left"] == pytest.approx(2.0)
     assert out["intervals"]["left"] == pytest.approx((1.0, 3.0))
     np.testing.assert_allclose(out["frame_bands"]["left"], [0.3, 0.1], rtol=1e-5)
     np.testing.assert_allclose(out["frame_bands"]["centre"], [0.1, 0.1], rtol=1e-5)
     assert out["frame_index"].tolist() == [0, 1]
-    assert evaluate.border_error_map(pred, _NumberedFrames(n=2), n_boot=0)["intervals"] == {}
+    assert border.border_error_map(pred, _NumberedFrames(n=2), n_boot=0)["intervals"] == {}
 
 
 def test_border_ratio_intervals_resample_whole_clusters():
@@ -248,16 +248,16 @@ def test_border_ratio_intervals_resample_whole_clusters():
         return torch.stack([2.0 * torch.exp(errors[int(x[0, 0, 0]) % 2])[None] for x in images])
 
     ds = _NumberedFrames(n=6)
-    frames = evaluate.border_error_map(pred, ds, n_boot=4000)
-    scenes = evaluate.border_error_map(pred, ds, n_boot=4000, clusters=["a", "b"] * 3)
+    frames = border.border_error_map(pred, ds, n_boot=4000)
+    scenes = border.border_error_map(pred, ds, n_boot=4000, clusters=["a", "b"] * 3)
     assert frames["ratios"] == scenes["ratios"] and scenes["ratios"]["left"] == pytest.approx(2.0)
     lo, hi = frames["intervals"]["left"]
     assert 1.2 < lo < hi < 2.8               # a draw of six holds both kinds of frame but rarely
     assert scenes["intervals"]["left"] == pytest.approx((1.0, 3.0))
-    own = evaluate.border_error_map(pred, ds, n_boot=4000, clusters=list(range(6)))
+    own = border.border_error_map(pred, ds, n_boot=4000, clusters=list(range(6)))
     assert own["intervals"] == frames["intervals"]
     with pytest.raises(ValueError, match="5 cluster labels for 6 frames"):
-        evaluate.border_error_map(pred, ds, clusters=list(range(5)))
+        border.border_error_map(pred, ds, clusters=list(range(5)))
 
 
 def test_cached_predictor_predicts_each_batch_once():
@@ -273,11 +273,11 @@ def test_cached_predictor_predicts_each_batch_once():
     ds = _NumberedFrames(n=5)
     cached = evaluate.cached_predictor(pred)
     metrics = evaluate.evaluate_predictor(cached, ds, batch_size=2, error_maps=0)
-    border = evaluate.border_error_map(cached, ds, batch_size=2)
+    border_map = border.border_error_map(cached, ds, batch_size=2)
     assert cached.calls == 3 and seen == [2, 2, 1]      # 5 frames in batches of 2, each predicted once
     seen.clear()
     assert evaluate.evaluate_predictor(pred, ds, batch_size=2, error_maps=0)["overall"] == metrics["overall"]
-    np.testing.assert_array_equal(evaluate.border_error_map(pred, ds, batch_size=2)["abs"], border["abs"])
+    np.testing.assert_array_equal(border.border_error_map(pred, ds, batch_size=2)["abs"], border_map["abs"])
     assert len(seen) == 6                                # the bare predictor: twice over
     # other frames are predicted anew, and an answer handed out cannot change the remembered one
     out = cached(torch.full((1, 3, H, W), 9.0))

@@ -12,7 +12,7 @@ import pytest
 import tifffile
 import torch
 
-from geodepth_lite import camera, evaluate, loaders, utils
+from geodepth_lite import camera, evaluate, evaluate_cli, loaders, utils
 
 H, W = 6, 8
 
@@ -264,7 +264,7 @@ def test_the_registry_is_the_only_list_of_datasets():
     assert set(WRITERS) == set(loaders.REGISTRY)  # one fixture per registered dataset
     assert not hasattr(evaluate, "PUBLIC_DATASETS")
     parser = argparse.ArgumentParser()
-    evaluate.add_arguments_evaluate(parser)
+    evaluate_cli.add_arguments_evaluate(parser)
     listed = re.search(r"or one of (\w+(?:, \w+)*)", " ".join(parser.format_help().split())).group(1)
     assert tuple(listed.split(", ")) == tuple(loaders.REGISTRY)
     with pytest.raises(TypeError, match="abstract"):

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
-from geodepth_lite import camera, render, synth, tube
+from geodepth_lite import camera, render, tube
+from geodepth_lite import manifest as mf
 
 
 def _cylinder_check(K, width, height, poses_s=(3.0, 12.0)):
-    m = synth.load_manifest("check_cylinder")
+    m = mf.load_manifest("check_cylinder")
     tm = tube.build_tube(m["organ_presets"]["cylinder"], 0, m["resolution"])
     R, L = tm.preset["radius"], tm.length
     worst = 0.0
@@ -29,8 +30,8 @@ def _cylinder_check(K, width, height, poses_s=(3.0, 12.0)):
 
 
 def test_straight_tube_depth_matches_the_analytic_cylinder_with_the_shipped_manifest():
-    m = synth.load_manifest("check_cylinder")
-    K = synth.intrinsics_of(m)
+    m = mf.load_manifest("check_cylinder")
+    K = mf.intrinsics_of(m)
     assert K[0, 2] == 0.5 * m["camera"]["width"]  # cx = 0.5 W: not VTK's image centre (W - 1) / 2
     assert _cylinder_check(K, m["camera"]["width"], m["camera"]["height"]) < 0.005
 
@@ -61,7 +62,7 @@ def test_rendered_depth_back_projects_onto_the_mesh():
     tm = tube.build_tube(preset, 11, {"n_theta": 96, "ring_step": 0.08})
     K = camera.intrinsics(80, 64)
     rng = np.random.default_rng(0)
-    path = dict(synth.DEFAULTS["camera_path"], views={"lumen": 1, "wall": 1, "oblique": 1, "closeup": 1})
+    path = dict(mf.DEFAULTS["camera_path"], views={"lumen": 1, "wall": 1, "oblique": 1, "closeup": 1})
     with render.Renderer(80, 64, K) as r:
         r.set_tube(tm, render.make_texture(render.TEXTURES["pink"], rng))
         for _ in range(3):

@@ -105,9 +105,9 @@ def verdict_may_change(line: str, record: dict) -> bool:
     m = VERDICT_LINE.match(line)
     if m is None:
         return False
-    from geodepth_lite import evaluate
+    from geodepth_lite import tables
 
-    metric = {label: key for key, label in evaluate.METRIC_LABELS.items()}[m["label"]]
+    metric = {label: key for key, label in tables.METRIC_LABELS.items()}[m["label"]]
     ends = [f"paired | {m['set']} | {metric} | case{m['case']} | {end} %" for end in ("low", "high")]
     return any(abs(record[k]) <= tolerance(k, record[k]) for k in ends)
 

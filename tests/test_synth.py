@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geodepth_lite import cli, synth
+from geodepth_lite import cli, integrity, synth
+from geodepth_lite import manifest as mf
 from geodepth_lite.dataset import SyntheticDepthDataset
 
 TINY = {"camera": {"width": 32, "height": 32}, "splits": {"train": 4, "test": 2}, "frames_per_scene": 2}
@@ -21,7 +22,7 @@ def _files(root: Path) -> dict:
 
 
 def _tiny(**extra):
-    return synth.load_manifest("scenario_smoke", dict(TINY, **extra))
+    return mf.load_manifest("scenario_smoke", dict(TINY, **extra))
 
 
 def test_same_manifest_gives_byte_identical_files(tmp_path):
@@ -31,7 +32,7 @@ def test_same_manifest_gives_byte_identical_files(tmp_path):
     fa, fb = _files(a), _files(b)
     assert len(fa) == 2 + (1 + 2 * 4) + (1 + 2 * 2)  # manifest, checksums; per split: jsonl, rgb + depth
     assert fa == fb
-    assert synth.verify(a) == []
+    assert integrity.verify(a) == []
     # frames.jsonl carries what the issue asks for
     rec = json.loads((a / "train" / "frames.jsonl").read_text().splitlines()[0])
     for key in ("rgb", "depth", "K", "T_world_cam", "organ", "lights", "group", "tint", "view", "lumen_share",
@@ -52,7 +53,7 @@ def test_verify_names_a_flipped_byte_a_missing_and_an_unreadable_file(tmp_path, 
     (root / "test" / "rgb" / "000000.png").unlink()
     (root / "train" / "rgb" / "000002.png").unlink()
     (root / "train" / "rgb" / "000002.png").mkdir()  # cannot be read as a file
-    problems = synth.verify(root)
+    problems = integrity.verify(root)
     assert "changed: train/depth/000001.npy" in problems
     assert "missing: test/rgb/000000.png" in problems
     assert any(p.startswith("unreadable: train/rgb/000002.png") for p in problems)
@@ -85,7 +86,7 @@ def test_verify_names_a_flipped_byte_a_missing_and_an_unreadable_file(tmp_path, 
 ])
 def test_bad_manifest_values_are_one_line_errors_naming_the_field(bad, field):
     with pytest.raises(ValueError) as err:
-        synth.resolve_manifest(dict(bad, name="x"))
+        mf.resolve_manifest(dict(bad, name="x"))
     msg = str(err.value)
     assert field in msg and "\n" not in msg
 
@@ -98,7 +99,7 @@ def test_cli_reports_a_bad_manifest_and_refuses_to_mix_datasets(tmp_path, capsys
     assert err.startswith("error:") and "organ_presets.colon.radius" in err and err.count("\n") == 1
     # an existing, different dataset is refused unless --overwrite
     small = tmp_path / "small.json"
-    small.write_text(json.dumps(dict(json.loads(synth.manifest_path("scenario_smoke").read_text()), **TINY)))
+    small.write_text(json.dumps(dict(json.loads(mf.manifest_path("scenario_smoke").read_text()), **TINY)))
     other = tmp_path / "other.json"
     other.write_text(json.dumps(dict(json.loads(small.read_text()), seed=99)))
     out = tmp_path / "ds"
@@ -128,15 +129,15 @@ def test_interrupted_generation_resumes_to_the_same_bytes(tmp_path, monkeypatch)
         synth.generate(m, tmp_path / "run", progress=False)
     monkeypatch.setattr(synth, "write_bytes_atomic", real)
     assert not (tmp_path / "run" / "checksums.sha256").exists()
-    assert synth.verify(tmp_path / "run") != []
+    assert integrity.verify(tmp_path / "run") != []
     synth.generate(m, tmp_path / "run", progress=False)
-    assert synth.verify(tmp_path / "run") == []
+    assert integrity.verify(tmp_path / "run") == []
     assert _files(tmp_path / "run") == reference
 
 
 def test_killed_process_is_finished_by_the_same_command(tmp_path):
     manifest = tmp_path / "m.json"
-    manifest.write_text(json.dumps(dict(json.loads(synth.manifest_path("scenario_smoke").read_text()),
+    manifest.write_text(json.dumps(dict(json.loads(mf.manifest_path("scenario_smoke").read_text()),
                                         camera={"width": 48, "height": 48}, splits={"train": 60}, frames_per_scene=30)))
     out = tmp_path / "ds"
     cmd = [sys.executable, "-m", "geodepth_lite", "synth", "--manifest", str(manifest), "--out", str(out),
@@ -149,7 +150,7 @@ def test_killed_process_is_finished_by_the_same_command(tmp_path):
     proc.wait()
     assert not (out / "checksums.sha256").exists()
     assert subprocess.run(cmd, capture_output=True).returncode == 0
-    assert synth.verify(out) == []
+    assert integrity.verify(out) == []
     assert not list(out.rglob("*.tmp"))  # leftovers of the killed writer are cleaned up
 
 

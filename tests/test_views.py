@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 
 from geodepth_lite import appearance, render, synth, tube
+from geodepth_lite import manifest as mf
 
 
 def _manifest(views, size=32, n=12, **extra):
     over = {"camera": {"width": size, "height": size}, "splits": {"test": n}, "frames_per_scene": 4,
             "camera_path": {"views": views}, "appearance": dict(appearance.APPEARANCE_DEFAULTS)}
     over.update(extra)
-    return synth.load_manifest("scenario_smoke", over)
+    return mf.load_manifest("scenario_smoke", over)
 
 
 def _records(root, split="test"):
@@ -33,15 +34,15 @@ def test_closeup_share_gives_frames_with_no_lumen_in_view(tmp_path):
     # lumen_share is recomputed from the depth files (the record is not decorative)
     root = tmp_path / "close"
     for r in close[:4]:
-        radius = synth.load_manifest("scenario_smoke")["organ_presets"][r["organ"]]["radius"]
+        radius = mf.load_manifest("scenario_smoke")["organ_presets"][r["organ"]]["radius"]
         assert r["lumen_share"] == synth.lumen_share(np.load(root / r["depth"]), radius)
 
 
 def test_views_by_split_and_shares():
     """Per-split shares replace the global ones; drawn kinds follow the shares (binomial bounds)."""
     m = _manifest({"lumen": 1.0}, camera_path={"views": {"lumen": 1.0}, "views_by_split": {"test": {"oblique": 1.0}}})
-    assert synth.split_path(m, "test")["views"] == {"oblique": 1.0}
-    assert synth.split_path(m, "train")["views"] == {"lumen": 1.0}
+    assert mf.split_path(m, "test")["views"] == {"oblique": 1.0}
+    assert mf.split_path(m, "train")["views"] == {"lumen": 1.0}
     draws = [render.choose_view({"lumen": 3.0, "closeup": 1.0}, u) for u in np.random.default_rng(0).uniform(size=4000)]
     share = np.mean([d == "closeup" for d in draws])
     assert abs(share - 0.25) < 4 * np.sqrt(0.25 * 0.75 / 4000)
@@ -52,7 +53,7 @@ def test_closeup_faces_the_wall_at_the_recorded_distance():
     """Known answer: the optical axis meets the wall point the camera faces, at the recorded distance."""
     preset = tube.PRESETS["small_intestine"]
     tm = tube.build_tube(preset, 3, {"n_theta": 128, "ring_step": 0.04})
-    path = dict(synth.DEFAULTS["camera_path"], views={"closeup": 1.0})
+    path = dict(mf.DEFAULTS["camera_path"], views={"closeup": 1.0})
     rng = np.random.default_rng(1)
     size = 33  # odd: a pixel centre on the principal point
     with render.Renderer(size, size) as r:
@@ -81,7 +82,7 @@ def test_papilla_is_a_mound_with_a_pit_and_papilla_views_face_it():
     # ... with a pit: the rim around the centre is higher (nearer the axis) than the centre itself
     rim = r(0.35 * size)
     assert rim < r(0.0) and base - rim > 0.3 * size
-    path = dict(synth.DEFAULTS["camera_path"], views={"papilla": 1.0})
+    path = dict(mf.DEFAULTS["camera_path"], views={"papilla": 1.0})
     T, info = render.sample_pose(tm, np.random.default_rng(0), path)
     assert info["view"] == "papilla" and info["s"] == pytest.approx(s)
     # the optical axis points at the papilla's top
@@ -93,7 +94,7 @@ def test_papilla_is_a_mound_with_a_pit_and_papilla_views_face_it():
 
 def test_papilla_view_without_papillae_falls_back_to_a_closeup():
     tm = tube.build_tube(dict(tube.PRESETS["colon"], papillae=[0, 0]), 2, {"n_theta": 32, "ring_step": 0.3})
-    path = dict(synth.DEFAULTS["camera_path"], views={"papilla": 1.0})
+    path = dict(mf.DEFAULTS["camera_path"], views={"papilla": 1.0})
     T, info = render.sample_pose(tm, np.random.default_rng(0), path)
     assert info["view"] == "papilla" and info["distance"] is not None
     assert render.inside_tube(tm, T[:3, 3])

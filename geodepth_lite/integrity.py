@@ -1,0 +1,212 @@
+"""A synthetic dataset's integrity: its checksums, ``verify`` and the checks run before it is used.
+
+``synth.py`` writes ``DIR/checksums.sha256`` last (``sha256sum -c`` format, one line per file
+of ``dataset_files``), so its presence marks a finished dataset. ``verify`` names every file
+that is missing, changed or unreadable against it (or, without it, how many frames of each
+split are on disk); ``check_dataset`` turns those problems into one error line before
+``train`` or ``evaluate`` use a dataset (``--no-verify`` skips it); ``is_complete`` is the
+cheap check (no hashing) of ``synth.ensure_dataset``.
+
+Command: ``python -m geodepth_lite verify DIR``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from .utils import FileProblem, os_reason, write_bytes_atomic
+
+
+def dataset_files(m: dict) -> list[str]:
+    """Every file of a dataset of manifest ``m``, relative to its directory, in checksums.sha256's order."""
+    files = ["manifest.json"]
+    for split, n in m["splits"].items():
+        files.append(f"{split}/frames.jsonl")
+        files += [f"{split}/rgb/{i:06d}.png" for i in range(n)] + [f"{split}/depth/{i:06d}.npy" for i in range(n)]
+    return files
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_checksums(out: Path, m: dict) -> None:
+    """Write ``out/checksums.sha256`` over ``dataset_files(m)``; synth writes it last, to mark completion."""
+    lines = []
+    for rel in dataset_files(m):
+        try:
+            lines.append(f"{_sha256(out / rel)}  {rel}\n")
+        except OSError as exc:
+            raise FileProblem(f"cannot read {out / rel}: {os_reason(exc)}", out / rel) from exc
+    write_bytes_atomic(out / "checksums.sha256", "".join(lines).encode())
+
+
+def frame_counts(root: str | Path, m: dict) -> dict[str, tuple[int, int]]:
+    """Per split of manifest ``m``: (complete frames in dataset directory ``root``, frames expected).
+
+    A frame is complete when both its files are there (``<split>/rgb/NNNNNN.png`` and
+    ``<split>/depth/NNNNNN.npy``; each is written atomically, so a present file is whole).
+    """
+    root = Path(root)
+    out = {}
+    for split, n in m["splits"].items():
+        names = {}
+        for kind in ("rgb", "depth"):
+            try:
+                names[kind] = set(p.name for p in (root / split / kind).iterdir())
+            except OSError:  # not there yet (or unreadable: counted as absent)
+                names[kind] = set()
+        out[split] = (sum(1 for i in range(n) if f"{i:06d}.png" in names["rgb"] and f"{i:06d}.npy" in names["depth"]),
+                      n)
+    return out
+
+
+def _dataset_manifest(root: Path) -> tuple[dict | None, str | None]:
+    """(DIR/manifest.json with a usable "splits", None), or (None, the problem line saying what is wrong)."""
+    mpath = root / "manifest.json"
+    if not mpath.exists():
+        return None, ("missing: manifest.json and checksums.sha256 (not a dataset written by synth, or synth "
+                      "stopped before it began: run synth again)")
+    try:
+        m = json.loads(mpath.read_text())
+    except OSError as exc:
+        reason = os_reason(exc)
+    except ValueError as exc:  # json.JSONDecodeError, UnicodeDecodeError
+        reason = f"not valid JSON: {exc}"
+    else:
+        splits = m.get("splits") if isinstance(m, dict) else None
+        ok = (isinstance(splits, dict) and splits
+              and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in splits.values()))
+        if ok:
+            return m, None
+        reason = "no 'splits' object of frame counts"
+    return None, (f"unreadable: manifest.json ({reason}); checksums.sha256 is missing too, so the frames cannot "
+                  "be counted: run synth again with --overwrite")
+
+
+def _incomplete(root: Path) -> list[str]:
+    """verify's report on a dataset directory without checksums.sha256: frames present and expected per split."""
+    m, problem = _dataset_manifest(root)
+    if m is None:
+        return [problem]
+    counts = frame_counts(root, m)
+    parts = [f"{split} {have}/{n}" for split, (have, n) in counts.items()]
+    parts[0] += " frames"
+    return [f"incomplete: {', '.join(parts)} (checksums.sha256 is written last; run synth again to finish)"]
+
+
+def verify(root: str | Path) -> list[str]:
+    """Problems of a dataset directory against its checksums: 'missing: f', 'changed: f', 'unreadable: f'.
+
+    An empty list means every listed file is present and unchanged. Without checksums.sha256
+    (synth has not finished) the one problem is 'incomplete: ...' with the frames present and
+    expected per split of manifest.json (or what is wrong with manifest.json).
+    """
+    root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"dataset directory {root} does not exist")
+    if not root.is_dir():
+        raise FileProblem(f"cannot verify {root}: it is a file, not a dataset folder", root)
+    sums = root / "checksums.sha256"
+    if not sums.is_file():
+        return _incomplete(root)
+    try:
+        text = sums.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        return [f"unreadable: checksums.sha256 ({os_reason(exc) if isinstance(exc, OSError) else 'not a text file'})"]
+    problems = []
+    for line_no, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        digest, _, rel = line.partition("  ")
+        if len(digest) != 64 or not rel:
+            problems.append(f"unreadable: checksums.sha256 line {line_no}")
+            continue
+        path = root / rel
+        if not path.exists():
+            problems.append(f"missing: {rel}")
+            continue
+        try:
+            actual = _sha256(path)
+        except OSError as exc:
+            problems.append(f"unreadable: {rel} ({os_reason(exc)})")
+            continue
+        if actual != digest:
+            problems.append(f"changed: {rel}")
+    return problems
+
+
+def _complete_splits(root: Path, splits) -> bool:
+    """Without checksums.sha256: whether every frame of ``splits`` (those in manifest.json) and
+    their frames.jsonl are on disk."""
+    m, _ = _dataset_manifest(root)
+    if m is None:
+        return False
+    counts = frame_counts(root, {"splits": {s: n for s, n in m["splits"].items() if s in splits}})
+    return all(have == n and (root / s / "frames.jsonl").is_file() for s, (have, n) in counts.items())
+
+
+def check_dataset(root: str | Path, splits=None, *, limit: int = 5) -> None:
+    """Check a synthetic dataset directory against its checksums.sha256 before it is used
+    (``train`` and ``evaluate`` call this unless ``--no-verify``).
+
+    splits: check only the files of these splits (and the top-level ones, manifest.json);
+    None: all. Without checksums.sha256 (synth did not finish, or a folder put together by
+    hand) there is nothing to compare with: the check passes only when ``splits`` (not None)
+    are complete on disk. Raises a one-line ValueError naming the problems (the first
+    ``limit``, then "and N more") and how to fix them: synth renders missing or changed frames again.
+    """
+    root = Path(root)
+    problems = verify(root)
+    if splits is not None:
+        if not (root / "checksums.sha256").is_file():
+            problems = [] if _complete_splits(root, set(splits)) else problems
+        else:
+            def split_of(problem: str) -> str | None:
+                rel = problem.partition(": ")[2]
+                return rel.split("/", 1)[0] if "/" in rel.split(" ", 1)[0] else None
+            problems = [p for p in problems if split_of(p) in (None, *splits)]
+    if not problems:
+        return
+    shown = "; ".join(problems[:limit])
+    if len(problems) > limit:
+        shown += f"; and {len(problems) - limit} more"
+    cmd = f"python -m geodepth_lite synth --manifest {root / 'manifest.json'} --out {root}"
+    raise ValueError(f"dataset {root} failed verification against checksums.sha256: {shown}. "
+                     f"Regenerate it with `{cmd}` (renders missing and changed frames again), "
+                     "or pass --no-verify to use it as it is")
+
+
+def is_complete(root: Path, m: dict) -> bool:
+    """Cheap completeness check: same manifest, checksums written, every file present (no hashing)."""
+    try:
+        if json.loads((root / "manifest.json").read_text()) != m:
+            return False
+    except (OSError, json.JSONDecodeError):
+        return False
+    return (root / "checksums.sha256").is_file() and all((root / f).is_file() for f in dataset_files(m))
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def add_arguments_verify(parser) -> None:
+    parser.add_argument("dir", help="dataset directory (holds manifest.json and checksums.sha256)")
+
+
+def run_verify(args) -> int:
+    problems = verify(args.dir)
+    for p in problems:
+        print(p)
+    if problems:
+        print(f"verify: {len(problems)} problem(s) in {args.dir}")
+        return 1
+    n = sum(1 for line in (Path(args.dir) / "checksums.sha256").read_text().splitlines() if line.strip())
+    print(f"verify: ok, {n} files match checksums.sha256")
+    return 0
