@@ -1,10 +1,11 @@
 """Tuning the teach recipe: train a run and score it, or score trained runs again; one JSON line per result.
 
 Every result is appended to ``benchmarks/tuning_log.jsonl``, the record of every run behind the
-recipe's evidence tables (``config.TEACH_EVIDENCE``, ``LAMBDA_SEARCH``, ``VIEW_EVIDENCE``; notebook 04
-and the README show them). Choices are made on the validation split; the test split and the held-out
-close-ups (``heldout_closeup``) are recorded beside it, never used to choose. The findings of finished
-experiments are written up in ``docs/experiments.md``.
+recipe's evidence tables (``benchmarks/teach_recipe.json``, ``lambda_search.json``,
+``view_evidence.json``; notebook 04 and docs/teach_recipe.md show them). Choices are made on the
+validation split; the test split and the held-out close-ups (``heldout_closeup``) are recorded
+beside it, never used to choose. The findings of finished experiments are written up in
+``docs/experiments.md``.
 
 train (the default command: the word ``train`` may be left out)
 

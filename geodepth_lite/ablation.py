@@ -1,4 +1,4 @@
-"""The four-case ablation of Section 4.3 as paired experiments, with intervals and computed verdicts.
+"""The four-case ablation of Section 4.2.1 as paired experiments, with intervals and computed verdicts.
 
 The paper trains each loss combination once and reports its reduction of RMSE and Abs Rel
 against Case 1 (depth + smoothness). One run per case cannot separate a loss's effect from
@@ -27,11 +27,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy import stats
 
 from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, run_cache, synth, tables
 
 CASE_NAMES = {1: "depth + smooth", 2: "+ grad + normal", 3: "+ SDF", 4: "all five"}
-# Section 4.3: the paper's reduction against Case 1, in percent (negative = better)
+# Section 4.2.1: the paper's reduction against Case 1, in percent (negative = better)
 PAPER_REDUCTION = {2: {"rmse": -10.0, "abs_rel": -20.4}, 3: {"rmse": -13.0, "abs_rel": -25.4},
                    4: {"rmse": -22.0, "abs_rel": -36.3}}
 HELDOUT_GROUPS = {"T1-L1": "heldout_T1L1", "T2-L2": "heldout_T2L2", "T3-L3": "heldout_T3L3"}
@@ -83,8 +84,6 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float]:
 
     With fewer than two values the interval is infinite (nothing is known about the spread).
     """
-    from scipy import stats  # heavy to import, needed for the intervals only
-
     x = np.asarray(values, dtype=np.float64)
     m = float(x.mean())
     if x.size < 2:

@@ -2,7 +2,7 @@
 
 The renderer (``render.py``) draws clean frames: one exposure family, a linear response,
 no sensor, no optics defects, no fluids. Real clinical frames, on which the paper's stage II
-applies the synthetic-trained network zero-shot (Section 4.3, Kvasir and clinical videos),
+applies the synthetic-trained network zero-shot (Section 4.2.3, Kvasir and clinical videos),
 also show: under- to over-exposure with saturated highlights, specular flecks and small
 bubbles, mucus sheen, colour casts from pink to yellow, vignetting, a camera response curve,
 sensor noise, motion or defocus blur and JPEG artefacts. This module adds them as a cheap,
@@ -25,6 +25,7 @@ import io
 import math
 
 import numpy as np
+from PIL import Image
 
 APPEARANCE_DEFAULTS: dict = {
     "exposure_stops": [0.0, 0.0],   # gain 2**stops, then sensor clipping at 1 (over-exposure saturates)
@@ -356,7 +357,6 @@ def _add_noise_and_scale(x2: np.ndarray, sigma: float, rng: np.random.Generator,
 
 
 def _jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
-    from PIL import Image
     buf = io.BytesIO()
     Image.fromarray(rgb).save(buf, format="JPEG", quality=int(quality))
     buf.seek(0)

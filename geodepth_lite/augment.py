@@ -11,6 +11,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from geodepth_lite import appearance
 from geodepth_lite.camera import scale_intrinsics
 
 AUGMENTS = ("none", "flip", "flip_color", "camera", "crop")  # see augment_batch
@@ -58,8 +59,6 @@ def augment_batch(batch: dict, kind: str) -> dict:
         gamma = torch.exp(torch.empty(B).uniform_(np.log(0.8), np.log(1.25))).to(img).view(B, 1, 1, 1)
         out["image"] = (out["image"].clamp(0, 1) ** gamma * gain).clamp(0, 1)
     if kind == "camera":
-        from geodepth_lite import appearance
-
         params = dict(appearance.APPEARANCE_DEFAULTS, **CAMERA_AUGMENT)
         seeds = torch.randint(0, 2**31 - 1, (B,)).tolist()
         frames = (out["image"].detach().clamp(0, 1).permute(0, 2, 3, 1).cpu().numpy() * 255.0).round().astype(np.uint8)

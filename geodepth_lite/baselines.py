@@ -1,4 +1,4 @@
-"""Trivial depth baselines, scored with exactly the protocol of ``evaluate`` (Section 4.3).
+"""Trivial depth baselines, scored with exactly the protocol of ``evaluate`` (Section 4.2.1).
 
 Per-frame median scaling forgives any global scale, so a prediction that knows nothing
 about the frame can still score well: a model must beat these baselines for its numbers
@@ -24,8 +24,10 @@ from typing import Any, Iterable
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.ndimage import gaussian_filter
 
 from geodepth_lite import utils
+from geodepth_lite.dataset import SyntheticDepthDataset
 
 # name -> what it predicts (one line; shown in the evaluate tables' notes)
 BASELINES: dict[str, str] = {
@@ -113,8 +115,6 @@ def fit_mean_depth_map(root: str | os.PathLike, split: str = "train", image_size
 
     Each file is read as the dataset reads it (``utils.read_npy``: never unpickled), so a damaged
     or foreign depth file is a :class:`utils.FileProblem` naming it."""
-    from geodepth_lite.dataset import SyntheticDepthDataset
-
     ds = SyntheticDepthDataset(root, split, image_size=image_size)
 
     def depths():
@@ -138,8 +138,6 @@ def shading_prior(images: Any, sigma: float = 2.0) -> np.ndarray:
     this is the depth a "darker is farther" model gets without learning anything. Gray is
     clipped below at ``SHADING_EPS_REL`` x the frame's brightest pixel (black pixels then lie
     at most ~32x farther than the brightest); an all-black frame gets a constant depth."""
-    from scipy.ndimage import gaussian_filter
-
     x = _images(images).astype(np.float64)
     gray = np.tensordot(np.asarray(LUMA_WEIGHTS), x, axes=([0], [1]))  # N x H x W
     if sigma > 0:

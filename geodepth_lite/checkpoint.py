@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import importlib
 import io
 import json
 import os
@@ -23,6 +24,7 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
+from geodepth_lite.model import DepthNet
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_CSV = "log.csv"
@@ -110,8 +112,6 @@ NUMPY_ARRAY_GLOBALS = ("numpy._core.multiarray._reconstruct", "numpy.core.multia
 
 def _numpy_array_globals() -> list:
     """The objects behind ``NUMPY_ARRAY_GLOBALS`` that this numpy has: they rebuild an array, nothing else."""
-    import importlib
-
     found = []
     for name in NUMPY_ARRAY_GLOBALS:
         module, _, attr = name.rpartition(".")
@@ -270,8 +270,6 @@ def read_log(run_dir: str | os.PathLike) -> list[dict]:
 
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
     """(DepthNet in eval mode on ``device``, its training cfg) from a checkpoint file."""
-    from geodepth_lite.model import DepthNet
-
     ckpt = read_checkpoint(path)
     model = DepthNet(padding=ckpt["cfg"].get("padding", "zeros"), input_pad=int(ckpt["cfg"].get("input_pad", 0)))
     load_weights(model, ckpt["model"], path)

@@ -16,6 +16,8 @@ import os
 import sys
 import traceback
 
+from geodepth_lite.utils import FileProblem, os_reason
+
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("geodepth_lite.synth", "generate a synthetic RGB-depth dataset from a manifest"),
@@ -61,8 +63,6 @@ def error_line(exc: BaseException) -> str:
     becomes "<reason>: <path>"; an error re-raised from a DataLoader worker keeps only its
     original message (its last line).
     """
-    from geodepth_lite.utils import FileProblem, os_reason
-
     if isinstance(exc, FileProblem):
         text = str(exc)
     elif isinstance(exc, OSError) and exc.filename is not None:

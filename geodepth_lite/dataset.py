@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from . import camera as cam
+from . import synth
 from .utils import read_npy, read_rgb
 
 
@@ -117,8 +118,6 @@ def resolve_dataset(cfg: dict, progress: bool = False) -> Path:
     path = Path(cfg["dataset"]).expanduser()
     if path.is_dir() and (path / "manifest.json").exists():
         return path
-    from geodepth_lite import synth
-
     return Path(synth.ensure_dataset(cfg["dataset"], overrides=cfg.get("dataset_overrides"), progress=progress))
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 
 import torch
+import torch.distributed as dist
 
 
 def dist_env() -> tuple[int, int, int]:
@@ -24,8 +25,6 @@ def is_main_process() -> bool:
 
 def init_distributed(device: torch.device) -> bool:
     """Start the process group (nccl on CUDA, gloo on the CPU) under torchrun; False when single-process."""
-    import torch.distributed as dist
-
     _, world, _ = dist_env()
     if world <= 1:
         return False

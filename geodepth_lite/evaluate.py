@@ -1,9 +1,9 @@
-"""Evaluation of a trained model with the seven depth metrics (paper Section 4.3): scoring.
+"""Evaluation of a trained model with the seven depth metrics (paper Section 4.2.1): scoring.
 
 Protocol (monodepth2 / AF-SfMLearner, shared by every table of the workbook):
 the prediction is resized to the ground truth's size, pixels with
 ``min_depth < gt < max_depth`` (and the dataset's ``valid`` mask, if any) are kept,
-the prediction is median-scaled per frame (the paper's Eq. in Section 4.3),
+the prediction is median-scaled per frame (the paper's Eq. in Section 4.2.1),
 clamped, and the seven metrics (Abs Rel, Sq Rel, RMSE, RMSE log, a1, a2, a3) are
 computed per frame by ``metrics.compute_depth_metrics`` and averaged over frames,
 overall and per group (organ; texture x lighting group).
@@ -39,7 +39,7 @@ from geodepth_lite.inference import check_flips, collate, pick_device, predict_d
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES, compute_depth_metrics, eval_mask
 from geodepth_lite.tables import write_results
 
-METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.3, named once in metrics.py
+METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.2.1, named once in metrics.py
 
 
 # --------------------------------------------------------------------------- datasets

@@ -1,4 +1,4 @@
-"""Running a trained network: device choice, batching, and depth for any image size (Section 4.3).
+"""Running a trained network: device choice, batching, and depth for any image size (Section 4.2.3).
 
 ``predict_depth`` is what evaluation (``evaluate``), ``predict`` and the notebooks call: the
 images are resized the way the training frames were made (``dataset.resize_image``),

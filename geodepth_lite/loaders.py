@@ -6,7 +6,7 @@ One small class per dataset, as monodepth2's ``kitti_dataset.py`` has one per KI
 listed in ``REGISTRY`` ({name: class}, filled by the ``@register`` decorator), the only list
 of dataset names (``DATASETS`` is ``tuple(REGISTRY)``). A class holds its ``name``,
 ``layout`` (the folder layout quoted in errors), ``depth_units``, ``max_depth`` (the largest
-depth its encoding holds: the evaluation mask's bound, Section 4.3) and ``subset_manifest``
+depth its encoding holds: the evaluation mask's bound, Section 4.2.1) and ``subset_manifest``
 (its paper subsets in ``data_manifests/eval_subsets/``, or None), and says how frames are
 found under a root (``find_frames``, with the poses where the dataset has them), how a
 depth file is decoded (``decode_depth``) and its intrinsics at native size (``intrinsics``).
@@ -21,7 +21,7 @@ instance of that class, whose items look like the synthetic set's
      "valid": bool 1xHxW (pixels with a usable ground-truth depth)}
 
 Depth stays in each dataset's own unit (``ds.depth_units``; EndoSLAM is relative, so
-evaluation must median-scale, as the paper does, Section 4.3). ``ds.frames`` lists one
+evaluation must median-scale, as the paper does, Section 4.2.1). ``ds.frames`` lists one
 record per item (file paths, sequence, frame number, ``T_world_cam`` where the dataset
 has poses). Every fact below that the datasets' documentation does not pin down is one
 named constant marked UNVERIFIED, so a user whose copy differs changes one line.
@@ -39,7 +39,9 @@ import warnings
 from pathlib import Path
 from typing import Iterable
 
+import imageio.v3 as iio
 import numpy as np
+import tifffile
 import torch
 from PIL import Image
 from torch.utils.data import Dataset
@@ -93,8 +95,6 @@ C3VD_PINHOLE_APPROX = {"width": 1350, "height": 1080, "fx": 767.4, "fy": 767.5, 
 # =========================================================================== reading pixels
 def _read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
     """A PNG's values divided by its dtype's maximum (8- or 16-bit), as float64 H x W."""
-    import imageio.v3 as iio
-
     arr = np.asarray(iio.imread(path))
     if arr.ndim == 3:
         arr = arr[..., channel if channel is not None else 0]
@@ -106,8 +106,6 @@ def _read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
 
 
 def _read_png_raw(path: Path) -> np.ndarray:
-    import imageio.v3 as iio
-
     arr = np.asarray(iio.imread(path))
     if arr.ndim == 3:
         arr = arr[..., 0]
@@ -176,7 +174,7 @@ class PublicDepthDataset(Dataset):
     per item: ``rgb``, ``depth`` paths, ``organ``, ``group``, ``sequence``, ``frame`` number,
     ``K`` at native size, and ``T_world_cam`` 4x4 or None). ``image_size`` (int or (H, W))
     resizes image (bilinear), depth and valid (nearest) and K; None keeps the native size,
-    which the evaluation protocol wants (Section 4.3).
+    which the evaluation protocol wants (Section 4.2.1).
     """
 
     name: str = ""
@@ -409,7 +407,7 @@ class ColonDepthDataset(PublicDepthDataset):
 @register
 class SimCol3DDataset(PublicDepthDataset):
     """SimCol3D, the synthetic colons of the MICCAI 2022 EndoVis challenge (Rau et al. 2023); not
-    one of the paper's test sets (Section 4.1), scored with its protocol (Section 4.3). Constants ``SIMCOL3D_*``."""
+    one of the paper's test sets (Section 4.1), scored with its protocol (Section 4.2.1). Constants ``SIMCOL3D_*``."""
 
     name = "simcol3d"
     layout = ("ROOT/SyntheticColon_I/Frames_S1/FrameBuffer_0000.png and .../Depth_0000.png, with "
@@ -500,7 +498,7 @@ class SimCol3DDataset(PublicDepthDataset):
 class C3VDDataset(PublicDepthDataset):
     """C3VD, real colonoscopy video of a phantom with depth from 2D-3D registration (Bobrow et al.
     2023, Medical Image Analysis 90); not one of the paper's test sets (Section 4.1), scored with
-    its protocol (Section 4.3). Constants ``C3VD_*``."""
+    its protocol (Section 4.2.1). Constants ``C3VD_*``."""
 
     name = "c3vd"
     layout = ("ROOT/<sequence>/0_color.png and ROOT/<sequence>/0000_depth.tiff, with ROOT/<sequence>/pose.txt "
@@ -547,8 +545,6 @@ class C3VDDataset(PublicDepthDataset):
     @staticmethod
     def decode_depth(path) -> tuple[np.ndarray, np.ndarray]:
         """C3VD ``*_depth.tiff``: 16-bit, 0..65535 -> 0..100 mm z-depth; raw 0 and 65535 are invalid."""
-        import tifffile
-
         raw = np.asarray(tifffile.imread(str(path)))
         if raw.ndim == 3:
             raw = raw[..., 0]

@@ -67,7 +67,7 @@ def border_weight_map(height: int, width: int, beta: float, like: torch.Tensor |
     A pixel's place is its Chebyshev distance from the centre in normalised coordinates (pixel
     centres, 0 at the centre, 1 at the edge); the ramp starts at ``BORDER_RAMP_START``. Why: a
     network sees less context at the border and its error there is larger (notebook 06's border
-    map; ``config.VIEW_EVIDENCE``); weighting those pixels more spends more of its effort there.
+    map; docs/teach_recipe.md); weighting those pixels more spends more of its effort there.
     """
     if not beta >= 0:
         raise ValueError(f"border weight must be a non-negative number, got {beta!r}")
@@ -106,7 +106,7 @@ def log_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | No
 
     Not the paper's term (its Eq. 1 is the absolute L1 above). A far lumen pixel at 30 units
     weighs no more here than a wall pixel at 1 unit, as in the median-scaled metrics
-    (Abs Rel, RMSE log). Measured against L1 and silog in ``config.TEACH_EVIDENCE``.
+    (Abs Rel, RMSE log). Measured against L1 and silog on docs/teach_recipe.md.
     """
     gt_safe, valid = _prepare(pred, gt, mask)
     return masked_mean((torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe)).abs(), valid, weight)
@@ -304,7 +304,7 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats with
     one key per term (unweighted) and "total" (weighted). A zero weight skips computing its
-    group's terms, which are then reported as 0.0. The ablation cases of Sec. 4.3 are weight
+    group's terms, which are then reported as 0.0. The ablation cases of Sec. 4.2.1 are weight
     settings (``config.ABLATION_CASES``). ``lambdas``: see :func:`group_weights`. ``depth_term``:
     "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
     ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).

@@ -1,4 +1,4 @@
-"""Depth metrics with per-frame median scaling (Sec. 4.3; the monodepth2 / AF-SfMLearner protocol).
+"""Depth metrics with per-frame median scaling (Sec. 4.2.1; the monodepth2 / AF-SfMLearner protocol).
 
 For each frame: valid pixels are ``min_depth < gt < max_depth`` (and finite); with median
 scaling, ``pred *= median(gt[valid]) / median(pred[valid])``; then ``pred`` is clamped to

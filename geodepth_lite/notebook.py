@@ -6,14 +6,20 @@ share, by name, and resolves the folder their figures and tables go to the same 
 everywhere (``reproduce.resolve_run_dir``)::
 
     prof, out = notebook.setup(profile, run_dir, seed=seed, case=case, n_examples=n_examples)
+
+``save_table`` and ``save_figure`` write a notebook's tables and figures into that folder, where
+``reproduce`` collects them into its report.
 """
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 from typing import Any
 
 from geodepth_lite import config, reproduce, utils
+from geodepth_lite.tables import markdown_table
 
 
 def check_int(name: str, value: Any, minimum: int = 0) -> int:
@@ -30,7 +36,7 @@ def setup(profile: str, run_dir: str = "", *, seed: int | None = None, case: int
 
     profile: one of ``config.PROFILES``. run_dir: "" = ``runs/<profile>/`` in the workspace.
     seed: a non-negative integer, used to seed everything (0 when not given). case: an
-    ablation case (Section 4.3). n_examples and any other keyword: positive integers.
+    ablation case (Section 4.2.1). n_examples and any other keyword: positive integers.
     """
     prof = config.get_profile(profile)
     if case is not None and case not in config.ABLATION_CASES:
@@ -41,3 +47,47 @@ def setup(profile: str, run_dir: str = "", *, seed: int | None = None, case: int
         check_int(name, value, 1)
     utils.seed_everything(check_int("seed", seed) if seed is not None else 0)
     return prof, reproduce.resolve_run_dir(profile, run_dir)
+
+
+def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: list[list[Any]], *,
+               title: str = "", notes: str = "", digits: int = 3) -> Path:
+    """Write ``tables/<name>.json`` (+ ``.md``) under ``run_dir``; return the JSON path."""
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"table name must be a plain file name, got {name!r}")
+    if any(len(r) != len(columns) for r in rows):
+        raise ValueError(f"table {name!r}: every row needs {len(columns)} cells")
+    table = {"name": name, "title": title, "columns": list(columns), "rows": [list(map(_plain, r)) for r in rows],
+             "notes": notes}
+    path = Path(run_dir) / "tables" / f"{name}.json"
+    utils.write_json_atomic(path, table)
+    md = ((f"**{title}**\n\n" if title else "") + markdown_table(columns, rows, digits)
+          + (f"\n\n{notes}" if notes else ""))
+    utils.write_bytes_atomic(path.with_suffix(".md"), (md + "\n").encode())
+    return path
+
+
+def save_figure(fig, run_dir: str | os.PathLike, name: str, dpi: int = 100) -> Path:
+    """Write a matplotlib figure to ``figures/<name>.png`` under ``run_dir`` (atomically)."""
+    path = Path(run_dir) / "figures" / f"{name}.png"
+    with utils.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+    return path
+
+
+def _plain(x: Any) -> Any:
+    """JSON-friendly cell: numpy scalars to python numbers."""
+    if hasattr(x, "item") and callable(x.item):
+        return x.item()
+    return x
+
+
+def evidence(name: str) -> list[dict]:
+    """The rows of ``benchmarks/<name>.json``: the validation runs behind the teach recipe
+    ("teach_recipe", "lambda_search", "view_evidence"; their prose is docs/teach_recipe.md)."""
+    root = utils.project_root()
+    if root is None:
+        raise FileNotFoundError("benchmarks/ not found: run the notebooks from a checkout of geodepth-lite")
+    path = root / "benchmarks" / f"{name}.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"no evidence table {name!r}: {path} is missing")
+    return json.loads(path.read_text())["rows"]

@@ -1,4 +1,4 @@
-"""``python -m geodepth_lite predict``: zero-shot depth for your own images or video (Section 4.3).
+"""``python -m geodepth_lite predict``: zero-shot depth for your own images or video (Section 4.2.3).
 
 The paper's stage II applies the network trained on synthetic frames to clinical images
 (Kvasir, clinical videos) and turns each depth map into 3D with the endoscope's intrinsics.
@@ -46,10 +46,13 @@ from typing import Iterator
 import numpy as np
 import torch
 import torch.nn.functional as F
+import yaml
+from PIL import Image
+from tqdm.auto import tqdm
 
-from . import camera, recon, utils
+from . import camera, checkpoint, recon, utils, viz
 from .dataset import resize_image
-from .inference import FLIPS
+from .inference import FLIPS, pick_device, predict_depth
 from .utils import FileProblem, os_reason
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
@@ -76,8 +79,6 @@ def load_intrinsics(path) -> dict:
         if path.suffix.lower() == ".json":
             data = json.loads(text)
         else:
-            import yaml
-
             data = yaml.safe_load(text)
     except Exception as exc:  # noqa: BLE001 - any parse error is the user's file
         raise ValueError(f"--intrinsics {path}: cannot parse ({exc.__class__.__name__}: {exc})") from None
@@ -212,8 +213,6 @@ def to_rgb8(im) -> np.ndarray:
 
 def _image_reason(exc: BaseException) -> str:
     """Why an image could not be decoded, in a few words (whatever the decoder raised)."""
-    from PIL import Image
-
     if isinstance(exc, Image.UnidentifiedImageError):
         return "not an image file, or a damaged one"
     if isinstance(exc, OSError):  # unreadable, truncated ("image file is truncated")
@@ -231,8 +230,6 @@ def check_frame_size(width: int, height: int, what: str, path: Path) -> None:
 def read_frame(path: Path) -> np.ndarray:
     """H x W x 3 uint8 of an image file (``to_rgb8``); a FileProblem naming the file if it cannot
     be decoded or is too small (``check_frame_size``)."""
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             check_frame_size(*im.size, "image", path)
@@ -246,8 +243,6 @@ def read_frame(path: Path) -> np.ndarray:
 
 def _image_size(path: Path) -> tuple[int, int] | None:
     """(width, height) from an image's header, or None if it cannot be read (reported later)."""
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             return im.size
@@ -291,7 +286,7 @@ def video_error(path: Path, frames_read: int, exc: BaseException) -> str:
 def read_video(path: Path) -> Iterator[np.ndarray]:
     """The frames (H x W x 3 uint8) of a video file, decoded by ffmpeg (``imageio_ffmpeg``);
     ffmpeg is stopped when the iteration ends or is abandoned."""
-    import imageio_ffmpeg
+    import imageio_ffmpeg  # optional ffmpeg binary, needed only for video input
 
     with contextlib.closing(imageio_ffmpeg.read_frames(str(path))) as reader:
         width, height = next(reader)["size"]
@@ -302,7 +297,7 @@ def read_video(path: Path) -> Iterator[np.ndarray]:
 def video_size(path: Path) -> tuple[int, int]:
     """(width, height) of a video's frames; a FileProblem naming it if ffmpeg cannot read it or
     its frames are too small."""
-    import imageio_ffmpeg
+    import imageio_ffmpeg  # optional ffmpeg binary, needed only for video input
 
     try:
         with contextlib.closing(imageio_ffmpeg.read_frames(str(path))) as reader:
@@ -381,8 +376,6 @@ def predict_frames(model, frames: list[np.ndarray], image_size, flips: str = "no
     different sizes; ``inference.predict_depth`` runs the network; each prediction is resized
     back (bilinear) to its frame. flips: test-time flips (``inference.predict_depth``).
     """
-    from .inference import predict_depth
-
     size = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
     x = torch.stack([resize_image(torch.from_numpy(f).permute(2, 0, 1).float().div(255.0), size) for f in frames])
     pred = predict_depth(model, x, size, flips).cpu()
@@ -415,8 +408,6 @@ def write_outputs(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, 
     """The files of one frame (``output_paths``), each written atomically, and all or none: if
     one fails after another was written, the frame's files are all removed again (those an
     earlier run left under these names too, which would no longer match), then it re-raises."""
-    from . import viz
-
     paths = output_paths(out_dir, name, ply)
     written = 0
     try:
@@ -483,8 +474,6 @@ def _refuse_non_finite(batch, depths, ckpt: Path) -> None:
 def predict_into(out_dir: Path, files: list[Path], kind: str, model, cfg: dict, calib, args) -> Tally:
     """Predict and write every frame of ``files`` into ``out_dir``, in batches; stops early only
     when the disk refuses a write (``stops_the_run``)."""
-    from tqdm.auto import tqdm
-
     tally = Tally()
     total = len(files) if kind == "images" else None
     frames = iter_frames(files, kind, tally.failures)
@@ -554,9 +543,6 @@ def _check_options(args: argparse.Namespace) -> None:
 def run_predict(args: argparse.Namespace) -> int:
     """The ``predict`` command: inputs and options checked, then --out made and probed, then the
     model loaded and every frame written (the module docstring says what fails how); exit status."""
-    from .checkpoint import load_model
-    from .inference import pick_device
-
     _check_options(args)
     calib = load_intrinsics(args.intrinsics) if args.intrinsics else None
     files, kind = list_inputs(args.input)
@@ -571,7 +557,7 @@ def run_predict(args: argparse.Namespace) -> int:
         stale = utils.remove_stale_temps(out_dir)
         if stale:
             print(f"removed {stale} half-written temporary file(s) of an interrupted run from {out_dir}")
-        model, cfg = load_model(ckpt, device=pick_device(args.device))
+        model, cfg = checkpoint.load_model(ckpt, device=pick_device(args.device))
         tally = predict_into(out_dir, files, kind, model, cfg, calib, args)
     finally:  # a run that wrote nothing leaves no folder it made
         utils.remove_empty_dirs(new_folders)

@@ -1,6 +1,6 @@
 """Depth maps to 3D: coloured point clouds, surface meshes, PLY files and the paper's 3D views.
 
-Section 4.3 ("Validation on clinical images"): "we transform each depth map into two 3D
+Section 4.2.3 ("Validation on clinical images"): "we transform each depth map into two 3D
 views based on the calibrated endoscope parameters" (Fig. 9), and per-frame depth should
 be temporally consistent over a sequence (Fig. 10). This module does the geometry:
 
@@ -19,12 +19,16 @@ Points are in the camera frame of ``camera`` (x right, y down, z forward) unless
 
 from __future__ import annotations
 
+import importlib.util
 import math
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
-from . import camera, utils
+from . import camera, render, utils
+from . import manifest as mf
+from . import tube as tube_mod
 from .metrics import median_scale
 
 # A triangle between neighbouring pixels is kept only if a smooth surface could produce its
@@ -92,7 +96,7 @@ def point_cloud(depth, K, image=None, valid=None, T_world_cam=None, stride: int 
     T_world_cam: 4x4 to place the cloud in the world. Point data: "rgb" (uint8 N x 3) when
     an image is given, "depth" (float32 N).
     """
-    import pyvista as pv
+    import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
     d = _as_hw(depth)
     rgb = _as_rgb8(image, d.shape)
@@ -135,7 +139,7 @@ def depth_mesh(depth, K, image=None, valid=None, T_world_cam=None, stride: int =
     Arguments as ``point_cloud``; triangles across depth discontinuities are dropped
     (``grid_triangles``). Point data: "Normals", "depth", and "rgb" when an image is given.
     """
-    import pyvista as pv
+    import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
     d = _as_hw(depth)
     rgb = _as_rgb8(image, d.shape)
@@ -212,7 +216,7 @@ def _triangles(poly) -> np.ndarray:
 
 def load_ply(path):
     """Read a PLY into pyvista PolyData (VTK's reader; colours land in point data "RGB")."""
-    import pyvista as pv
+    import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
     path = Path(path)
     if not path.is_file():
@@ -239,7 +243,7 @@ def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: flo
     """
     if color_by not in ("image", "depth"):
         raise ValueError(f"color_by must be 'image' or 'depth', got {color_by!r}")
-    import pyvista as pv
+    import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
     if poly.n_points == 0:
         raise ValueError("nothing to render: the cloud or mesh has no points")
@@ -276,20 +280,18 @@ def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: flo
 
 def jupyter_backend_available() -> bool:
     """True when a pyvista Jupyter backend (trame) is installed, so 3D views can be interactive."""
-    import importlib.util
-
     return all(importlib.util.find_spec(m) is not None for m in ("trame", "trame_vtk"))
 
 
 def show(poly, interactive: bool = False, titles=None, **kw):
     """Show a cloud or mesh in a notebook: interactive (pyvista's trame backend) when asked and
     available, else the two static views of ``render_views`` side by side (matplotlib)."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     if interactive:
         if not jupyter_backend_available():
             raise ValueError("interactive 3D needs a pyvista Jupyter backend: pip install 'pyvista[jupyter]' (trame)")
-        import pyvista as pv
+        import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
         pl = pv.Plotter(notebook=True)
         scalars = dict(rgb=True, scalars="rgb") if "rgb" in poly.point_data else dict(scalars="depth", cmap="magma")
@@ -308,8 +310,6 @@ def show(poly, interactive: bool = False, titles=None, **kw):
 
 def save_png(image: np.ndarray, path) -> Path:
     """Write an H x W x 3 uint8 array as PNG, atomically."""
-    from PIL import Image
-
     path = Path(path)
     with utils.atomic_path(path) as tmp:
         Image.fromarray(np.asarray(image, dtype=np.uint8)).save(tmp, format="PNG")
@@ -329,10 +329,6 @@ def synthetic_sequence(manifest: str = "heldout_T2L2", organ: str = "colon", n_f
     Returns {"images": list of H x W x 3 uint8, "depths": list of H x W float32,
     "K": 3x3, "poses": list of 4x4 T_world_cam, "tube": tube.TubeMesh}.
     """
-    from . import manifest as mf
-    from . import render
-    from . import tube as tube_mod
-
     if not isinstance(n_frames, int) or n_frames < 2:
         raise ValueError(f"n_frames must be an integer >= 2, got {n_frames!r}")
     if not step > 0:
@@ -371,7 +367,7 @@ def fuse_point_clouds(depths, Ks, T_world_cams, images=None, valids=None, stride
     that are temporally consistent give overlapping surfaces; a per-frame scale error
     shows up as shells at different radii.
     """
-    import pyvista as pv
+    import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
     n = len(depths)
     if len(T_world_cams) != n:
@@ -388,7 +384,7 @@ def fuse_point_clouds(depths, Ks, T_world_cams, images=None, valids=None, stride
 
 
 def median_scale_ratios(preds, gts, valids=None) -> np.ndarray:
-    """Per-frame median(gt) / median(pred) over valid pixels (the scale of Section 4.3's median scaling).
+    """Per-frame median(gt) / median(pred) over valid pixels (the scale of Section 4.2.1's median scaling).
 
     A network whose depth is temporally consistent needs nearly the same ratio for every
     frame of a sequence; the spread of these ratios is what Fig. 10 shows qualitatively.
@@ -405,7 +401,7 @@ def median_scale_ratios(preds, gts, valids=None) -> np.ndarray:
 
 def plot_scale_ratios(ratios, ax=None, label: str | None = None):
     """Per-frame median-scale ratio normalised by its mean, with the coefficient of variation."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     r = np.asarray(ratios, dtype=np.float64)
     if ax is None:

@@ -401,8 +401,8 @@ class Renderer:
     """
 
     def __init__(self, width: int, height: int, K=None, near: float = NEAR, far: float = FAR, fxaa: bool = False):
-        import pyvista as pv
-        import vtk
+        import pyvista as pv  # VTK: heavy, needed only to build or render meshes
+        import vtk  # VTK: heavy, needed only to render
 
         vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
         self.width, self.height = int(width), int(height)
@@ -433,7 +433,7 @@ class Renderer:
     # scene -------------------------------------------------------------------
     def set_tube(self, tube, texture: np.ndarray | None = None, material: dict | None = None) -> None:
         """Show ``tube`` (a tube.TubeMesh) with an RGB texture (h x w x 3 uint8, periodic) and Phong material."""
-        import pyvista as pv
+        import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
         if self.actor is not None:
             self.plotter.remove_actor(self.actor, render=False)
@@ -465,7 +465,7 @@ class Renderer:
         self.actor.GetProperty().SetColor(*[float(min(max(t, 0.0), 1.0)) for t in tint])
 
     def _set_lights(self, T_world_cam: np.ndarray, lights: list[Light]) -> None:
-        import vtk
+        import vtk  # VTK: heavy, needed only to render
 
         while len(self._lights) < len(lights):
             light = vtk.vtkLight()
@@ -499,7 +499,7 @@ class Renderer:
     # frame -------------------------------------------------------------------
     def render(self, T_world_cam: np.ndarray, lights: list[Light] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Render one frame: (rgb H x W x 3 uint8, depth H x W float32 z-depth; 0 = no surface in [near, far])."""
-        from vtkmodules.util.numpy_support import vtk_to_numpy
+        from vtkmodules.util.numpy_support import vtk_to_numpy  # VTK: heavy, needed only to render
 
         T = np.asarray(T_world_cam, dtype=np.float64)
         if lights is None:

@@ -8,11 +8,11 @@ profile, the notebook selection, and that every extra parameter is declared in t
 
 Output contract (what the notebooks write and the report reads), all under run_dir:
 - ``notebooks/NN_topic.ipynb``: the executed notebooks;
-- ``tables/<name>.json``: one table each, written by ``save_table``:
+- ``tables/<name>.json``: one table each, written by ``notebook.save_table``:
   {"name", "title", "columns": [...], "rows": [[...], ...], "notes": str};
-  ``<name>`` starts with the notebook's number (``05_ablation``) so the report can
+  ``<name>`` starts with the notebook's number (``NN_name``) so the report can
   order them; a markdown copy ``tables/<name>.md`` sits beside it;
-- ``figures/<name>.png``: figures, written by ``save_figure`` (same naming);
+- ``figures/<name>.png``: figures, written by ``notebook.save_figure`` (same naming);
 - ``.reproduce/NN_topic.json``: written after a notebook finished; a rerun skips
   notebooks whose marker matches the notebook's source and parameters, so an
   interrupted ``reproduce`` continues where it stopped (``--force`` reruns all);
@@ -25,6 +25,7 @@ import argparse
 import ast
 import hashlib
 import json
+import logging
 import os
 import sys
 import time
@@ -52,38 +53,6 @@ def resolve_run_dir(profile: str, run_dir: str | os.PathLike = "") -> Path:
     return path
 
 
-def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: list[list[Any]], *,
-               title: str = "", notes: str = "", digits: int = 3) -> Path:
-    """Write ``tables/<name>.json`` (+ ``.md``) under ``run_dir``; return the JSON path."""
-    if not name or "/" in name or name.startswith("."):
-        raise ValueError(f"table name must be a plain file name, got {name!r}")
-    if any(len(r) != len(columns) for r in rows):
-        raise ValueError(f"table {name!r}: every row needs {len(columns)} cells")
-    table = {"name": name, "title": title, "columns": list(columns), "rows": [list(map(_plain, r)) for r in rows],
-             "notes": notes}
-    path = Path(run_dir) / "tables" / f"{name}.json"
-    utils.write_json_atomic(path, table)
-    md = ((f"**{title}**\n\n" if title else "") + markdown_table(columns, rows, digits)
-          + (f"\n\n{notes}" if notes else ""))
-    utils.write_bytes_atomic(path.with_suffix(".md"), (md + "\n").encode())
-    return path
-
-
-def save_figure(fig, run_dir: str | os.PathLike, name: str, dpi: int = 100) -> Path:
-    """Write a matplotlib figure to ``figures/<name>.png`` under ``run_dir`` (atomically)."""
-    path = Path(run_dir) / "figures" / f"{name}.png"
-    with utils.atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
-    return path
-
-
-def _plain(x: Any) -> Any:
-    """JSON-friendly cell: numpy scalars to python numbers."""
-    if hasattr(x, "item") and callable(x.item):
-        return x.item()
-    return x
-
-
 # --------------------------------------------------------------------------- notebooks and parameters
 
 
@@ -102,7 +71,7 @@ def list_notebooks(directory: Path | None = None) -> list[Path]:
 
 def notebook_parameters(path: Path) -> dict[str, Any]:
     """Names and default values of the ``parameters``-tagged cell (flat literal assignments)."""
-    import nbformat
+    import nbformat  # heavy: needed only to read a notebook's parameters
 
     nb = nbformat.read(str(path), as_version=4)
     cells = [c for c in nb.cells if c.cell_type == "code" and "parameters" in c.get("metadata", {}).get("tags", [])]
@@ -119,7 +88,7 @@ def notebook_parameters(path: Path) -> dict[str, Any]:
 
 
 def select_notebooks(only: list[str] | None, available: list[Path]) -> list[Path]:
-    """``only`` entries are numbers ("05", "5") or names ("05_ablation", "05_ablation.ipynb")."""
+    """``only`` entries are numbers ("NN", "N") or names ("NN_name", "NN_name.ipynb")."""
     if not only:
         return list(available)
     chosen = []
@@ -194,22 +163,44 @@ def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
 # --------------------------------------------------------------------------- running and the report
 
 
+MODELS_KEY = "geodepth_lite"  # notebook metadata: {"models": [spec, ...]}, the models the notebook loads
+
+
+def notebook_models(nb: Path) -> list[dict]:
+    """The models a notebook declares in its metadata (``metadata.geodepth_lite.models``).
+
+    Each spec names the trained models by (case, seed): ``"case"``/``"seed"`` or ``"cases"``/
+    ``"seeds"`` hold a number (or list) or the name of one of the notebook's parameters;
+    ``"settings"`` is "predict" (the profile's ``predict`` model, ``run_cache.predict_settings``)
+    or "ablation" (the profile's own settings); ``"workers"`` optionally names the parameter
+    with the number of runs trained side by side. A notebook without the key loads no model.
+    """
+    meta = json.loads(nb.read_text()).get("metadata", {}).get(MODELS_KEY, {})
+    specs = meta.get("models", [])
+    for spec in specs:
+        if spec.get("settings") not in ("predict", "ablation"):
+            raise ValueError(f"{nb.name}: metadata {MODELS_KEY}.models: settings must be 'predict' or 'ablation', "
+                             f"got {spec.get('settings')!r}")
+    return specs
+
+
 def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tuple[int, int, dict]], int | None]:
-    """The models that the notebooks of ``plan`` ([(notebook, its parameters)]) train or load, as
-    (case, seed, overrides) runs for ``run_cache.ensure_runs``, and the worker count notebook 05
-    asks for (None: one per core). Trained together before the notebooks run, the longest (the
-    ``predict`` model of notebooks 04, 06 and 07) overlaps the ablation's runs instead of running alone."""
+    """The models that the notebooks of ``plan`` ([(notebook, its parameters)]) declare
+    (``notebook_models``), as (case, seed, overrides) runs for ``run_cache.ensure_runs``, and the
+    worker count a notebook asks for (None: one per core). Trained together before the notebooks
+    run, the longest (the ``predict`` model) overlaps the ablation's runs instead of running alone."""
     runs: list[tuple[int, int, dict]] = []
     workers = None
     for nb, given in plan:
-        stem, p = nb.stem, {**notebook_parameters(nb), **given}
-        if stem.startswith(("04_", "06_")):
-            runs.append((int(p["case"]), int(p["seed"]), run_cache.predict_settings(profile)))
-        elif stem.startswith("07_"):
-            runs.append((4, 0, run_cache.predict_settings(profile)))
-        elif stem.startswith("05_"):
-            runs += [(int(c), int(s), {}) for c in p["cases"] for s in p["seeds"]]
-            workers = int(p["workers"]) or None
+        p = {**notebook_parameters(nb), **given}
+        for spec in notebook_models(nb):
+            value = lambda key: p[spec[key]] if isinstance(spec.get(key), str) else spec[key]  # noqa: E731
+            cases = value("cases") if "cases" in spec else [value("case")]
+            seeds = value("seeds") if "seeds" in spec else [value("seed")]
+            overrides = run_cache.predict_settings(profile) if spec["settings"] == "predict" else {}
+            runs += [(int(c), int(s), dict(overrides)) for c in cases for s in seeds]
+            if "workers" in spec:
+                workers = int(value("workers")) or None
     unique = [r for i, r in enumerate(runs) if r not in runs[:i]]
     return unique, workers
 
@@ -235,56 +226,64 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
         for nb, p, done in plan:
             print(f"{'skip' if done else 'run '} {nb.name} {p}")
         return out / "report.md"
-
-    import logging
-
-    import papermill
-
-    # papermill's own guess at the parameters cell trips over comments with quotes and
-    # warns about parameters it missed; they were checked above (ast), so keep it quiet
-    logging.getLogger("papermill").setLevel(logging.ERROR)
     log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
-    runs, workers = training_runs(profile, [(nb, p) for nb, p, done in plan if not done])
-    if runs:
-        folders = {run_cache.checkpoint_dir(profile, c, s, **o): (c, s, o) for c, s, o in runs}
-        todo = [r for r in folders.values() if not run_cache.is_complete(profile, r[0], r[1], **r[2])]
-        if todo:
-            print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
-                  "(an interrupted one continues from its last epoch) ...", flush=True)
-            t0 = time.perf_counter()
-            run_cache.ensure_runs(profile, todo, workers=workers, progress=progress)
-            print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
+    train_models(profile, *training_runs(profile, [(nb, p) for nb, p, done in plan if not done]), progress=progress)
     for nb, p, done in plan:
         if done:
             print(f"[reproduce] {nb.name}: complete, skipped (--force reruns it)", flush=True)
             continue
-        print(f"[reproduce] {nb.name} ...", flush=True)
-        t0 = time.perf_counter()
-        target = out / "notebooks" / nb.name
-        target.parent.mkdir(parents=True, exist_ok=True)
-        (out / MARKER_DIR / f"{nb.stem}.json").unlink(missing_ok=True)
-        try:
-            # only what differs from the notebook's own defaults is injected, so a default run's
-            # executed notebook is the notebook itself, outputs filled in (no injected cell)
-            defaults = notebook_parameters(nb)
-            given = {k: v for k, v in p.items() if not (k in defaults and defaults[k] == v)}
-            if run_dir is None and str(out) == str(resolve_run_dir(profile, "")):
-                given.pop("run_dir", None)  # "" resolves to the same folder in the kernel
-            papermill.execute_notebook(str(nb), str(target), parameters=given, kernel_name="python3",
-                                       cwd=str(nb.parent), progress_bar=progress)
-        except papermill.PapermillExecutionError as exc:
-            raise NotebookFailed(f"{nb.name} failed ({exc.ename}: {exc.evalue}); the executed copy with the "
-                                 f"traceback is {target}. Fix it and run the same command again: completed "
-                                 "notebooks are skipped.") from None
-        seconds = time.perf_counter() - t0
-        utils.write_json_atomic(out / MARKER_DIR / f"{nb.stem}.json", {**_marker(nb, p), "seconds": seconds})
+        seconds = run_notebook(nb, p, out, inject_run_dir=not (run_dir is None and str(out) == str(
+            resolve_run_dir(profile, ""))), progress=progress)
         log[nb.stem] = {"seconds": round(seconds, 1)}
-        print(f"[reproduce] {nb.name} done in {seconds:.0f} s", flush=True)
     for nb, _, _ in plan:
         m = out / MARKER_DIR / f"{nb.stem}.json"
         if m.exists() and nb.stem not in log:
             log[nb.stem] = {"seconds": round(_read_json(m).get("seconds", float("nan")), 1)}
     return write_report(out, profile, log)
+
+
+def train_models(profile: str, runs: list[tuple[int, int, dict]], workers: int | None, *, progress: bool) -> None:
+    """Train the runs that are not complete yet, side by side (``run_cache.ensure_runs``)."""
+    folders = {run_cache.checkpoint_dir(profile, c, s, **o): (c, s, o) for c, s, o in runs}
+    todo = [r for r in folders.values() if not run_cache.is_complete(profile, r[0], r[1], **r[2])]
+    if not todo:
+        return
+    print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
+          "(an interrupted one continues from its last epoch) ...", flush=True)
+    t0 = time.perf_counter()
+    run_cache.ensure_runs(profile, todo, workers=workers, progress=progress)
+    print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+def run_notebook(nb: Path, params: dict, out: Path, *, inject_run_dir: bool, progress: bool) -> float:
+    """Execute ``nb`` with papermill into ``out/notebooks/``, then mark it done; returns its seconds."""
+    import papermill  # heavy: imported only when a notebook runs
+
+    # papermill's own guess at the parameters cell trips over comments with quotes and
+    # warns about parameters it missed; they were checked (ast), so keep it quiet
+    logging.getLogger("papermill").setLevel(logging.ERROR)
+    print(f"[reproduce] {nb.name} ...", flush=True)
+    t0 = time.perf_counter()
+    target = out / "notebooks" / nb.name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    (out / MARKER_DIR / f"{nb.stem}.json").unlink(missing_ok=True)
+    # only what differs from the notebook's own defaults is injected, so a default run's
+    # executed notebook is the notebook itself, outputs filled in (no injected cell)
+    defaults = notebook_parameters(nb)
+    given = {k: v for k, v in params.items() if not (k in defaults and defaults[k] == v)}
+    if not inject_run_dir:
+        given.pop("run_dir", None)  # "" resolves to the same folder in the kernel
+    try:
+        papermill.execute_notebook(str(nb), str(target), parameters=given, kernel_name="python3",
+                                   cwd=str(nb.parent), progress_bar=progress)
+    except papermill.PapermillExecutionError as exc:
+        raise NotebookFailed(f"{nb.name} failed ({exc.ename}: {exc.evalue}); the executed copy with the "
+                             f"traceback is {target}. Fix it and run the same command again: completed "
+                             "notebooks are skipped.") from None
+    seconds = time.perf_counter() - t0
+    utils.write_json_atomic(out / MARKER_DIR / f"{nb.stem}.json", {**_marker(nb, params), "seconds": seconds})
+    print(f"[reproduce] {nb.name} done in {seconds:.0f} s", flush=True)
+    return seconds
 
 
 def _read_json(path: Path) -> dict:

@@ -9,9 +9,13 @@ checkpoint file format (``checkpoint``).
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
+
+from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint, config, utils
 from geodepth_lite.dataset import resolve_dataset
@@ -104,11 +108,6 @@ def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int
                 c, s, o = todo[i]
                 ensure_checkpoint(profile, c, s, progress=progress, **o)
         else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            from tqdm.auto import tqdm
-
             with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = [pool.submit(ensure_checkpoint, profile, *todo[i][:2], **todo[i][2]) for i in order]
                 for f in tqdm(as_completed(futures), total=len(futures), disable=not progress,

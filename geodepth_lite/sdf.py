@@ -90,10 +90,10 @@ def nearest_indices_kdtree(points: torch.Tensor, queries: torch.Tensor, workers:
     points: N x 3, queries: M x 3 (any device; searched in float64 on the CPU) -> M indices (int64,
     on the queries' device).
     """
-    from scipy.spatial import cKDTree
-
     p = points.detach().cpu().double().numpy()  # (N, 3)
     q = queries.detach().cpu().double().numpy()  # (M, 3)
+    from scipy.spatial import cKDTree  # heavy (~0.4 s to import): only when a nearest-point search runs
+
     # an unbalanced, non-compact tree builds and searches about 2x faster on depth-map surfaces
     tree = cKDTree(p, leafsize=KDTREE_LEAFSIZE, balanced_tree=False, compact_nodes=False)
     _, idx = tree.query(q, k=1, workers=KDTREE_WORKERS if workers is None else workers)

@@ -1,7 +1,7 @@
 """Tables and result files of an evaluation: what ``evaluate.evaluate_predictor`` writes, and what the
 notebooks print.
 
-``markdown_table`` and ``metrics_table`` lay out the seven metrics (Section 4.3) per set, group or
+``markdown_table`` and ``metrics_table`` lay out the seven metrics (Section 4.2.1) per set, group or
 method. ``write_results`` writes ``metrics.json``, ``frames.csv`` (one row per frame), ``tables.md``
 and error-map PNGs laid out like the paper's Fig. 7 (``viz.error_map_figure``) as one set: all of
 them or, on a failure, none (an earlier set in that folder is kept whole). ``flat_record`` flattens
@@ -26,7 +26,7 @@ from geodepth_lite import utils
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
 from geodepth_lite.viz import error_map_figure
 
-# the seven metrics of Section 4.3 (``metrics.METRIC_NAMES``) as the tables head them
+# the seven metrics of Section 4.2.1 (``metrics.METRIC_NAMES``) as the tables head them
 METRIC_LABELS = {"abs_rel": "Abs Rel", "sq_rel": "Sq Rel", "rmse": "RMSE", "rmse_log": "RMSE log",
                  "a1": "a1", "a2": "a2", "a3": "a3"}
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint as ckpt_io
 from geodepth_lite import config, distributed, inference, losses, utils
@@ -270,8 +271,6 @@ class Trainer:
 
     def run_epoch(self, epoch: int) -> dict[str, Any]:
         """One pass over the training split, then validation; returns the epoch's log row."""
-        from tqdm.auto import tqdm
-
         cfg, keys = self.cfg, log_keys()
         self.sampler.set_epoch(epoch)
         self.net.train()

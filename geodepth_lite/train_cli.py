@@ -10,13 +10,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from geodepth_lite import checkpoint, config, distributed, train, utils
+from geodepth_lite import checkpoint, config, distributed, integrity, train, utils
 from geodepth_lite.dataset import resolve_dataset
 
 
 def add_arguments_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="teach", help="smoke | teach | paper (default teach)")
-    parser.add_argument("--case", type=int, default=4, help="ablation case 1-4 (Section 4.3; default 4 = all losses)")
+    parser.add_argument("--case", type=int, default=4, help="ablation case 1-4 (Section 4.2.1; default 4 = all losses)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--run-dir", default=None,
                         help="where checkpoint.pt and log.csv/log.json go "
@@ -62,8 +62,6 @@ def run_train(args: argparse.Namespace) -> int:
         utils.check_output_dir(run_dir)
         utils.remove_empty_dirs(created)  # fit creates it again under its lock; a refused run leaves none
         if not args.no_verify:
-            from geodepth_lite import integrity
-
             integrity.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
     path = train.fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,
                      num_workers=args.num_workers, cache=False if args.no_cache else "auto")

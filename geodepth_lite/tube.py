@@ -424,7 +424,7 @@ class TubeMesh:
 
     def cast_rays(self, origin, directions) -> np.ndarray:
         """Distance from ``origin`` (3,) along each unit direction (n x 3) to the first wall hit (inf: none)."""
-        import vtk
+        import vtk  # VTK: heavy, needed only when rays are cast at the wall
 
         if getattr(self, "_locator", None) is None:
             self._locator = vtk.vtkStaticCellLocator()

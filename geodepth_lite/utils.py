@@ -6,21 +6,20 @@ import contextlib
 import json
 import os
 import random
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+import torch
+from PIL import Image
 
 
 def seed_everything(seed: int) -> None:
     """Seed python, numpy and torch (CPU and CUDA); DataLoader workers use `worker_init`."""
     random.seed(seed)
     np.random.seed(seed % 2**32)
-    try:
-        import torch
-    except ImportError:  # pragma: no cover - torch is a hard dependency
-        return
     torch.manual_seed(seed)
     if torch.cuda.is_available():
         torch.cuda.manual_seed_all(seed)
@@ -28,8 +27,6 @@ def seed_everything(seed: int) -> None:
 
 def worker_init(worker_id: int) -> None:
     """DataLoader ``worker_init_fn``: derive numpy/python seeds from torch's per-worker seed."""
-    import torch
-
     seed = torch.initial_seed() % 2**32
     random.seed(seed)
     np.random.seed(seed)
@@ -159,8 +156,6 @@ def check_output_dir(path: str | os.PathLike, need_bytes: int = 0) -> Path:
         except OSError as exc:
             raise FileProblem(f"cannot write into {path}: {os_reason(exc)}", path) from exc
         if need_bytes > 0:
-            import shutil
-
             free = shutil.disk_usage(path).free
             if free < need_bytes:
                 raise FileProblem(f"cannot write into {path}: no space left on device "
@@ -217,7 +212,7 @@ class FolderLock:
 
     def acquire(self) -> FolderLock:
         try:
-            import fcntl
+            import fcntl  # POSIX only: Windows has no fcntl
         except ImportError:  # pragma: no cover - Windows
             return self
         make_dir(self.folder)
@@ -267,8 +262,6 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2)
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
     """H x W x 3 uint8 from an image file; a :class:`FileProblem` naming the file if it cannot be decoded."""
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             return np.array(im.convert("RGB"))

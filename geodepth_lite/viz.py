@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from . import camera as cam
 from .metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask
@@ -19,7 +20,7 @@ def colorize_depth(depth, vmin=None, vmax=None, cmap: str = "magma") -> np.ndarr
     vmin/vmax default to the 2nd/98th percentiles of the valid (finite, > 0) pixels;
     invalid pixels are black. Accepts numpy or torch (1 x H x W or H x W).
     """
-    import matplotlib
+    import matplotlib  # heavy, needed only for its colour maps
 
     d = depth.detach().cpu().numpy() if hasattr(depth, "detach") else np.asarray(depth)
     d = np.squeeze(d).astype(np.float64)
@@ -104,8 +105,6 @@ def shape_index(depth: np.ndarray, K: np.ndarray, smooth: float = 1.0, max_step:
             before[ax], after[ax] = (0, 1), (1, 0)
             valid &= ~np.pad(edge, before) & ~np.pad(edge, after)
     if smooth > 0:
-        from scipy.ndimage import gaussian_filter
-
         w = gaussian_filter(valid.astype(np.float64), smooth)
         d = np.where(valid, gaussian_filter(np.where(valid, d, 0.0), smooth) / np.maximum(w, 1e-12), 0.0)
     pts = cam.backproject(d, K)
@@ -124,7 +123,7 @@ def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: lis
 
     cells[r][c] = (rgb H x W x 3 uint8, depth H x W). Returns the matplotlib figure.
     """
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     n_rows, n_cols = len(cells), len(cells[0])
     fig, axes = plt.subplots(2 * n_rows, n_cols, figsize=(cell_inches * n_cols, 2 * cell_inches * n_rows),
@@ -146,7 +145,7 @@ def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: lis
 
 def depth_histogram(depths: dict, bins: int = 50, ax=None, log: bool = True):
     """Histograms of valid depth values (> 0), one per label: {label: array of depths}. Returns the axes."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     if ax is None:
         _, ax = plt.subplots(figsize=(5, 3))
@@ -182,7 +181,7 @@ def shape_index_classes(si: np.ndarray) -> dict:
 
 def plot_shape_index(rgb, depth, si, axes=None):
     """RGB, depth and its shape-index map side by side (cup = blue ... cap = red). Returns the figure."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     if axes is None:
         fig, axes = plt.subplots(1, 3, figsize=(10, 3.4))
@@ -210,8 +209,8 @@ def tube_view(tube, poses=(), size=(800, 320), frustum: float | None = None, cam
     (length ``frustum``, default 0.3 x radius); ``connect`` joins their centres (a camera path).
     The half of the wall facing the viewer is clipped away so the lumen is visible.
     """
-    import pyvista as pv
-    import vtk
+    import pyvista as pv  # VTK: heavy, needed only to build or render meshes
+    import vtk  # VTK: heavy, needed only for the 3D view
 
     vtk.vtkLogger.SetStderrVerbosity(vtk.vtkLogger.VERBOSITY_OFF)
     R = float(tube.preset["radius"])
@@ -277,7 +276,7 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
     Each example: {"image": HxWx3 in [0,1], "gt": HxW, "pred": HxW already median-scaled,
     optional "preds": {label: HxW} for extra prediction columns (ablation), "valid"}.
     """
-    import matplotlib.pyplot as plt  # heavy and needed for figures only
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     extra = list(examples[0].get("preds", {}))
     cols = ["input", "ground truth"] + (extra if extra else ["prediction"]) + (["error"] if "error" in columns else [])
@@ -308,7 +307,7 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
 def border_map_figure(maps: dict, title: str = ""):
     """Two panels of ``border.border_error_map``'s result: the mean signed log error (diverging colours)
     and the mean |log error| per pixel."""
-    import matplotlib.pyplot as plt  # heavy and needed for figures only
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     fig, axes = plt.subplots(1, 2, figsize=(8.4, 3.6))
     lim = float(np.nanmax(np.abs(maps["signed"]))) or 1.0

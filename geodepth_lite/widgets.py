@@ -14,8 +14,11 @@ import os
 
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter
 
 from . import losses
+from .dataset import SyntheticDepthDataset
+from .synth import ensure_dataset
 
 # slider name -> (min, max, step, neutral value, what it imitates)
 PERTURBATIONS = {
@@ -36,9 +39,6 @@ def example_frame(size: int = 128, index: int = 0, progress: bool = False) -> di
     Built once with ``synth.ensure_dataset("scenario_smoke")`` at the requested resolution
     (a few seconds), then read from disk.
     """
-    from .dataset import SyntheticDepthDataset
-    from .synth import ensure_dataset
-
     if size % 32 or size < 32:
         raise ValueError(f"frame size must be a positive multiple of 32, got {size}")
     n = 6
@@ -63,8 +63,6 @@ def perturb(gt: np.ndarray, *, blur=0.0, ripple=0.0, scale=1.0, tilt=0.0, offset
     Applied in order: blur, ripple, scale, tilt, offset, noise; clipped to >= 0.01 (the network's
     smallest depth).
     """
-    from scipy.ndimage import gaussian_filter
-
     gt = np.asarray(gt, dtype=np.float64)
     H, W = gt.shape
     d = gaussian_filter(gt, sigma=blur, mode="nearest") if blur > 0 else gt.copy()
@@ -134,7 +132,7 @@ def draw(gt, image, K, settings: dict | None = None, grid: int = 16, fig=None, s
     Row 2: per-pixel gradient and normal terms, and the x-z slice through the middle of the
     SDF grid for ground truth, prediction and their absolute difference (0-contour = surface).
     """
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     settings = {**neutral(), **(settings or {})}
     pred = perturb(gt, seed=seed, **settings)
@@ -195,7 +193,7 @@ def has_live_frontend() -> bool:
     if force in ("live", "static"):
         return force == "live"
     try:
-        from IPython import get_ipython
+        from IPython import get_ipython  # optional: present only under Jupyter
 
         ip = get_ipython()
     except ImportError:  # pragma: no cover
@@ -210,7 +208,7 @@ def explorer(gt, image, K, grid: int = 16, live: bool | None = None, seed: int =
     it as the cell's last line); the figure updates when a slider is released. Static: shows
     the figure for the neutral settings, prints the loss values and returns None.
     """
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     live = has_live_frontend() if live is None else live
     if not live:
@@ -218,8 +216,8 @@ def explorer(gt, image, K, grid: int = 16, live: bool | None = None, seed: int =
         plt.show()
         print("static rendering (no live Jupyter frontend); losses:", format_losses(rep))
         return None
-    import ipywidgets as w
-    from IPython.display import display
+    import ipywidgets as w  # optional: needed only for live sliders in Jupyter
+    from IPython.display import display  # optional: present only under Jupyter
 
     sliders = {
         k: w.FloatSlider(value=v[3], min=v[0], max=v[1], step=v[2], description=k, continuous_update=False,
@@ -258,7 +256,7 @@ def sensitivity_table(gt, image, K, settings: dict[str, dict], grid: int = 16, s
 def plot_loss_maps(gt, image, K, cases: dict[str, dict], loss: str, grid: int = 16, seed: int = 0):
     """One row per case: the prediction and the per-pixel map of ``loss`` (depth, smooth, grad,
     normal; for "sdf" the x-z slice of |SDF diff|), with the loss value in the title."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
     if loss not in MAP_TERMS:
         raise ValueError(f"loss must be one of {', '.join(MAP_TERMS)}, got {loss!r}")

@@ -20,14 +20,14 @@ def _notebook(path: Path, params: str, body: str) -> Path:
 
 
 BODY = """\
-from geodepth_lite import reproduce
+from geodepth_lite import notebook, reproduce
 import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 out = reproduce.resolve_run_dir(profile, run_dir)
-reproduce.save_table(out, f"{NAME}_numbers", ["what", "value"], [["scale", scale], ["profile", profile]], \
+notebook.save_table(out, f"{NAME}_numbers", ["what", "value"], [["scale", scale], ["profile", profile]], \
 title="T{NAME}")
-fig = plt.figure(); plt.plot([0, scale]); reproduce.save_figure(fig, out, f"{NAME}_line")
+fig = plt.figure(); plt.plot([0, scale]); notebook.save_figure(fig, out, f"{NAME}_line")
 (out / f"ran_{NAME}.txt").open("a").write("x")
 """
 

@@ -1,10 +1,15 @@
 """The package's shape: lint clean, no private names across modules, the loop alone in train.py,
-no benchmark inside the package, one set-up helper in every notebook."""
+no function over 60 lines, imports at the top of a module (but the heavy or optional ones, each
+with its reason), no benchmark inside the package, no notebook named in reproduce.py, one set-up
+helper in every notebook."""
 
 import ast
+import io
 import json
+import re
 import subprocess
 import sys
+import tokenize
 from pathlib import Path
 
 import pytest
@@ -56,14 +61,93 @@ def test_no_module_imports_a_private_name_from_another():
     assert not offences, offences
 
 
+MAX_FUNCTION_LINES = 60
+
+
+def test_no_function_is_over_60_lines():
+    """Every function and method of the package, from its ``def`` line to its last line."""
+    long = [f"{path.name}:{n.lineno}: {n.name} is {n.end_lineno - n.lineno + 1} lines"
+            for path in sorted(PACKAGE.glob("*.py")) for n in ast.walk(ast.parse(path.read_text()))
+            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and n.end_lineno - n.lineno + 1 > MAX_FUNCTION_LINES]
+    assert not long, long
+
+
 def test_train_py_is_the_loop_alone():
     source = (PACKAGE / "train.py").read_text()
-    long = [f"{n.name}: {n.end_lineno - n.lineno + 1} lines" for n in ast.walk(ast.parse(source))
-            if isinstance(n, ast.FunctionDef) and n.end_lineno - n.lineno + 1 > 60]
-    assert not long, long
     names = {n.name for n in ast.parse(source).body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
     assert {"fit", "Trainer", "get_lr_factor", "compute_losses", "validate"} <= names
     assert not names & {"make_config", "save_checkpoint", "load_model", "predict_depth", "add_arguments_train"}
+
+
+# The only imports that may sit inside a function: heavy ones (VTK, matplotlib, papermill) that
+# would slow every `import geodepth_lite...` and `--help`, or optional / platform-specific ones.
+# pyplot at module level could also pick a GUI backend on import.
+LATE_IMPORTS = {"pyvista", "vtk", "vtkmodules", "matplotlib", "papermill", "nbformat", "IPython", "ipywidgets",
+                "imageio_ffmpeg", "fcntl", "scipy"}
+_PRAGMA = re.compile(r"\b(noqa(:[\s\w,]*)?|type:\s*ignore\S*|pragma:[^#]*)", re.IGNORECASE)  # not reasons
+
+
+def _reason(comment: str | None) -> bool:
+    """True when ``comment`` (a ``# ...`` token) says something besides pragmas like ``noqa``."""
+    return comment is not None and re.search(r"[A-Za-z]{3,}", _PRAGMA.sub("", comment.lstrip("#"))) is not None
+
+
+def misplaced_imports(source: str) -> list[str]:
+    """``line: why`` for each import inside a function of ``source`` that should be at the top of the
+    module: one not in ``LATE_IMPORTS`` (a relative import never is), or one of those without a
+    reason comment on its own line(s) or on a comment line right above it."""
+    comments = {tok.start[0]: tok.string for tok in tokenize.generate_tokens(io.StringIO(source).readline)
+                if tok.type == tokenize.COMMENT}
+    lines = source.splitlines()
+    found, seen = [], set()
+    for func in ast.walk(ast.parse(source)):
+        if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        for node in ast.walk(func):
+            if not isinstance(node, (ast.Import, ast.ImportFrom)) or node.lineno in seen:
+                continue
+            seen.add(node.lineno)
+            if isinstance(node, ast.Import):
+                roots = {a.name.split(".")[0] for a in node.names}
+            else:
+                roots = {"." * node.level + (node.module or "").split(".")[0]}
+            text = lines[node.lineno - 1].strip()
+            if not roots <= LATE_IMPORTS:
+                found.append(f"{node.lineno}: {text}: move it to the top of the module")
+                continue
+            above = lines[node.lineno - 2].strip() if node.lineno > 1 else ""
+            own = [comments.get(i) for i in range(node.lineno, node.end_lineno + 1)]
+            if not any(map(_reason, own)) and not (above.startswith("#") and _reason(above)):
+                found.append(f"{node.lineno}: {text}: say in a comment why it is imported here")
+    return found
+
+
+def test_imports_sit_at_the_top_but_heavy_or_optional_ones():
+    """Inside a function only what ``LATE_IMPORTS`` lists, and each with its reason."""
+    offences = [f"{path.name}:{o}" for path in sorted(PACKAGE.glob("*.py"))
+                for o in misplaced_imports(path.read_text())]
+    assert not offences, offences
+
+
+def test_the_import_check_can_fail():
+    numpy_late = "import os\n\ndef f():\n    import numpy as np  # fast enough\n    return np.zeros(1)\n"
+    assert [o.split(":")[0] for o in misplaced_imports(numpy_late)] == ["4"]
+    relative_late = "def f():\n    from . import utils  # reasons do not help\n    return utils\n"
+    assert len(misplaced_imports(relative_late)) == 1
+    pyvista_bare = "def f():\n    import pyvista as pv\n    return pv\n"
+    assert len(misplaced_imports(pyvista_bare)) == 1
+    pyvista_noqa = "def f():\n    import pyvista as pv  # noqa: F401\n    return pv\n"
+    assert len(misplaced_imports(pyvista_noqa)) == 1
+    pyvista_far = "# VTK: heavy\n\ndef f():\n    x = 1\n    import pyvista as pv\n    return pv, x\n"
+    assert len(misplaced_imports(pyvista_far)) == 1
+    pyvista_said = "def f():\n    import pyvista as pv  # VTK: heavy, needed only to build meshes\n    return pv\n"
+    pyvista_above = "def f():\n    # VTK: heavy, needed only to build meshes\n    import pyvista as pv\n    return pv\n"
+    fcntl_try = ("def f():\n    try:\n        import fcntl  # POSIX only\n    except ImportError:\n"
+                 "        return None\n    return fcntl\n")
+    top = "import numpy as np\n\n\ndef f():\n    return np.zeros(1)\n"
+    for fine in (pyvista_said, pyvista_above, fcntl_try, top):
+        assert misplaced_imports(fine) == [], fine
 
 
 def _import_graph() -> dict[str, set[str]]:
@@ -121,6 +205,19 @@ def test_the_cycle_check_finds_a_cycle():
 def test_no_benchmark_ships_inside_the_package():
     assert not list(PACKAGE.glob("bench*.py"))
     assert {"bench_render.py", "bench_sdf.py"} <= {p.name for p in (ROOT / "benchmarks").glob("*.py")}
+
+
+def test_reproduce_knows_no_notebook_by_name():
+    """reproduce.py finds the notebooks (``NN_*.ipynb``) and runs what it finds: no notebook's name,
+    nor its ``NN_`` number, appears in its source."""
+    source = (PACKAGE / "reproduce.py").read_text()
+    names = set()
+    for path in (ROOT / "notebooks").glob("*.ipynb"):
+        names.add(path.stem)
+        if re.match(r"\d\d_", path.stem):
+            names.add(path.stem[:3])
+    assert names, "no notebook found"
+    assert not [n for n in sorted(names) if n in source], [n for n in sorted(names) if n in source]
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb")), ids=lambda p: p.stem)
