@@ -68,6 +68,7 @@ def border_weight_map(height: int, width: int, beta: float, like: torch.Tensor |
     centres, 0 at the centre, 1 at the edge); the ramp starts at ``BORDER_RAMP_START``. Why: a
     network sees less context at the border and its error there is larger (notebook 06's border
     map; docs/teach_recipe.md); weighting those pixels more spends more of its effort there.
+    Notebook 04 ("What the network minimises") writes the weight out as an equation.
     """
     if not beta >= 0:
         raise ValueError(f"border weight must be a non-negative number, got {beta!r}")
@@ -125,6 +126,7 @@ def silog_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | 
     (the mean of d) and spends the network's effort on relative depth; the remaining 15%
     keeps the scale anchored. Mean over the frames that have valid pixels. ``weight``: optional
     per-pixel weights (e.g. :func:`border_weight_map`): the per-frame means become weighted means.
+    Notebook 04 ("What the network minimises") writes it out as an equation.
     """
     gt_safe, valid = _prepare(pred, gt, mask)
     d = torch.where(valid, torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe), torch.zeros_like(pred))

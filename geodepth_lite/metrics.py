@@ -10,7 +10,8 @@ scaling, ``pred *= median(gt[valid]) / median(pred[valid])``; then ``pred`` is c
 - rmse_log = sqrt(mean((ln gt - ln pred)^2))
 - a_k      = mean(max(gt / pred, pred / gt) < 1.25^k), k = 1, 2, 3
 
-and each metric is the mean of its per-frame values. This is the only implementation in the
+and each metric is the mean of its per-frame values. Notebook 04 writes these equations out
+("How every depth map is scored") before its first number. This is the only implementation in the
 package: training validation, evaluation and the notebooks all call :func:`compute_depth_metrics`.
 """
 
