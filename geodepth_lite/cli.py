@@ -27,6 +27,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
     "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
     "convert-checkpoint": ("geodepth_lite.checkpoint", "rewrite checkpoints of the first format so they load safely"),
+    "bundle": ("geodepth_lite.bundle", "pack a profile's trained models into one file to hand out (a class bundle)"),
+    "unbundle": ("geodepth_lite.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
 }
 
 

@@ -1,0 +1,143 @@
+"""The class bundle: pack a profile's trained runs, unpack them elsewhere, and refuse what is wrong."""
+
+import hashlib
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from geodepth_lite import bundle, checkpoint, cli, config, run_cache
+
+
+@pytest.fixture(scope="module")
+def smoke_runs(tmp_path_factory):
+    """Two complete smoke runs (the notebooks' cache layout) in a workspace of their own."""
+    home = tmp_path_factory.mktemp("instructor")
+    old = os.environ.get("GEODEPTH_LITE_HOME")
+    os.environ["GEODEPTH_LITE_HOME"] = str(home)
+    try:
+        paths = [run_cache.ensure_checkpoint("smoke", c, 0, image_size=32) for c in (1, 4)]
+    finally:
+        if old is None:
+            os.environ.pop("GEODEPTH_LITE_HOME", None)
+        else:
+            os.environ["GEODEPTH_LITE_HOME"] = old
+    return home, paths
+
+
+def _use(monkeypatch, home: Path) -> None:
+    monkeypatch.setenv("GEODEPTH_LITE_HOME", str(home))
+
+
+def test_a_bundle_unpacks_to_the_same_weights_without_optimizer_state(smoke_runs, tmp_path, monkeypatch, capsys):
+    home, paths = smoke_runs
+    _use(monkeypatch, home)
+    target = tmp_path / "class.zip"
+    assert cli.main(["bundle", "--profile", "smoke", "--out", str(target)]) == 0
+    assert "2 trained runs" in capsys.readouterr().out
+    index = json.loads(zipfile.ZipFile(target).read("bundle.json"))
+    assert index["profile"] == "smoke" and sorted(index["runs"]) == sorted(p.parent.name for p in paths)
+    assert "manifests/scenario_smoke.json" in index["files"]
+
+    student = tmp_path / "student"
+    _use(monkeypatch, student)
+    assert cli.main(["unbundle", str(target)]) == 0
+    for path in paths:
+        mine = student / "runs" / "smoke" / "checkpoints" / path.parent.name / "checkpoint.pt"
+        got, want = checkpoint.read_checkpoint(mine), checkpoint.read_checkpoint(path)
+        assert set(got) <= set(bundle.KEEP) and "optimizer" not in got and "rng" not in got
+        assert all(torch.equal(got["model"][k], want["model"][k]) for k in want["model"])
+        assert (mine.parent / "log.json").read_bytes() == (path.parent / "log.json").read_bytes()
+    # the run cache now finds the runs complete: a notebook would load them instead of training
+    assert run_cache.is_complete("smoke", 1, 0, image_size=32) and run_cache.is_complete("smoke", 4, 0, image_size=32)
+    assert cli.main(["unbundle", str(target)]) == 0  # again: the same files, nothing refused
+
+
+def _rewrite(src: Path, dst: Path, edit) -> Path:
+    """A copy of bundle ``src`` with ``edit(members)`` applied to its {name: bytes}."""
+    with zipfile.ZipFile(src) as zf:
+        members = {n: zf.read(n) for n in zf.namelist()}
+    edit(members)
+    with zipfile.ZipFile(dst, "w") as zf:
+        for n, b in members.items():
+            zf.writestr(n, b)
+    return dst
+
+
+def test_a_damaged_or_crafted_bundle_is_refused_before_anything_is_written(smoke_runs, tmp_path, monkeypatch, capsys):
+    home, paths = smoke_runs
+    _use(monkeypatch, home)
+    good = bundle.make_bundle("smoke", tmp_path / "good.zip")
+    name = f"checkpoints/{paths[0].parent.name}/checkpoint.pt"
+
+    def flip_a_byte(m):
+        blob = bytearray(m[name])
+        blob[len(blob) // 2] ^= 1
+        m[name] = bytes(blob)
+
+    def add_escape(m):
+        m["../../evil.py"] = b"print('hi')"
+        index = json.loads(m["bundle.json"])
+        index["files"]["../../evil.py"] = hashlib.sha256(m["../../evil.py"]).hexdigest()
+        m["bundle.json"] = json.dumps(index).encode()
+
+    cases = {"damaged": (flip_a_byte, "is damaged"), "escape": (add_escape, "refused member"),
+             "unlisted": (lambda m: m.__setitem__("checkpoints/x/log.csv", b"x"), "not listed")}
+    student = tmp_path / "student"
+    _use(monkeypatch, student)
+    for label, (edit, needle) in cases.items():
+        bad = _rewrite(good, tmp_path / f"{label}.zip", edit)
+        assert cli.main(["unbundle", str(bad)]) == 2, label
+        err = capsys.readouterr().err
+        assert needle in err and str(bad) in err, (label, err)
+        assert not (student / "runs").exists(), label
+    assert not (tmp_path.parent / "evil.py").exists()
+    (tmp_path / "not.zip").write_bytes(b"plain text")
+    assert cli.main(["unbundle", str(tmp_path / "not.zip")]) == 2
+    assert "not a zip file" in capsys.readouterr().err
+
+
+def test_unbundling_never_replaces_a_different_checkpoint(smoke_runs, tmp_path, monkeypatch, capsys):
+    home, paths = smoke_runs
+    _use(monkeypatch, home)
+    good = bundle.make_bundle("smoke", tmp_path / "good.zip")
+    student = tmp_path / "student"
+    _use(monkeypatch, student)
+    mine = student / "runs" / "smoke" / "checkpoints" / paths[0].parent.name / "checkpoint.pt"
+    mine.parent.mkdir(parents=True)
+    mine.write_bytes(b"the student's own run")
+    assert cli.main(["unbundle", str(good)]) == 2
+    assert "holds a different checkpoint" in capsys.readouterr().err
+    assert mine.read_bytes() == b"the student's own run"
+
+
+def test_a_bundle_of_another_dataset_recipe_is_refused(smoke_runs, tmp_path, monkeypatch, capsys):
+    home, _ = smoke_runs
+    _use(monkeypatch, home)
+    good = bundle.make_bundle("smoke", tmp_path / "good.zip")
+
+    def other_recipe(m):
+        man = json.loads(m["manifests/scenario_smoke.json"])
+        man["seed"] = man.get("seed", 0) + 1
+        m["manifests/scenario_smoke.json"] = json.dumps(man).encode()
+        index = json.loads(m["bundle.json"])
+        index["files"]["manifests/scenario_smoke.json"] = hashlib.sha256(m["manifests/scenario_smoke.json"]).hexdigest()
+        m["bundle.json"] = json.dumps(index).encode()
+
+    bad = _rewrite(good, tmp_path / "other.zip", other_recipe)
+    _use(monkeypatch, tmp_path / "student")
+    assert cli.main(["unbundle", str(bad)]) == 2
+    assert "another dataset recipe" in capsys.readouterr().err
+
+
+def test_an_unfinished_run_is_not_bundled(tmp_path, monkeypatch, smoke_root):
+    _use(monkeypatch, tmp_path / "home")
+    cfg = config.make_config("smoke", 1, 0, dataset=str(smoke_root), image_size=32, epochs=2)
+    from geodepth_lite import train
+
+    train.fit(cfg, tmp_path / "home" / "runs" / "smoke" / "checkpoints" / "case1_seed0-x", progress=False, stop_after=1)
+    with pytest.raises(FileNotFoundError, match="no complete run"):
+        bundle.make_bundle("smoke", tmp_path / "b.zip")
