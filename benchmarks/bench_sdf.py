@@ -45,7 +45,7 @@ def _timed(fn, device) -> float:
 
 def load_batch(batch: int, size: int, device) -> dict:
     """``batch`` rendered frames (image, depth, K) at size x size from a small synthetic dataset."""
-    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.datasets import SyntheticDepthDataset
     from geodepth_lite.synth import ensure_dataset
 
     overrides = {"camera": {"width": size, "height": size}, "splits": {"train": batch, "val": 1, "test": 1}}

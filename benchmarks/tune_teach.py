@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geodepth_lite import checkpoint, config, dataset, evaluate, inference, synth, train, utils
+from geodepth_lite import checkpoint, config, datasets, evaluate, inference, synth, train, utils
 from geodepth_lite import manifest as mf
 from geodepth_lite.border import border_error_map
 from geodepth_lite.metrics import compute_depth_metrics
@@ -217,7 +217,7 @@ def closeup_set():
 def validation_metrics(net, cfg: dict) -> dict:
     """The metrics of the train command's row: the whole validation split, resized to the network's
     input as in training, one pass per frame."""
-    val = dataset.load_split(dataset.resolve_dataset(cfg), "val", cfg["image_size"])
+    val = datasets.load_split(datasets.resolve_dataset(cfg), "val", cfg["image_size"])
     preds, gts = [], []
     with torch.no_grad():
         for i in range(0, len(val), 40):
@@ -243,7 +243,7 @@ def border_scores(predict, frames) -> dict:
 def score_validation(net, cfg: dict, flips: str = "none") -> dict:
     """Validation-split scores of ``net`` at the frames' own size, with test-time ``flips``
     (``inference.predict_depth``): Abs Rel, RMSE and ``border_scores``."""
-    val = evaluate.open_eval_dataset(str(dataset.resolve_dataset(cfg)), split="val")
+    val = evaluate.open_eval_dataset(str(datasets.resolve_dataset(cfg)), split="val")
 
     def predict(x):
         return inference.predict_depth(net, x, cfg["image_size"], flips)
@@ -313,7 +313,7 @@ def run_train(args, network) -> None:
     row |= {"train_depth_last": round(hist[-1]["train_depth"], 4), "minutes": round(minutes, 2),
             "frames_per_s": round(hist[-1]["train_frames_per_s"], 1), "generator": mf.GENERATOR_VERSION}
     if args.border:
-        val = evaluate.open_eval_dataset(str(dataset.resolve_dataset(cfg)), split="val")
+        val = evaluate.open_eval_dataset(str(datasets.resolve_dataset(cfg)), split="val")
         with torch.no_grad():
             row |= border_scores(lambda x: inference.predict_depth(net, x, cfg["image_size"]), val)
     if args.closeups:

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from scipy import stats
 
-from geodepth_lite import baselines, checkpoint, config, dataset, evaluate, run_cache, synth, tables
+from geodepth_lite import baselines, checkpoint, config, datasets, evaluate, run_cache, synth, tables
 
 CASE_NAMES = {1: "depth + smooth", 2: "+ grad + normal", 3: "+ SDF", 4: "all five"}
 # Section 4.2.1: the paper's reduction against Case 1, in percent (negative = better)
@@ -53,7 +53,7 @@ def evaluation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
 
 def baseline_scores(profile: str, sets: dict[str, Any]) -> dict[str, dict[str, dict]]:
     """{set: {baseline: overall metrics}}; the mean depth map is fitted on the profile's training split."""
-    root = dataset.resolve_dataset(config.make_config(profile, 1, 0))
+    root = datasets.resolve_dataset(config.make_config(profile, 1, 0))
     mean_map = baselines.fit_mean_depth_map(root, "train")
     return {name: {b: r["overall"] for b, r in evaluate.evaluate_baselines(ds, mean_map).items()}
             for name, ds in sets.items()}

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from scipy.ndimage import gaussian_filter
 
 from geodepth_lite import utils
-from geodepth_lite.dataset import SyntheticDepthDataset
+from geodepth_lite.datasets import SyntheticDepthDataset
 
 # name -> what it predicts (one line; shown in the evaluate tables' notes)
 BASELINES: dict[str, str] = {
@@ -55,7 +55,7 @@ def _images(images: Any) -> np.ndarray:
 
 def _resize_depth(depth: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """An H x W depth map to ``size`` = (h, w) by pixel-centre nearest neighbour, the package's
-    convention for depth (``dataset.resize_frame``: no depth is invented between two others)."""
+    convention for depth (``datasets.resize_frame``: no depth is invented between two others)."""
     if tuple(depth.shape) == tuple(size):
         return depth
     t = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None, None]

@@ -1,4 +1,5 @@
-"""Pinhole camera: intrinsics, back-projection and projection, in one place.
+"""Pinhole camera: intrinsics, back-projection and projection, in one place; and the pose
+math the public datasets need (a rotation quaternion to a matrix, a Unity pose to ``T_world_cam``).
 
 Conventions (used by the renderer, the SDF loss, the 3D views and the loaders):
 - camera frame as in OpenCV: x right, y down, z forward (the optical axis);
@@ -117,3 +118,31 @@ def transform(T, points):
     """Apply a 4x4 rigid transform to N x 3 points (numpy)."""
     T = np.asarray(T, dtype=np.float64)
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+# --------------------------------------------------------------------------- poses from rotation quaternions
+def quaternion_to_matrix(qx: float, qy: float, qz: float, qw: float) -> np.ndarray:
+    """3x3 rotation of a unit quaternion (x, y, z, w); normalised first."""
+    q = np.array([qx, qy, qz, qw], dtype=np.float64)
+    n = np.linalg.norm(q)
+    if not n > 0:
+        raise ValueError("zero quaternion")
+    x, y, z, w = q / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+# Unity is left-handed with y up; the workbook's camera frame is OpenCV's (y down).
+# Flipping y on both sides turns a Unity camera-to-world pose into a right-handed one.
+UNITY_TO_OPENCV = np.diag([1.0, -1.0, 1.0, 1.0])  # UNVERIFIED for EndoSLAM's exported poses
+
+
+def unity_pose_to_T_world_cam(t_xyz, q_xyzw) -> np.ndarray:
+    """4x4 camera-to-world (OpenCV camera axes) from a Unity position and rotation quaternion."""
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(*q_xyzw)
+    T[:3, 3] = t_xyz
+    return UNITY_TO_OPENCV @ T @ UNITY_TO_OPENCV

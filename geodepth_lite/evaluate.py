@@ -32,9 +32,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from geodepth_lite import baselines, loaders, synth
+from geodepth_lite import baselines, datasets, synth
 from geodepth_lite import checkpoint as checkpoints  # evaluate_checkpoint's argument is named checkpoint
-from geodepth_lite.dataset import SyntheticDepthDataset, resolve_dataset
+from geodepth_lite.datasets import SyntheticDepthDataset, resolve_dataset
 from geodepth_lite.inference import check_flips, collate, pick_device, predict_depth
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES, compute_depth_metrics, eval_mask
 from geodepth_lite.tables import write_results
@@ -50,15 +50,15 @@ def open_eval_dataset(name: str, *, split: str = "test", root: str | os.PathLike
     """A dataset to evaluate on, at its native resolution.
 
     name: a synthetic manifest name (built on demand with ``synth.ensure_dataset``), a
-    synthetic dataset directory, or one of the public datasets (``loaders.REGISTRY``; needs
-    ``root``, read by ``loaders.open_dataset``, extra keywords such as ``group``/``organ``/
+    synthetic dataset directory, or one of the public datasets (``datasets.REGISTRY``; needs
+    ``root``, read by ``datasets.open_dataset``, extra keywords such as ``group``/``organ``/
     ``limit`` passed on; its ``max_depth``, the largest depth its encoding holds, bounds the
     evaluation mask). ``split`` applies to synthetic datasets.
     """
-    if name in loaders.REGISTRY:
+    if name in datasets.REGISTRY:
         if root is None:
             raise ValueError(f"--root is required for the public dataset {name!r} (the folder you downloaded)")
-        return loaders.open_dataset(name, root, **kw)
+        return datasets.open_dataset(name, root, **kw)
     path = Path(name).expanduser()
     if path.is_dir() and (path / "manifest.json").exists():
         ds_root = path

@@ -12,14 +12,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from geodepth_lite import evaluate, integrity, loaders, synth, tables, utils
+from geodepth_lite import datasets, evaluate, integrity, synth, tables, utils
 from geodepth_lite.inference import FLIPS
 
 
 def add_arguments_evaluate(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", default=None, help="checkpoint.pt written by `train` (not needed with --check)")
     parser.add_argument("--dataset", default="scenario_teach",
-                        help="synthetic manifest name or dataset folder, or one of " + ", ".join(loaders.REGISTRY))
+                        help="synthetic manifest name or dataset folder, or one of " + ", ".join(datasets.REGISTRY))
     parser.add_argument("--root", default=None, help="folder of a public dataset (its own layout)")
     parser.add_argument("--check", nargs="?", const="", default=None, metavar="MANIFEST",
                         help="public datasets: only count the frames of the paper's evaluation subsets under --root "
@@ -58,14 +58,14 @@ def check_subsets(args: argparse.Namespace, public: bool, kw: dict) -> int:
     """``evaluate --check``: count the frames of a public dataset's evaluation subsets under --root and print
     expected and found counts; 0 when every subset matches, else 1. ``kw``: the --group/--organ/--limit given."""
     if not public:
-        raise ValueError(f"--check applies to the public datasets ({', '.join(loaders.REGISTRY)}), "
+        raise ValueError(f"--check applies to the public datasets ({', '.join(datasets.REGISTRY)}), "
                          f"not {args.dataset!r}")
     if kw:
         raise ValueError(f"--{', --'.join(kw)} do not apply to --check, which counts every frame under --root")
     if args.root is None:
         raise ValueError(f"--check needs --root, the folder of your copy of {args.dataset}")
-    rows = loaders.dataset_class(args.dataset).check_eval_subsets(args.root, args.check or None)
-    print(loaders.format_check(rows))
+    rows = datasets.check_eval_subsets(args.dataset, args.root, args.check or None)
+    print(datasets.format_check(rows))
     return 0 if all(r["status"] == "ok" for r in rows) else 1
 
 
@@ -75,7 +75,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     --out is checked (a folder, writable, room for the tables) before the model is loaded; a run
     that fails leaves no folder it created behind, and never part of a result set
     (``tables.write_results``)."""
-    public = args.dataset in loaders.REGISTRY
+    public = args.dataset in datasets.REGISTRY
     kw = {k: getattr(args, k) for k in ("group", "organ", "limit") if getattr(args, k) is not None}
     if kw and not public:
         raise ValueError(f"--{', --'.join(kw)} apply to the public datasets only, not {args.dataset!r}")

@@ -1,7 +1,7 @@
 """Running a trained network: device choice, batching, and depth for any image size (Section 4.2.3).
 
 ``predict_depth`` is what evaluation (``evaluate``), ``predict`` and the notebooks call: the
-images are resized the way the training frames were made (``dataset.resize_image``),
+images are resized the way the training frames were made (``datasets.resize_image``),
 predicted at the network's input size and resized back to the frame's.
 """
 
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from geodepth_lite.dataset import resize_image
+from geodepth_lite.datasets import resize_image
 from geodepth_lite.distributed import dist_env
 
 
@@ -71,7 +71,7 @@ def check_flips(flips: str) -> str:
 @torch.no_grad()
 def predict_depth(model, images: torch.Tensor, image_size: int | tuple[int, int] | None = None,
                   flips: str = "none") -> torch.Tensor:
-    """Depth B x 1 x H x W for images B x 3 x H x W in [0, 1]: resized (dataset.resize_image) to the
+    """Depth B x 1 x H x W for images B x 3 x H x W in [0, 1]: resized (datasets.resize_image) to the
     network's ``image_size`` (int or (h, w), multiples of 32), predicted, resized back.
 
     flips: "none" (one forward pass, as the paper), "h" (the mean with the prediction for the

@@ -51,7 +51,7 @@ from PIL import Image
 from tqdm.auto import tqdm
 
 from . import camera, checkpoint, recon, utils, viz
-from .dataset import resize_image
+from .datasets import resize_image
 from .inference import FLIPS, pick_device, predict_depth
 from .utils import FileProblem, os_reason
 

@@ -18,7 +18,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint, config, utils
-from geodepth_lite.dataset import resolve_dataset
+from geodepth_lite.datasets import resolve_dataset
 from geodepth_lite.train import fit
 
 

@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 from geodepth_lite import checkpoint as ckpt_io
 from geodepth_lite import config, distributed, inference, losses, utils
 from geodepth_lite.augment import augment_batch
-from geodepth_lite.dataset import MemoryDataset, load_split, resolve_dataset
+from geodepth_lite.datasets import MemoryDataset, load_split, resolve_dataset
 from geodepth_lite.metrics import METRIC_NAMES, compute_depth_metrics
 from geodepth_lite.model import DepthNet
 

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from geodepth_lite import checkpoint, config, distributed, integrity, train, utils
-from geodepth_lite.dataset import resolve_dataset
+from geodepth_lite.datasets import resolve_dataset
 
 
 def add_arguments_train(parser: argparse.ArgumentParser) -> None:

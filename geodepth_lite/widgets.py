@@ -17,7 +17,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from . import losses
-from .dataset import SyntheticDepthDataset
+from .datasets import SyntheticDepthDataset
 from .synth import ensure_dataset
 
 # slider name -> (min, max, step, neutral value, what it imitates)

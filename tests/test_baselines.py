@@ -129,7 +129,7 @@ def test_mean_map_is_resized_nearest_and_scores_zero_on_its_own_layout():
 
 
 def test_all_baselines_on_the_smoke_dataset(smoke_root):
-    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.datasets import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(smoke_root, "test")
     res = evaluate.evaluate_baselines(ds, smoke_root, batch_size=4)

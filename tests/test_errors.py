@@ -18,7 +18,7 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import checkpoint, cli, config, dataset, evaluate, synth, train, utils
+from geodepth_lite import checkpoint, cli, config, datasets, evaluate, synth, train, utils
 from geodepth_lite import manifest as mf
 
 
@@ -141,7 +141,7 @@ def _damage(root: Path, kind: str) -> Path:
 def test_a_damaged_dataset_file_is_named(smoke_copy, tmp_path, capsys, kind, reason):
     bad = _damage(smoke_copy, kind)
     with pytest.raises(utils.FileProblem, match=reason) as info:  # whoever reads it: the Dataset
-        dataset.SyntheticDepthDataset(smoke_copy, "train")[0]
+        datasets.SyntheticDepthDataset(smoke_copy, "train")[0]
     assert info.value.path == bad
     run = tmp_path / "run"
     argv = ["train", "--profile", "smoke", "--dataset", str(smoke_copy), "--image-size", "32", "--run-dir", str(run),
@@ -154,8 +154,6 @@ def test_a_damaged_dataset_file_is_named(smoke_copy, tmp_path, capsys, kind, rea
 
 
 def test_a_damaged_public_dataset_file_is_named(tmp_path):
-    from geodepth_lite import loaders
-
     folder = tmp_path / "T1_L1_1_resized"
     folder.mkdir()
     rgb = np.full((16, 16, 3), 120, np.uint8)
@@ -163,7 +161,7 @@ def test_a_damaged_public_dataset_file_is_named(tmp_path):
 
     Image.fromarray(rgb).save(folder / "FrameBuffer_0000.png")
     (folder / "Depth_0000.png").write_bytes(b"garbage, not a PNG")
-    ds = loaders.open_dataset("colondepth", tmp_path)
+    ds = datasets.open_dataset("colondepth", tmp_path)
     with pytest.raises(utils.FileProblem, match="Depth_0000.png") as info:
         ds[0]
     assert info.value.path == folder / "Depth_0000.png"

@@ -21,7 +21,7 @@ def smoke(smoke_root, tmp_path_factory):
 
 def test_cli_writes_metrics_frames_and_error_maps(smoke, tmp_path, capsys):
     from geodepth_lite import cli
-    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.datasets import SyntheticDepthDataset
 
     root, ckpt = smoke
     out = tmp_path / "eval"
@@ -47,7 +47,7 @@ def test_cli_writes_metrics_frames_and_error_maps(smoke, tmp_path, capsys):
 
 def test_per_frame_means_equal_the_metric_on_the_whole_set(smoke):
     """Groups are averaged from per-frame values: the same numbers as one call on all frames."""
-    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.datasets import SyntheticDepthDataset
 
     root, ckpt = smoke
     model, cfg = checkpoint.load_model(ckpt)
@@ -69,7 +69,7 @@ def test_cli_flips_score_the_mean_over_the_mirrorings(smoke, tmp_path):
     """evaluate --flips hv scores the mean over the four mirrorings (the same metrics as
     evaluate_model with flips="hv"), not the one-pass prediction it scores by default."""
     from geodepth_lite import cli
-    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.datasets import SyntheticDepthDataset
 
     root, ckpt = smoke
     model, cfg = checkpoint.load_model(ckpt)
@@ -92,7 +92,7 @@ def test_cli_flips_score_the_mean_over_the_mirrorings(smoke, tmp_path):
 def test_a_perfect_prediction_up_to_scale_scores_perfectly(smoke):
     """A model that returns the ground truth up to a scale gets Abs Rel 0, a1 1 (median scaling)."""
     root, _ = smoke
-    from geodepth_lite.dataset import SyntheticDepthDataset
+    from geodepth_lite.datasets import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(root, "test")
     gts = {int(ds[i]["index"]): ds[i]["depth"] for i in range(len(ds))}

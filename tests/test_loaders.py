@@ -12,7 +12,7 @@ import pytest
 import tifffile
 import torch
 
-from geodepth_lite import camera, evaluate, evaluate_cli, loaders, utils
+from geodepth_lite import camera, datasets, evaluate, evaluate_cli, utils
 
 H, W = 6, 8
 
@@ -44,10 +44,10 @@ def _write_endoslam(root, organs=("Colon", "Stomach", "SmallIntestine"), n=3):
 
 def test_endoslam_layout_channel0_scaling_invalid_and_poses(tmp_path):
     truth = _write_endoslam(tmp_path)
-    ds = loaders.open_dataset("endoslam", tmp_path)
+    ds = datasets.open_dataset("endoslam", tmp_path)
     assert len(ds) == 9 and ds.depth_units == "relative"
     assert ds.counts("organ") == {"colon": 3, "small_intestine": 3, "stomach": 3}
-    st = loaders.open_dataset("endoslam", tmp_path / "UnityCam", organ="stomach")
+    st = datasets.open_dataset("endoslam", tmp_path / "UnityCam", organ="stomach")
     assert len(st) == 3
     item = st[2]
     assert set(item) == {"image", "depth", "K", "organ", "group", "index", "valid"}
@@ -64,7 +64,7 @@ def test_endoslam_layout_channel0_scaling_invalid_and_poses(tmp_path):
 
 def test_image_size_resizes_everything(tmp_path):
     _write_endoslam(tmp_path, organs=("Colon",), n=1)
-    ds = loaders.open_dataset("endoslam", tmp_path, image_size=(12, 16))
+    ds = datasets.open_dataset("endoslam", tmp_path, image_size=(12, 16))
     item = ds[0]
     assert item["image"].shape == (3, 12, 16) and item["depth"].shape == (1, 12, 16)
     assert item["valid"][0, :2, :2].logical_not().all() and item["valid"].sum() == 12 * 16 - 4
@@ -94,10 +94,10 @@ def _write_colondepth(root, groups=((1, 1), (2, 2), (3, 3)), n=2, bits=8):
 @pytest.mark.parametrize("bits", [8, 16])
 def test_colondepth_unit_png_to_20cm_groups_and_sequences(tmp_path, bits):
     truth = _write_colondepth(tmp_path, bits=bits)
-    ds = loaders.open_dataset("colondepth", tmp_path)
+    ds = datasets.open_dataset("colondepth", tmp_path)
     assert len(ds) == 12 and ds.depth_units == "cm"
     assert ds.counts("group") == {"T1-L1": 4, "T2-L2": 4, "T3-L3": 4}
-    sub = loaders.open_dataset("colondepth", tmp_path, group="T2-L2", sequence=["T2_L2_2_resized"])
+    sub = datasets.open_dataset("colondepth", tmp_path, group="T2-L2", sequence=["T2_L2_2_resized"])
     assert [f["frame"] for f in sub.frames] == [0, 1]
     item = sub[1]
     np.testing.assert_allclose(item["depth"][0].numpy(), truth[("T2_L2_2_resized", 1)], rtol=1e-6, atol=1e-6)
@@ -125,7 +125,7 @@ def _write_simcol3d(root):
 def test_simcol3d_16bit_divide_by_255_256_and_cam_txt(tmp_path):
     c = _write_simcol3d(tmp_path)
     for root in (tmp_path, c):
-        ds = loaders.open_dataset("simcol3d", root)
+        ds = datasets.open_dataset("simcol3d", root)
         assert len(ds) == 4
         assert ds.counts("sequence") == {"SyntheticColon_II/Frames_B4": 2, "SyntheticColon_II/Frames_S1": 2}
     item = ds[0]
@@ -163,7 +163,7 @@ def _write_c3vd(root, pose_order="column"):
 @pytest.mark.parametrize("order", ["column", "row"])
 def test_c3vd_16bit_tiff_to_100mm_invalid_values_and_poses(tmp_path, order):
     seq = _write_c3vd(tmp_path, order)
-    ds = loaders.open_dataset("c3vd", tmp_path, group="cecum")
+    ds = datasets.open_dataset("c3vd", tmp_path, group="cecum")
     assert len(ds) == 3 and ds.depth_units == "mm"
     item = ds[1]
     d = item["depth"][0].numpy()
@@ -176,50 +176,50 @@ def test_c3vd_16bit_tiff_to_100mm_invalid_values_and_poses(tmp_path, order):
     # pinhole approximation scaled from 1350x1080 to the fixture's size
     K = item["K"].numpy()
     assert K[0, 0] == pytest.approx(767.4 * W / 1350, rel=1e-4)
-    assert len(loaders.open_dataset("c3vd", seq)) == 3
+    assert len(datasets.open_dataset("c3vd", seq)) == 3
 
 
-@pytest.mark.parametrize("name", loaders.DATASETS)
+@pytest.mark.parametrize("name", datasets.DATASETS)
 def test_missing_empty_and_wrong_layout_roots_say_what_was_expected(tmp_path, name):
     with pytest.raises(FileNotFoundError, match="does not exist; expected"):
-        loaders.open_dataset(name, tmp_path / "nope")
+        datasets.open_dataset(name, tmp_path / "nope")
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="is empty; expected"):
-        loaders.open_dataset(name, tmp_path / "empty")
+        datasets.open_dataset(name, tmp_path / "empty")
     other = tmp_path / "other"
     (other / "images").mkdir(parents=True)
     iio.imwrite(other / "images" / "a.png", _rgb(0))
-    layout = re.escape(loaders.REGISTRY[name].layout[:20])
+    layout = re.escape(datasets.REGISTRY[name].layout[:20])
     with pytest.raises(ValueError, match=rf"holds no {name} frame/depth pairs.*expected .*{layout}"):
-        loaders.open_dataset(name, other)
+        datasets.open_dataset(name, other)
 
 
 def test_bad_options_are_named(tmp_path):
     _write_colondepth(tmp_path, groups=((1, 1),), n=1)
     with pytest.raises(ValueError, match="unknown dataset 'kitti'"):
-        loaders.open_dataset("kitti", tmp_path)
+        datasets.open_dataset("kitti", tmp_path)
     with pytest.raises(ValueError, match=r"group \['T9-L9'\] matches no frames.*available: T1-L1"):
-        loaders.open_dataset("colondepth", tmp_path, group="T9-L9")
+        datasets.open_dataset("colondepth", tmp_path, group="T9-L9")
     with pytest.raises(ValueError, match="limit"):
-        loaders.open_dataset("colondepth", tmp_path, limit=0)
+        datasets.open_dataset("colondepth", tmp_path, limit=0)
     with pytest.raises(ValueError, match="image_size"):
-        loaders.open_dataset("colondepth", tmp_path, image_size=(0, 4))
+        datasets.open_dataset("colondepth", tmp_path, image_size=(0, 4))
     # a depth map whose size differs from its frame is named
     iio.imwrite(tmp_path / "T1_L1_1_resized" / "Depth_0000.png", np.ones((3, 3), np.uint8))
     with pytest.raises(ValueError, match="FrameBuffer_0000.png is 8x6 but its depth Depth_0000.png is 3x3"):
-        loaders.open_dataset("colondepth", tmp_path)[0]
+        datasets.open_dataset("colondepth", tmp_path)[0]
 
 
 def test_check_subset_counts_and_reports_mismatches(tmp_path, capsys):
     from geodepth_lite import cli
 
     _write_colondepth(tmp_path, groups=((1, 1), (2, 2)), n=2)
-    manifest = loaders.load_subset_manifest("colondepth")
+    manifest = datasets.load_subset_manifest("colondepth")
     assert [s["frames"] for s in manifest["subsets"]] == [364, 364, 364]
-    assert [s["frames"] for s in loaders.load_subset_manifest("endoslam")["subsets"]] == [1548, 1257, 1062]
+    assert [s["frames"] for s in datasets.load_subset_manifest("endoslam")["subsets"]] == [1548, 1257, 1062]
     small = dict(manifest, subsets=[dict(s, frames=4) for s in manifest["subsets"]])
     small["subsets"][1]["frames"] = 3
-    rows = loaders.check_subset(small, tmp_path)
+    rows = datasets.check_subset(small, tmp_path)
     assert [(r["subset"], r["found"], r["status"]) for r in rows] == [
         ("T1-L1", 4, "ok"), ("T2-L2", 4, "more"), ("T3-L3", 0, "missing")]
     path = tmp_path / "m.json"
@@ -250,32 +250,32 @@ def test_evaluate_check_needs_a_public_dataset_with_subsets_and_a_root(tmp_path,
 
 
 def test_the_registry_is_the_only_list_of_datasets():
-    assert loaders.DATASETS == tuple(loaders.REGISTRY) == ("endoslam", "colondepth", "simcol3d", "c3vd")
-    for name, cls in loaders.REGISTRY.items():
-        assert issubclass(cls, loaders.PublicDepthDataset) and cls is not loaders.PublicDepthDataset
+    assert datasets.DATASETS == tuple(datasets.REGISTRY) == ("endoslam", "colondepth", "simcol3d", "c3vd")
+    for name, cls in datasets.REGISTRY.items():
+        assert issubclass(cls, datasets.PublicDepthDataset) and cls is not datasets.PublicDepthDataset
         assert cls.name == name and cls.layout.startswith("ROOT") and cls.__doc__
         assert cls.depth_units in ("relative", "cm", "mm") and cls.max_depth > 0
         for method in ("find_frames", "decode_depth", "intrinsics"):  # each dataset says how it is read
             assert method in vars(cls), f"{cls.__name__} does not override {method}"
         if cls.subset_manifest is not None:
-            assert loaders.load_subset_manifest(cls.subset_manifest)["dataset"] == name
+            assert datasets.load_subset_manifest(cls.subset_manifest)["dataset"] == name
     manifests = sorted(p.stem for p in (utils.manifests_dir() / "eval_subsets").glob("*.json"))
-    assert manifests == sorted(c.subset_manifest for c in loaders.REGISTRY.values() if c.subset_manifest)
-    assert set(WRITERS) == set(loaders.REGISTRY)  # one fixture per registered dataset
+    assert manifests == sorted(c.subset_manifest for c in datasets.REGISTRY.values() if c.subset_manifest)
+    assert set(WRITERS) == set(datasets.REGISTRY)  # one fixture per registered dataset
     assert not hasattr(evaluate, "PUBLIC_DATASETS")
     parser = argparse.ArgumentParser()
     evaluate_cli.add_arguments_evaluate(parser)
     listed = re.search(r"or one of (\w+(?:, \w+)*)", " ".join(parser.format_help().split())).group(1)
-    assert tuple(listed.split(", ")) == tuple(loaders.REGISTRY)
+    assert tuple(listed.split(", ")) == tuple(datasets.REGISTRY)
     with pytest.raises(TypeError, match="abstract"):
-        loaders.PublicDepthDataset(".", [])
+        datasets.PublicDepthDataset(".", [])
 
 
 WRITERS = {"endoslam": _write_endoslam, "colondepth": _write_colondepth, "simcol3d": _write_simcol3d,
            "c3vd": _write_c3vd}
 
 
-@pytest.mark.parametrize("name", loaders.DATASETS)
+@pytest.mark.parametrize("name", datasets.DATASETS)
 def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untrained_checkpoint, capsys,
                                                         monkeypatch):
     from geodepth_lite import cli
@@ -292,7 +292,7 @@ def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untraine
     monkeypatch.setattr(evaluate, "evaluate_baselines", recording(evaluate.evaluate_baselines))
     root = tmp_path / "data"
     WRITERS[name](root)
-    n = len(loaders.open_dataset(name, root))
+    n = len(datasets.open_dataset(name, root))
     out = tmp_path / "eval"
     code = cli.main(["evaluate", "--checkpoint", str(untrained_checkpoint), "--dataset", name, "--root", str(root),
                      "--out", str(out), "--error-maps", "1", "--no-progress"])
@@ -300,8 +300,8 @@ def test_evaluate_cli_runs_the_protocol_on_each_fixture(tmp_path, name, untraine
     result = json.loads((out / "metrics.json").read_text())
     assert result["n"] == n
     assert 0.0 < result["overall"]["a3"] <= 1.0 and np.isfinite(result["overall"]["rmse"])
-    assert bounds == {"evaluate_model": loaders.REGISTRY[name].max_depth,
-                      "evaluate_baselines": loaders.REGISTRY[name].max_depth}
+    assert bounds == {"evaluate_model": datasets.REGISTRY[name].max_depth,
+                      "evaluate_baselines": datasets.REGISTRY[name].max_depth}
 
 
 def test_evaluate_as_a_process_and_a_wrong_root_is_named(tmp_path, untrained_checkpoint, capsys):

@@ -1,7 +1,7 @@
-"""The package's shape: lint clean, no private names across modules, the loop alone in train.py,
-no function over 60 lines, imports at the top of a module (but the heavy or optional ones, each
-with its reason), no benchmark inside the package, no notebook named in reproduce.py, one set-up
-helper in every notebook."""
+"""The package's shape, its subpackage datasets/ included: lint clean, no private names across
+modules, the loop alone in train.py, no function over 60 lines, imports at the top of a module
+(but the heavy or optional ones, each with its reason), no import cycle, no benchmark inside the
+package, no notebook named in reproduce.py, one set-up helper in every notebook."""
 
 import ast
 import io
@@ -28,36 +28,72 @@ def test_ruff_check_passes():
     assert done.returncode == 0, done.stdout + done.stderr
 
 
+def _package_files() -> list[Path]:
+    """Every module file of the package, those of its subpackages (``datasets/``) included."""
+    return sorted(p for p in PACKAGE.rglob("*.py") if not any(part.startswith(".") for part in p.parts))
+
+
+def _module_name(path: Path) -> str:
+    """A package file's module name, relative to the package: ``train``, ``datasets`` for
+    ``datasets/__init__.py``, ``datasets.synthetic``; the package's own ``__init__.py`` is ``__init__``."""
+    parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+    if parts[-1] == "__init__" and len(parts) > 1:
+        parts.pop()
+    return ".".join(parts)
+
+
 def _first_party_modules() -> set[str]:
-    return {p.stem for p in PACKAGE.glob("*.py")}
+    return {_module_name(p) for p in _package_files()}
+
+
+def _label(path: Path) -> str:
+    return str(path.relative_to(ROOT))
+
+
+def _first_party_imports(node: ast.AST, package: list[str], modules: set[str]) -> list[tuple[str, str | None, str]]:
+    """The package imports of one ``import`` / ``from ... import`` statement in a file of (sub)package
+    ``package`` (folder names under the package: [] at the top, ["datasets"] in datasets/), as
+    (module read, name taken from it or None when the name is that module itself, local name bound)."""
+    if isinstance(node, ast.Import):
+        return [(a.name.removeprefix("geodepth_lite."), None, a.asname or a.name.split(".")[-1])
+                for a in node.names if a.name.startswith("geodepth_lite.")]
+    if not isinstance(node, ast.ImportFrom):
+        return []
+    if node.level:
+        if node.level - 1 > len(package):
+            return []
+        parts = package[:len(package) - (node.level - 1)] + (node.module.split(".") if node.module else [])
+    elif node.module == "geodepth_lite" or (node.module or "").startswith("geodepth_lite."):
+        parts = node.module.split(".")[1:]
+    else:
+        return []
+    source = ".".join(parts) or "__init__"
+    found = []
+    for a in node.names:
+        sub = ".".join([*parts, a.name])
+        found.append((sub, None, a.asname or a.name) if sub in modules else (source, a.name, a.asname or a.name))
+    return found
 
 
 def test_no_module_imports_a_private_name_from_another():
-    """``from x import _y`` or ``x._y`` across modules of the package (and the benchmarks)."""
+    """``from x import _y`` or ``x._y`` across modules of the package, its subpackages (and the benchmarks)."""
     modules = _first_party_modules()
     offences = []
-    for path in sorted([*PACKAGE.glob("*.py"), *(ROOT / "benchmarks").glob("*.py")]):
+    files = [(p, _module_name(p), list(p.relative_to(PACKAGE).parent.parts)) for p in _package_files()]
+    files += [(p, f"benchmarks.{p.stem}", []) for p in sorted((ROOT / "benchmarks").glob("*.py"))]
+    for path, own, package in files:
         tree = ast.parse(path.read_text())
         aliases = {}  # local name -> first-party module it stands for
         for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom):
-                mod = (node.module or "").split(".")[-1]
-                first_party = node.level > 0 or (node.module or "").startswith("geodepth_lite")
-                for a in node.names:
-                    if not first_party:
-                        continue
-                    if a.name in modules:
-                        aliases[a.asname or a.name] = a.name
-                    elif a.name.startswith("_") and mod != path.stem:
-                        offences.append(f"{path.name}: from {node.module} import {a.name}")
-            elif isinstance(node, ast.Import):
-                for a in node.names:
-                    if a.name.startswith("geodepth_lite."):
-                        aliases[a.asname or a.name.split(".")[-1]] = a.name.split(".")[-1]
+            for source, name, local in _first_party_imports(node, package, modules):
+                if name is None:
+                    aliases[local] = source
+                elif name.startswith("_") and source != own:
+                    offences.append(f"{_label(path)}: from {source} import {name}")
         for node in ast.walk(tree):
             if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.attr.startswith("_")
-                    and not node.attr.startswith("__") and aliases.get(node.value.id, path.stem) != path.stem):
-                offences.append(f"{path.name}:{node.lineno}: {node.value.id}.{node.attr}")
+                    and not node.attr.startswith("__") and aliases.get(node.value.id, own) != own):
+                offences.append(f"{_label(path)}:{node.lineno}: {node.value.id}.{node.attr}")
     assert not offences, offences
 
 
@@ -66,8 +102,8 @@ MAX_FUNCTION_LINES = 60
 
 def test_no_function_is_over_60_lines():
     """Every function and method of the package, from its ``def`` line to its last line."""
-    long = [f"{path.name}:{n.lineno}: {n.name} is {n.end_lineno - n.lineno + 1} lines"
-            for path in sorted(PACKAGE.glob("*.py")) for n in ast.walk(ast.parse(path.read_text()))
+    long = [f"{_label(path)}:{n.lineno}: {n.name} is {n.end_lineno - n.lineno + 1} lines"
+            for path in _package_files() for n in ast.walk(ast.parse(path.read_text()))
             if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
             and n.end_lineno - n.lineno + 1 > MAX_FUNCTION_LINES]
     assert not long, long
@@ -125,7 +161,7 @@ def misplaced_imports(source: str) -> list[str]:
 
 def test_imports_sit_at_the_top_but_heavy_or_optional_ones():
     """Inside a function only what ``LATE_IMPORTS`` lists, and each with its reason."""
-    offences = [f"{path.name}:{o}" for path in sorted(PACKAGE.glob("*.py"))
+    offences = [f"{_label(path)}:{o}" for path in _package_files()
                 for o in misplaced_imports(path.read_text())]
     assert not offences, offences
 
@@ -151,18 +187,20 @@ def test_the_import_check_can_fail():
 
 
 def _import_graph() -> dict[str, set[str]]:
-    """{module: package modules it imports}, counting imports inside functions too."""
+    """{module: package modules it imports}, counting imports inside functions too; submodules are
+    named ``datasets.synthetic``. Reading a submodule from outside its subpackage runs the
+    subpackage's ``__init__.py`` first, so that counts as importing the subpackage too."""
     modules = _first_party_modules()
     graph = {}
-    for path in PACKAGE.glob("*.py"):
+    for path in _package_files():
+        own, package = _module_name(path), list(path.relative_to(PACKAGE).parent.parts)
         deps = set()
         for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("geodepth_lite")):
-                sub = (node.module or "").split(".")[-1]
-                deps |= {sub} if sub in modules else {a.name for a in node.names if a.name in modules}
-            elif isinstance(node, ast.Import):
-                deps |= {a.name.split(".")[1] for a in node.names if a.name.startswith("geodepth_lite.")}
-        graph[path.stem] = deps - {path.stem}
+            for source, _, _ in _first_party_imports(node, package, modules):
+                parts = source.split(".")
+                deps |= {".".join(parts[:i]) for i in range(1, len(parts) + 1) if package[:i] != parts[:i]}
+                deps.add(source)
+        graph[own] = {d for d in deps if d in modules} - {own}
     return graph
 
 
@@ -194,6 +232,19 @@ def test_the_package_has_no_import_cycle():
     assert not _cycle(_import_graph()), " -> ".join(_cycle(_import_graph()))
 
 
+def test_the_import_graph_sees_the_subpackage():
+    """The scans above read datasets/ too, its relative imports resolved both ways."""
+    graph = _import_graph()
+    assert {"datasets", "datasets.base", "datasets.synthetic", "datasets.subsets"} <= set(graph)
+    assert {"camera", "datasets.base"} <= graph["datasets.endoslam"]  # from .. import camera; from .base import
+    assert "datasets.synthetic" in graph["datasets"] and "datasets" in graph["evaluate"]
+    outside = {"x": set(), "datasets.y": set(), "datasets": set()}
+    from_top = _first_party_imports(ast.parse("from geodepth_lite.datasets.y import Z").body[0], [], set(outside))
+    assert from_top == [("datasets.y", "Z", "Z")]
+    inside = _first_party_imports(ast.parse("from .. import x").body[0], ["datasets"], set(outside))
+    assert inside == [("x", None, "x")]
+
+
 def test_the_cycle_check_finds_a_cycle():
     """The check can fail: a cycle hidden behind a function-level import is found."""
     assert _cycle({"checkpoint": {"utils"}, "train": {"checkpoint"}, "utils": set()}) == []
@@ -203,7 +254,7 @@ def test_the_cycle_check_finds_a_cycle():
 
 
 def test_no_benchmark_ships_inside_the_package():
-    assert not list(PACKAGE.glob("bench*.py"))
+    assert not list(PACKAGE.rglob("bench*.py"))
     assert {"bench_render.py", "bench_sdf.py"} <= {p.name for p in (ROOT / "benchmarks").glob("*.py")}
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from geodepth_lite import cli, integrity, synth
 from geodepth_lite import manifest as mf
-from geodepth_lite.dataset import SyntheticDepthDataset
+from geodepth_lite.datasets import SyntheticDepthDataset
 
 TINY = {"camera": {"width": 32, "height": 32}, "splits": {"train": 4, "test": 2}, "frames_per_scene": 2}
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import augment, checkpoint, config, dataset, inference, metrics, run_cache, train, utils
+from geodepth_lite import augment, checkpoint, config, datasets, inference, metrics, run_cache, train, utils
 
 
 def _cfg(root, case=4, seed=0, **kw):
@@ -24,7 +24,7 @@ def _cfg(root, case=4, seed=0, **kw):
 
 def _scramble_process_state():
     """What a fresh process would look like: no cached data, unrelated RNG states."""
-    dataset.MEMORY_CACHE.clear()
+    datasets.MEMORY_CACHE.clear()
     torch.manual_seed(12345)
     np.random.seed(999)
 

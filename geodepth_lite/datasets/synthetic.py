@@ -25,9 +25,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import camera as cam
-from . import synth
-from .utils import read_npy, read_rgb
+from .. import camera as cam
+from .. import synth
+from ..utils import read_npy, read_rgb
 
 
 def resize_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
