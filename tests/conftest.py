@@ -44,3 +44,14 @@ def save_untrained_checkpoint(path: Path, cfg: dict | None = None) -> Path:
 @pytest.fixture(scope="module")
 def untrained_checkpoint(tmp_path_factory) -> Path:
     return save_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "checkpoint.pt")
+
+
+def one_line_error(capsys, *needles) -> str:
+    """The captured stderr is one ``error:`` line holding every needle, with no traceback; returns it."""
+    err = capsys.readouterr().err.strip().splitlines()
+    errors = [line for line in err if line.startswith("error: ")]
+    assert len(errors) == 1, err
+    assert not any("Traceback" in line for line in err), err
+    for needle in needles:
+        assert str(needle) in errors[0], (needle, errors[0])
+    return errors[0]

@@ -16,21 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import save_untrained_checkpoint
+from conftest import one_line_error, save_untrained_checkpoint
 
 from geodepth_lite import checkpoint, cli, config, datasets, evaluate, synth, train, utils
 from geodepth_lite import manifest as mf
-
-
-def _one_line_error(capsys, *needles):
-    """stderr is one ``error:`` line holding every needle, with no traceback."""
-    err = capsys.readouterr().err.strip().splitlines()
-    errors = [line for line in err if line.startswith("error: ")]
-    assert len(errors) == 1, err
-    assert not any("Traceback" in line for line in err), err
-    for needle in needles:
-        assert str(needle) in errors[0], (needle, errors[0])
-    return errors[0]
 
 
 @pytest.fixture
@@ -63,7 +52,7 @@ def test_synth_on_a_read_only_or_full_disk(tmp_path, monkeypatch, capsys, code, 
     _fail_with(monkeypatch, code, where)
     out = tmp_path / "data"
     assert cli.main(["synth", "--manifest", "scenario_smoke", "--out", str(out), "--no-progress"]) == 2
-    _one_line_error(capsys, "error: cannot write", str(out), reason)
+    one_line_error(capsys, "error: cannot write", str(out), reason)
 
 
 @pytest.mark.parametrize("code, reason, where", [(errno.EROFS, "read-only file system", "mkstemp"),
@@ -75,7 +64,7 @@ def test_train_on_a_read_only_or_full_disk(smoke_root, tmp_path, monkeypatch, ca
             "--no-progress", "--no-verify"]
     assert cli.main(argv) == 2
     # read-only: found by the probe before any work; full: at the first checkpoint's flush
-    _one_line_error(capsys, "error: cannot write", str(run if where == "mkstemp" else run / "checkpoint.pt"), reason)
+    one_line_error(capsys, "error: cannot write", str(run if where == "mkstemp" else run / "checkpoint.pt"), reason)
     assert not (run / "checkpoint.pt").exists()
 
 
@@ -85,7 +74,7 @@ def test_train_into_a_run_dir_that_is_a_file_stops_before_training(smoke_root, t
     argv = ["train", "--profile", "smoke", "--dataset", str(smoke_root), "--image-size", "32", "--run-dir", str(run),
             "--no-progress", "--no-verify"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, "cannot create folder", str(run), "a file of that name exists")
+    one_line_error(capsys, "cannot create folder", str(run), "a file of that name exists")
     assert run.read_text() == "keep me"
 
 
@@ -95,12 +84,12 @@ def test_predict_on_a_read_only_disk_and_into_a_file(smoke_root, tmp_path, monke
     not_a_folder.write_text("keep me")
     argv = ["predict", "--checkpoint", str(untrained_checkpoint), "--input", str(images), "--no-progress"]
     assert cli.main(argv + ["--out", str(not_a_folder)]) == 2
-    _one_line_error(capsys, "cannot create folder", str(not_a_folder), "a file of that name exists")
+    one_line_error(capsys, "cannot create folder", str(not_a_folder), "a file of that name exists")
     assert not_a_folder.read_text() == "keep me"
     _fail_with(monkeypatch, errno.EROFS, "mkstemp")
     out = tmp_path / "pred"
     assert cli.main(argv + ["--out", str(out)]) == 2
-    _one_line_error(capsys, "error: cannot write", str(out), "read-only file system")
+    one_line_error(capsys, "error: cannot write", str(out), "read-only file system")
 
 
 def test_debug_shows_the_traceback(tmp_path, capsys, monkeypatch):
@@ -147,9 +136,9 @@ def test_a_damaged_dataset_file_is_named(smoke_copy, tmp_path, capsys, kind, rea
     argv = ["train", "--profile", "smoke", "--dataset", str(smoke_copy), "--image-size", "32", "--run-dir", str(run),
             "--no-progress"]
     assert cli.main(argv + ["--no-verify"]) == 2  # read during training
-    _one_line_error(capsys, "error: cannot read", str(bad), reason)
+    one_line_error(capsys, "error: cannot read", str(bad), reason)
     assert cli.main(argv) == 2  # caught before training, by the checksums
-    _one_line_error(capsys, bad.name, "--no-verify")
+    one_line_error(capsys, bad.name, "--no-verify")
     assert not (run / "checkpoint.pt").exists()
 
 
@@ -207,12 +196,12 @@ def test_a_nan_checkpoint_is_refused_and_nothing_is_written(smoke_root, tmp_path
     argv = ["predict", "--checkpoint", str(ckpt), "--input", str(smoke_root / "test" / "rgb"), "--out", str(out),
             "--no-progress"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, str(ckpt), "non-finite weights")
+    one_line_error(capsys, str(ckpt), "non-finite weights")
     assert not out.exists() or not any(out.iterdir())
     argv = ["evaluate", "--checkpoint", str(ckpt), "--dataset", str(smoke_root), "--out", str(tmp_path / "eval"),
             "--no-progress", "--no-verify"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, str(ckpt), "non-finite weights")
+    one_line_error(capsys, str(ckpt), "non-finite weights")
     assert not (tmp_path / "eval").exists()
 
 
@@ -225,7 +214,7 @@ def test_a_model_that_predicts_nan_writes_nothing(smoke_root, tmp_path, capsys, 
     argv = ["predict", "--checkpoint", str(untrained_checkpoint), "--input", str(smoke_root / "test" / "rgb"),
             "--out", str(out), "--no-progress"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, str(untrained_checkpoint), "non-finite depth")
+    one_line_error(capsys, str(untrained_checkpoint), "non-finite depth")
     assert not list(out.glob("*"))
     ds = evaluate.open_eval_dataset(str(smoke_root), split="test")
     with pytest.raises(evaluate.NonFiniteDepth, match="non-finite depth"):

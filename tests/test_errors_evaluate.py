@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_line_error
 
 from geodepth_lite import baselines, checkpoint, cli, evaluate, tables, utils
 
@@ -30,17 +31,6 @@ class RunsCode:
 
     def __reduce__(self):
         return os.mkdir, (str(self.marker),)
-
-
-def _one_line_error(capsys, *needles):
-    """stderr is one ``error:`` line holding every needle, with no traceback."""
-    err = capsys.readouterr().err.strip().splitlines()
-    errors = [line for line in err if line.startswith("error: ")]
-    assert len(errors) == 1, err
-    assert not any("Traceback" in line for line in err), err
-    for needle in needles:
-        assert str(needle) in errors[0], (needle, errors[0])
-    return errors[0]
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
@@ -107,7 +97,7 @@ def test_a_pickled_train_depth_file_is_named_and_never_unpickled(smoke_copy, unt
     assert info.value.path == bad
     out = tmp_path / "eval"
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_copy, out, "--error-maps", "0")) == 2
-    line = _one_line_error(capsys, f"error: cannot read {bad}: {reason}")
+    line = one_line_error(capsys, f"error: cannot read {bad}: {reason}")
     assert "unsafe" not in line and "pickle.load" not in line, line  # no invitation to load it unsafely
     assert not marker.exists()
     assert not out.exists()  # the folder checked before the work is removed again
@@ -122,11 +112,11 @@ def test_out_that_is_a_file_is_refused_before_the_model_loads(smoke_root, untrai
     out = tmp_path / "results.txt"
     out.write_text("keep me")
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out)) == 2
-    _one_line_error(capsys, f"error: cannot write {out}: a file of that name exists")
+    one_line_error(capsys, f"error: cannot write {out}: a file of that name exists")
     assert out.read_text() == "keep me"
     inside = out / "eval"  # a folder under a file: not "not a directory: ..." outside the format either
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, inside)) == 2
-    _one_line_error(capsys, f"error: cannot write {inside}: ")
+    one_line_error(capsys, f"error: cannot write {inside}: ")
     assert out.read_text() == "keep me"
 
 
@@ -141,7 +131,7 @@ def test_a_read_only_out_is_refused_before_the_model_loads(smoke_root, untrained
     monkeypatch.setattr(utils.tempfile, "mkstemp", lambda *a, **k: (_ for _ in ()).throw(
         OSError(errno.EROFS, os.strerror(errno.EROFS))))  # root ignores chmod: a read-only disk simulated
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out)) == 2
-    _one_line_error(capsys, f"error: cannot write {out}: read-only file system")
+    one_line_error(capsys, f"error: cannot write {out}: read-only file system")
     if existing:
         assert _snapshot(out) == {"metrics.json": b"{}\n"}
     else:
@@ -155,7 +145,7 @@ def test_a_full_disk_is_refused_before_the_model_loads(smoke_root, untrained_che
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=2**20))  # 1 MB free
     out = tmp_path / "eval"
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out, "--error-maps", "4")) == 2
-    line = _one_line_error(capsys, f"error: cannot write {out}: no space left on device", "1.0 MB free")
+    line = one_line_error(capsys, f"error: cannot write {out}: no space left on device", "1.0 MB free")
     assert f"{tables.output_bytes_needed(4) / 2**20:.1f} MB needed" in line
     assert not out.exists()
 
@@ -164,7 +154,7 @@ def test_a_run_that_fails_later_removes_the_folder_it_created_only(smoke_root, t
     missing = tmp_path / "missing.pt"
     out = tmp_path / "new" / "eval"
     assert cli.main(_evaluate_argv(missing, smoke_root, out)) == 2
-    _one_line_error(capsys, "checkpoint not found", str(missing))
+    one_line_error(capsys, "checkpoint not found", str(missing))
     assert not (tmp_path / "new").exists()
     kept = tmp_path / "kept"
     kept.mkdir()
@@ -185,7 +175,7 @@ def test_a_full_disk_at_the_second_file_leaves_no_partial_set(smoke_root, untrai
     out = tmp_path / "eval"
     flushed = _fail_nth_file_flush(monkeypatch, 2)
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out, "--error-maps", "2")) == 2
-    _one_line_error(capsys, f"error: cannot write {out / 'frames.csv'}: no space left on device")
+    one_line_error(capsys, f"error: cannot write {out / 'frames.csv'}: no space left on device")
     assert len(flushed) == 2  # metrics.json was written (into staging), frames.csv failed
     assert not out.exists()  # not metrics.json alone, nor a hidden staging folder, nor an empty folder
 
@@ -201,7 +191,7 @@ def test_a_failed_run_keeps_the_earlier_set_whole(smoke_root, untrained_checkpoi
     capsys.readouterr()
     _fail_nth_file_flush(monkeypatch, nth)  # a different run: two error maps, with baselines
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out, "--error-maps", "2")) == 2
-    _one_line_error(capsys, f"error: cannot write {out}", "no space left on device")
+    one_line_error(capsys, f"error: cannot write {out}", "no space left on device")
     assert _snapshot(out) == before  # byte for byte, and no hidden staging folder
 
 
@@ -237,7 +227,7 @@ def test_a_failed_swap_puts_the_earlier_set_back(smoke_root, untrained_checkpoin
 
     monkeypatch.setattr(utils.os, "replace", replace)
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out, "--error-maps", "1", "--flips", "h")) == 2
-    _one_line_error(capsys, f"error: cannot write {out}: input/output error", "the previous results are kept")
+    one_line_error(capsys, f"error: cannot write {out}: input/output error", "the previous results are kept")
     assert _snapshot(out) == before
 
 
@@ -283,7 +273,7 @@ def test_a_crafted_checkpoint_runs_no_code(smoke_root, tmp_path, monkeypatch, ca
                                                                                                                 **kw))
     out = tmp_path / "eval"
     assert cli.main(_evaluate_argv(ckpt, smoke_root, out)) == 2
-    _one_line_error(capsys, f"checkpoint {ckpt}")
+    one_line_error(capsys, f"checkpoint {ckpt}")
     assert read == [ckpt]  # evaluate reads checkpoints through checkpoint.read_checkpoint only
     assert not marker.exists()
     assert not out.exists()

@@ -18,19 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import save_untrained_checkpoint
+from conftest import one_line_error, save_untrained_checkpoint
 
 from geodepth_lite import checkpoint, cli, config, integrity, reproduce, synth, train, utils
-
-
-def _one_line_error(capsys, *needles) -> str:
-    err = capsys.readouterr().err.strip().splitlines()
-    errors = [line for line in err if line.startswith("error: ")]
-    assert len(errors) == 1, err
-    assert not any("Traceback" in line for line in err), err
-    for needle in needles:
-        assert str(needle) in errors[0], (needle, errors[0])
-    return errors[0]
 
 
 def _smoke_cfg(root, **kw):
@@ -94,7 +84,7 @@ def test_no_command_or_loader_runs_code_from_a_checkpoint(smoke_root, tmp_path, 
         commands["train --resume"] = _train_argv(smoke_root, ckpt.parent, "--resume")
     for name, argv in commands.items():
         assert cli.main(argv) == 2, name
-        _one_line_error(capsys, str(ckpt), "refused")
+        one_line_error(capsys, str(ckpt), "refused")
         assert not marker.exists(), name
     # the notebooks' loaders: load_model, and the run cache that reads a finished run's file
     with pytest.raises(ValueError, match="could run code"):
@@ -127,7 +117,7 @@ def test_a_first_format_checkpoint_is_refused_then_converted_and_resumes_identic
     with pytest.raises(checkpoint.OldCheckpoint, match="convert-checkpoint"):
         checkpoint.read_checkpoint(path)
     assert cli.main(_train_argv(smoke_root, run, "--resume")) == 2
-    _one_line_error(capsys, str(path), "first checkpoint format", "convert-checkpoint")
+    one_line_error(capsys, str(path), "first checkpoint format", "convert-checkpoint")
 
     assert cli.main(["convert-checkpoint", str(tmp_path)]) == 0
     out = capsys.readouterr().out
@@ -146,7 +136,7 @@ def test_a_checkpoint_missing_tensors_is_named(smoke_root, tmp_path, capsys):
     argv = ["predict", "--checkpoint", str(ckpt), "--input", str(smoke_root / "test" / "rgb"),
             "--out", str(tmp_path / "pred"), "--no-progress"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, str(ckpt), "1 missing tensor(s)", dropped)
+    one_line_error(capsys, str(ckpt), "1 missing tensor(s)", dropped)
 
 
 # --------------------------------------------------------------------------- one writer per run folder
@@ -177,7 +167,7 @@ def test_a_second_writer_is_refused_and_a_killed_holder_frees_the_folder(smoke_r
     holder = _hold_lock(run)
     try:
         assert cli.main(_train_argv(smoke_root, run, "--resume")) == 2
-        _one_line_error(capsys, str(run), f"in use by process {holder.pid}")
+        one_line_error(capsys, str(run), f"in use by process {holder.pid}")
         assert stale.exists()  # the other writer's temporary file is not touched
         assert (run / "checkpoint.pt").read_bytes() == before
     finally:
@@ -234,7 +224,7 @@ def test_diverged_training_stops_at_the_first_non_finite_loss(smoke_root, tmp_pa
     monkeypatch.setattr(train, "compute_losses", blow_up)
     monkeypatch.setattr(train, "term_gradient_norms", lambda *a: {})
     assert cli.main(_train_argv(smoke_root, run, "--resume")) == 2
-    line = _one_line_error(capsys, str(run), "epoch 2, step 3 of", "smooth", "learning rate 0.0001")
+    line = one_line_error(capsys, str(run), "epoch 2, step 3 of", "smooth", "learning rate 0.0001")
     assert "checkpoint.pt (epoch 1) is kept" in line
     assert (run / "checkpoint.pt").read_bytes() == kept
 
@@ -251,7 +241,7 @@ def test_diverged_weights_are_caught_before_validation(smoke_root, tmp_path, cap
     monkeypatch.setattr(train.Trainer, "step", last_step_breaks)
     run = tmp_path / "run"
     assert cli.main(_train_argv(smoke_root, run)) == 2
-    line = _one_line_error(capsys, "training diverged", "weights became non-finite", "no checkpoint was written")
+    line = one_line_error(capsys, "training diverged", "weights became non-finite", "no checkpoint was written")
     assert "epoch 1, step 3 of 3" in line
     assert not run.exists()  # a run that wrote nothing leaves no folder
 
@@ -270,7 +260,7 @@ def test_an_unwritable_run_folder_is_found_before_the_dataset_check(smoke_root, 
     run = tmp_path / "run"
     argv = [a for a in _train_argv(smoke_root, run) if a != "--no-verify"]
     assert cli.main(argv) == 2
-    _one_line_error(capsys, f"cannot write into {run}", "read-only file system")
+    one_line_error(capsys, f"cannot write into {run}", "read-only file system")
     assert not checked and not run.exists()
 
 
@@ -283,14 +273,14 @@ def test_a_full_disk_is_found_before_the_first_epoch(smoke_root, tmp_path, capsy
     monkeypatch.setattr(train.Trainer, "run_epoch", lambda self, e: epochs.append(e))
     run = tmp_path / "run"
     assert cli.main(_train_argv(smoke_root, run)) == 2
-    _one_line_error(capsys, f"cannot write into {run}", "no space left", "1.0 MB free")
+    one_line_error(capsys, f"cannot write into {run}", "no space left", "1.0 MB free")
     assert not epochs and not run.exists()
 
 
 def test_resume_without_a_checkpoint_is_refused(smoke_root, tmp_path, capsys):
     run = tmp_path / "empty-run"
     assert cli.main(_train_argv(smoke_root, run, "--resume")) == 2
-    _one_line_error(capsys, str(run), "no checkpoint to continue")
+    one_line_error(capsys, str(run), "no checkpoint to continue")
     assert not run.exists()
 
 
