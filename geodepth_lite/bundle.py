@@ -68,29 +68,28 @@ def make_bundle(profile: str, out: str | Path | None = None) -> Path:
     if not runs:
         raise FileNotFoundError(f"no complete run under {utils.runs_dir() / profile / 'checkpoints'}: "
                                 f"run `python -m geodepth_lite reproduce --profile {profile}` first")
-    members: dict[str, bytes] = {}
-    datasets: set[str] = set()
-    for folder in runs:
-        members[f"checkpoints/{folder.name}/{checkpoint.CHECKPOINT_NAME}"] = stripped_checkpoint(
-            folder / checkpoint.CHECKPOINT_NAME)
-        for name in RUN_FILES[1:]:
-            if (folder / name).is_file():
-                members[f"checkpoints/{folder.name}/{name}"] = (folder / name).read_bytes()
-        datasets.add(str(checkpoint.read_checkpoint(folder / checkpoint.CHECKPOINT_NAME)["cfg"]["dataset"]))
-    for name in sorted(datasets):
-        if Path(name).is_dir():  # a dataset folder given by path: its own manifest.json travels with it
-            continue
-        path = mf.manifest_path(name)
-        members[f"manifests/{path.name}"] = path.read_bytes()
-    index = {"format": BUNDLE_FORMAT, "profile": profile, "runs": [f.name for f in runs],
-             "files": {name: _sha256(data) for name, data in members.items()}}
     target = Path(out) if out else utils.workspace() / f"{profile}-models.zip"
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        zf.writestr(INDEX, json.dumps(index, indent=1) + "\n")
-        for name, data in members.items():
+    files: dict[str, str] = {}
+    datasets: set[str] = set()
+    with utils.atomic_path(target) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        def add(name: str, data: bytes) -> None:  # one member at a time: the bundle never sits in memory whole
             zf.writestr(name, data)
-    utils.write_bytes_atomic(target, buf.getvalue())
+            files[name] = _sha256(data)
+
+        for folder in runs:
+            add(f"checkpoints/{folder.name}/{checkpoint.CHECKPOINT_NAME}",
+                stripped_checkpoint(folder / checkpoint.CHECKPOINT_NAME))
+            for name in RUN_FILES[1:]:
+                if (folder / name).is_file():
+                    add(f"checkpoints/{folder.name}/{name}", (folder / name).read_bytes())
+            datasets.add(str(checkpoint.read_checkpoint(folder / checkpoint.CHECKPOINT_NAME)["cfg"]["dataset"]))
+        for name in sorted(datasets):
+            if Path(name).is_dir():  # a dataset folder given by path: its own manifest.json travels with it
+                continue
+            path = mf.manifest_path(name)
+            add(f"manifests/{path.name}", path.read_bytes())
+        index = {"format": BUNDLE_FORMAT, "profile": profile, "runs": [f.name for f in runs], "files": files}
+        zf.writestr(INDEX, json.dumps(index, indent=1) + "\n")
     return target
 
 
