@@ -41,6 +41,18 @@ def save_untrained_checkpoint(path: Path, cfg: dict | None = None) -> Path:
     return path
 
 
+def save_nan_checkpoint(path: Path) -> Path:
+    """An untrained checkpoint (``save_untrained_checkpoint``) with one weight tensor set to NaN."""
+    import torch
+
+    save_untrained_checkpoint(path)
+    state = torch.load(path, weights_only=True)
+    key = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][key] = state["model"][key].clone().fill_(float("nan"))
+    torch.save(state, path)
+    return path
+
+
 @pytest.fixture(scope="module")
 def untrained_checkpoint(tmp_path_factory) -> Path:
     return save_untrained_checkpoint(tmp_path_factory.mktemp("ckpt") / "checkpoint.pt")

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import one_line_error, save_untrained_checkpoint
+from conftest import one_line_error, save_nan_checkpoint
 
 from geodepth_lite import checkpoint, cli, config, datasets, evaluate, synth, train, utils
 from geodepth_lite import manifest as mf
@@ -185,11 +185,7 @@ def test_an_all_nan_ground_truth_frame_is_skipped_and_named(smoke_copy, tmp_path
 
 
 def test_a_nan_checkpoint_is_refused_and_nothing_is_written(smoke_root, tmp_path, capsys):
-    ckpt = save_untrained_checkpoint(tmp_path / "nan.pt")
-    state = torch.load(ckpt, weights_only=False)
-    key = next(k for k, v in state["model"].items() if v.is_floating_point())
-    state["model"][key] = state["model"][key].clone().fill_(float("nan"))
-    torch.save(state, ckpt)
+    ckpt = save_nan_checkpoint(tmp_path / "nan.pt")
     with pytest.raises(ValueError, match="non-finite weights"):
         checkpoint.load_model(ckpt)
     out = tmp_path / "pred"

@@ -18,8 +18,7 @@ from types import SimpleNamespace
 import imageio.v3 as iio
 import numpy as np
 import pytest
-import torch
-from conftest import save_untrained_checkpoint
+from conftest import save_nan_checkpoint
 from PIL import Image
 
 from geodepth_lite import checkpoint, cli, predict, recon, utils
@@ -370,11 +369,7 @@ def test_a_broken_link_in_a_folder_is_named_not_skipped(tmp_path, ckpt, capsys):
 
 
 def test_refused_runs_leave_no_output_folder(tmp_path, ckpt, capsys):
-    nan_ckpt = save_untrained_checkpoint(tmp_path / "nan.pt")
-    state = torch.load(nan_ckpt, weights_only=False)
-    key = next(k for k, v in state["model"].items() if v.is_floating_point())
-    state["model"][key] = state["model"][key].clone().fill_(float("nan"))
-    torch.save(state, nan_ckpt)
+    nan_ckpt = save_nan_checkpoint(tmp_path / "nan.pt")
     src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
     (tmp_path / "bad.mp4").write_bytes(b"not a video" * 100)
     runs = {"non-finite weights": (nan_ckpt, src),  # refused after --out was made: removed again
