@@ -39,57 +39,60 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def stripped_checkpoint(path: Path) -> bytes:
-    """A complete checkpoint's bytes without optimizer, scaler, schedule and random state."""
-    ckpt = checkpoint.read_checkpoint(path)
-    if not ckpt.get("complete"):
-        raise ValueError(f"checkpoint {path} is not complete: finish the run (reproduce) before bundling it")
+def stripped(ckpt: dict) -> bytes:
+    """A checkpoint's bytes without optimizer, scaler, schedule and random state."""
     buf = io.BytesIO()
     torch.save({k: v for k, v in ckpt.items() if k in KEEP}, buf)
     return buf.getvalue()
 
 
-def complete_runs(profile: str) -> list[Path]:
-    """The run folders of ``profile`` whose checkpoint finished training, sorted by name."""
+def run_folders(profile: str) -> list[Path]:
+    """The run folders of ``profile`` that hold a checkpoint, sorted by name."""
     root = utils.runs_dir() / profile / "checkpoints"
-    runs = []
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []:
-        path = folder / checkpoint.CHECKPOINT_NAME
-        if path.is_file() and checkpoint.read_checkpoint(path).get("complete"):
-            runs.append(folder)
-    return runs
+    folders = sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+    return [f for f in folders if (f / checkpoint.CHECKPOINT_NAME).is_file()]
+
+
+class _NothingToPack(Exception):
+    """No complete run was found while packing (not an OSError, so the atomic write does not wrap it)."""
 
 
 def make_bundle(profile: str, out: str | Path | None = None) -> Path:
     """Pack every complete run of ``profile`` into a zip file (default ``<profile>-models.zip`` in
-    the workspace); returns its path."""
+    the workspace); returns its path. Each checkpoint is read once; unfinished runs are left out."""
     config.get_profile(profile)
-    runs = complete_runs(profile)
-    if not runs:
-        raise FileNotFoundError(f"no complete run under {utils.runs_dir() / profile / 'checkpoints'}: "
-                                f"run `python -m geodepth_lite reproduce --profile {profile}` first")
     target = Path(out) if out else utils.workspace() / f"{profile}-models.zip"
     files: dict[str, str] = {}
+    runs: list[str] = []
     datasets: set[str] = set()
-    with utils.atomic_path(target) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        def add(name: str, data: bytes) -> None:  # one member at a time: the bundle never sits in memory whole
-            zf.writestr(name, data)
-            files[name] = _sha256(data)
+    try:
+        with utils.atomic_path(target) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            def add(name: str, data: bytes) -> None:  # one member at a time: the bundle never sits in memory whole
+                zf.writestr(name, data)
+                files[name] = _sha256(data)
 
-        for folder in runs:
-            add(f"checkpoints/{folder.name}/{checkpoint.CHECKPOINT_NAME}",
-                stripped_checkpoint(folder / checkpoint.CHECKPOINT_NAME))
-            for name in RUN_FILES[1:]:
-                if (folder / name).is_file():
-                    add(f"checkpoints/{folder.name}/{name}", (folder / name).read_bytes())
-            datasets.add(str(checkpoint.read_checkpoint(folder / checkpoint.CHECKPOINT_NAME)["cfg"]["dataset"]))
-        for name in sorted(datasets):
-            if Path(name).is_dir():  # a dataset folder given by path: its own manifest.json travels with it
-                continue
-            path = mf.manifest_path(name)
-            add(f"manifests/{path.name}", path.read_bytes())
-        index = {"format": BUNDLE_FORMAT, "profile": profile, "runs": [f.name for f in runs], "files": files}
-        zf.writestr(INDEX, json.dumps(index, indent=1) + "\n")
+            for folder in run_folders(profile):
+                ckpt = checkpoint.read_checkpoint(folder / checkpoint.CHECKPOINT_NAME)
+                if not ckpt.get("complete"):
+                    continue
+                runs.append(folder.name)
+                add(f"checkpoints/{folder.name}/{checkpoint.CHECKPOINT_NAME}", stripped(ckpt))
+                for name in RUN_FILES[1:]:
+                    if (folder / name).is_file():
+                        add(f"checkpoints/{folder.name}/{name}", (folder / name).read_bytes())
+                datasets.add(str(ckpt["cfg"]["dataset"]))
+            if not runs:  # leave the block: its temporary file is removed, nothing is written
+                raise _NothingToPack
+            for name in sorted(datasets):
+                if Path(name).is_dir():  # a dataset folder given by path: its own manifest.json travels with it
+                    continue
+                path = mf.manifest_path(name)
+                add(f"manifests/{path.name}", path.read_bytes())
+            zf.writestr(INDEX, json.dumps({"format": BUNDLE_FORMAT, "profile": profile, "runs": runs, "files": files},
+                                          indent=1) + "\n")
+    except _NothingToPack:
+        raise FileNotFoundError(f"no complete run under {utils.runs_dir() / profile / 'checkpoints'}: "
+                                f"run `python -m geodepth_lite reproduce --profile {profile}` first") from None
     return target
 
 
