@@ -74,6 +74,25 @@ def save_figure(fig, run_dir: str | os.PathLike, name: str, dpi: int = 100) -> P
     return path
 
 
+def save_record(run_dir: str | os.PathLike, name: str, record: dict[str, float]) -> Path:
+    """Write a notebook's results record (every number that comes from trained weights, flat
+    ``{key: number}``) to ``records/<name>.json`` under ``run_dir``, and say so in one line.
+
+    ``tests/test_results.py`` compares it with the committed ``notebooks/records/<name>.json``
+    within tolerances (trained weights differ between computers), so the notebook itself prints
+    no long dump of numbers.
+    """
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"record name must be a plain file name, got {name!r}")
+    bad = [k for k, v in record.items() if isinstance(v, bool) or not isinstance(_plain(v), (int, float))]
+    if bad:
+        raise ValueError(f"record {name!r}: entries must be numbers, not {bad[:3]}")
+    path = Path(run_dir) / "records" / f"{name}.json"
+    utils.write_json_atomic(path, {k: _plain(record[k]) for k in sorted(record)})
+    print(f"results record: {len(record)} numbers written to records/{name}.json in the run folder")
+    return path
+
+
 def _plain(x: Any) -> Any:
     """JSON-friendly cell: numpy scalars to python numbers."""
     if hasattr(x, "item") and callable(x.item):

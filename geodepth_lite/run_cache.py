@@ -17,9 +17,29 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from geodepth_lite import checkpoint, config, utils
+from geodepth_lite import checkpoint, config, manifest, utils
 from geodepth_lite.datasets import resolve_dataset
 from geodepth_lite.train import fit
+
+# one thread, 64 x 64 input, one training frame forward + backward with every loss term plus its
+# share of validation: a teach ablation run (8 epochs x 600 frames) takes about 1.5 min on a
+# 2-core laptop-class CPU (docs/timings.md). Time grows with the pixel count of the padded input.
+SECONDS_PER_FRAME_64 = 0.019
+
+
+def estimated_minutes(cfg: dict) -> float:
+    """About how many minutes training ``cfg`` takes on one core of a laptop-class CPU."""
+    m = manifest.load_manifest(cfg["dataset"], cfg.get("dataset_overrides"))
+    frames = cfg.get("train_frames") or m["splits"]["train"]
+    side = cfg["image_size"] + 2 * cfg.get("input_pad", 0)
+    return cfg["epochs"] * frames * SECONDS_PER_FRAME_64 * (side / 64) ** 2 / 60
+
+
+def _announce(what: str, minutes: float) -> None:
+    """Say before a notebook starts training, so a reader knows the wait is expected."""
+    when = "under a minute" if minutes < 1 else f"about {minutes:.0f} min"
+    print(f"{what}: no finished run found, training it now ({when} on a 2-core laptop CPU; "
+          "a class bundle or `reproduce` skips this)", flush=True)
 
 
 def checkpoint_dir(profile: str, case: int = 4, seed: int = 0, **overrides: Any) -> Path:
@@ -39,9 +59,10 @@ def is_complete(profile: str, case: int, seed: int, **overrides: Any) -> bool:
 
 
 def ensure_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: bool = False,
-                      **overrides: Any) -> Path:
+                      announce: bool = True, **overrides: Any) -> Path:
     """The checkpoint of ``case``/``seed`` under ``profile``: reused when a run with the same
-    configuration finished, continued when it was interrupted, trained otherwise."""
+    configuration finished, continued when it was interrupted, trained otherwise (said first,
+    with the expected minutes, unless ``announce`` is False)."""
     cfg = config.make_config(profile, case, seed, **overrides)
     run_dir = checkpoint_dir(profile, case, seed, **overrides)
     path = run_dir / checkpoint.CHECKPOINT_NAME
@@ -49,6 +70,8 @@ def ensure_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: b
         ckpt = checkpoint.read_checkpoint(path)
         if ckpt.get("complete") and config.config_identity(ckpt["cfg"]) == config.config_identity(cfg):
             return path
+    if announce:
+        _announce(f"Case {case}, seed {seed} ({profile}, {cfg['image_size']} px)", estimated_minutes(cfg))
     return fit(cfg, run_dir, resume=True, progress=progress)
 
 
@@ -66,7 +89,7 @@ def predict_settings(profile: str) -> dict:
 
 
 def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: int | None = None,
-                       **overrides: Any) -> dict[tuple[int, int], Path]:
+                       progress: bool = False, **overrides: Any) -> dict[tuple[int, int], Path]:
     """``ensure_checkpoint`` for several (case, seed) runs, trained side by side in processes.
 
     With a fixed per-run thread count (``threads`` in the profile) each run gives the same
@@ -74,7 +97,7 @@ def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: in
     cpu_count // threads. Returns {(case, seed): checkpoint path}.
     """
     runs = [(int(c), int(s)) for c, s in runs]
-    paths = ensure_runs(profile, [(c, s, overrides) for c, s in runs], workers=workers)
+    paths = ensure_runs(profile, [(c, s, overrides) for c, s in runs], workers=workers, progress=progress)
     return dict(zip(runs, paths))
 
 
@@ -102,14 +125,18 @@ def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int
         if workers is None:
             workers = max(1, (os.cpu_count() or 1) // threads) if threads else 1
         workers = max(1, min(workers, len(todo)))
+        minutes = sorted((estimated_minutes(cfg) for cfg in cfgs), reverse=True)
+        _announce(f"{len(todo)} of {len(runs)} runs ({profile}), {workers} side by side",
+                  max(minutes[0], sum(minutes) / workers))
         order = sorted(range(len(todo)), key=lambda i: -cfgs[i]["image_size"])
         if workers == 1:
             for i in order:
                 c, s, o = todo[i]
-                ensure_checkpoint(profile, c, s, progress=progress, **o)
+                ensure_checkpoint(profile, c, s, progress=progress, announce=False, **o)
         else:
             with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                futures = [pool.submit(ensure_checkpoint, profile, *todo[i][:2], **todo[i][2]) for i in order]
+                futures = [pool.submit(ensure_checkpoint, profile, *todo[i][:2], announce=False, **todo[i][2])
+                           for i in order]
                 for f in tqdm(as_completed(futures), total=len(futures), disable=not progress,
                               desc=f"training {len(futures)} runs, {workers} side by side"):
                     f.result()

@@ -13,9 +13,14 @@ from scipy.ndimage import gaussian_filter
 from . import camera as cam
 from .metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask
 
+DEPTH_CMAP = "magma_r"  # the workbook's one depth convention: near = bright, far = dark (as the paper's figures)
+ERROR_CMAP = "inferno"  # error maps: 0 = black, large = bright
+CBAR = dict(fraction=0.046, pad=0.02)  # colour bars as tall as their panel
+
 
 def colorize_depth(depth, vmin=None, vmax=None, cmap: str = "magma") -> np.ndarray:
-    """H x W depth -> H x W x 3 uint8 through a matplotlib colormap (near = bright).
+    """H x W depth -> H x W x 3 uint8 through a matplotlib colormap, reversed so that near = bright
+    (the workbook's convention, :data:`DEPTH_CMAP`; :func:`relative_depth_colorbar` is its colour bar).
 
     vmin/vmax default to the 2nd/98th percentiles of the valid (finite, > 0) pixels;
     invalid pixels are black. Accepts numpy or torch (1 x H x W or H x W).
@@ -37,6 +42,64 @@ def colorize_depth(depth, vmin=None, vmax=None, cmap: str = "magma") -> np.ndarr
     out = (rgba[..., :3] * 255.0 + 0.5).astype(np.uint8)
     out[~valid] = 0
     return out
+
+
+def depth_range(depth, lo_pct: float = 2.0, hi_pct: float = 98.0) -> tuple[float, float]:
+    """The 2nd and 98th percentiles of the valid (finite, > 0) pixels: the default colour range."""
+    d = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    if not valid.any():
+        return 0.0, 1.0
+    return float(np.percentile(d[valid], lo_pct)), float(np.percentile(d[valid], hi_pct))
+
+
+def show_depth(ax, depth, vmin=None, vmax=None, *, label: str = "z-depth", colorbar: bool = True):
+    """Draw a depth map in the workbook's convention (:data:`DEPTH_CMAP`, near = bright) with a colour
+    bar that states its clip: the 2nd-98th percentile by default, else ``vmin``-``vmax``.
+    Invalid pixels (not finite, <= 0) are black. Returns the image artist."""
+    import matplotlib  # heavy, needed only for its colour maps
+
+    d = np.squeeze(np.asarray(depth, dtype=np.float64))
+    auto = vmin is None and vmax is None
+    lo, hi = depth_range(d)
+    vmin, vmax = (lo if vmin is None else float(vmin)), (hi if vmax is None else float(vmax))
+    cmap = matplotlib.colormaps[DEPTH_CMAP].with_extremes(bad="black")
+    im = ax.imshow(np.ma.masked_where(~(np.isfinite(d) & (d > 0)), d), cmap=cmap, vmin=vmin, vmax=vmax)
+    ax.set_xticks([]), ax.set_yticks([])
+    if colorbar:
+        cb = ax.figure.colorbar(im, ax=ax, extend="both", **CBAR)
+        clip = "2nd-98th percentile" if auto else f"{vmin:.3g}-{vmax:.3g}"
+        cb.set_label(f"{label}, near = bright\n(clipped to {clip})", fontsize=7)
+        cb.ax.tick_params(labelsize=7)
+    return im
+
+
+def show_error(ax, err, vmax: float, *, label: str = "Abs Rel error"):
+    """Draw an error map (:data:`ERROR_CMAP`, NaN = black) with a colour bar clipped at ``vmax``,
+    the clip written on the bar. Returns the image artist."""
+    import matplotlib  # heavy, needed only for its colour maps
+
+    cmap = matplotlib.colormaps[ERROR_CMAP].with_extremes(bad="black")
+    im = ax.imshow(np.ma.masked_invalid(np.asarray(err, dtype=np.float64)), cmap=cmap, vmin=0, vmax=vmax)
+    ax.set_xticks([]), ax.set_yticks([])
+    cb = ax.figure.colorbar(im, ax=ax, extend="max", **CBAR)
+    cb.set_label(f"{label}\n(clipped at {vmax:g})", fontsize=7)
+    cb.ax.tick_params(labelsize=7)
+    return im
+
+
+RELATIVE_LABEL = "depth, each panel from its own\n2nd (near) to 98th (far) percentile"
+
+
+def relative_depth_colorbar(fig, axes, label: str = RELATIVE_LABEL):
+    """One colour bar for panels drawn with :func:`colorize_depth` (each scaled to its own range)."""
+    import matplotlib  # heavy, needed only for its colour maps
+
+    sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, 1), cmap=DEPTH_CMAP)
+    cb = fig.colorbar(sm, ax=axes, extend="both", fraction=0.03, pad=0.02, ticks=[0, 1])
+    cb.ax.set_yticklabels(["near", "far"], fontsize=7)
+    cb.set_label(label, fontsize=7)
+    return cb
 
 
 # ----------------------------------------------------------------------------- shape index (Fig. 5)
@@ -140,6 +203,7 @@ def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: lis
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
+    relative_depth_colorbar(fig, axes[1::2].ravel().tolist())
     return fig
 
 
@@ -286,16 +350,18 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
         finite = gt[np.isfinite(gt) & (gt > min_depth)]
         vmin, vmax = (np.percentile(finite, 2), np.percentile(finite, 98)) if finite.size else (0, 1)
         preds = ex.get("preds") or {"prediction": ex["pred"]}
-        panels = [("input", ex["image"], {}), ("ground truth", gt, dict(cmap="magma_r", vmin=vmin, vmax=vmax))]
-        panels += [(k, v, dict(cmap="magma_r", vmin=vmin, vmax=vmax)) for k, v in preds.items()]
+        panels = [("input", ex["image"]), ("ground truth", gt), *preds.items()]
         if "error" in cols:
             last = list(preds.values())[-1]
-            panels.append(("Abs Rel error", abs_rel_map(last, gt, ex.get("valid"), min_depth, max_depth),
-                           dict(cmap="inferno", vmin=0, vmax=err_max)))
-        for j, (title, img, kw) in enumerate(panels):
+            panels.append(("Abs Rel error", abs_rel_map(last, gt, ex.get("valid"), min_depth, max_depth)))
+        for j, (title, img) in enumerate(panels):
             ax = axes[i, j]
-            ax.imshow(np.clip(img, 0, 1) if title == "input" else img, **kw)
-            ax.set_xticks([]), ax.set_yticks([])
+            if title == "input":
+                ax.imshow(np.clip(img, 0, 1)), ax.set_xticks([]), ax.set_yticks([])
+            elif title == "Abs Rel error":
+                show_error(ax, img, err_max)
+            else:  # depth panels share the ground truth's range; the last one carries the colour bar
+                show_depth(ax, img, vmin, vmax, colorbar=j == len(preds) + 1)
             if i == 0:
                 ax.set_title(title, fontsize=9)
         if row_labels:
@@ -313,11 +379,11 @@ def border_map_figure(maps: dict, title: str = ""):
     lim = float(np.nanmax(np.abs(maps["signed"]))) or 1.0
     im = axes[0].imshow(maps["signed"], cmap="RdBu_r", vmin=-lim, vmax=lim)
     axes[0].set_title("mean signed log error\n(red: too far, blue: too near)")
-    fig.colorbar(im, ax=axes[0], fraction=0.046)
-    im = axes[1].imshow(maps["abs"], cmap="magma", vmin=0)
+    fig.colorbar(im, ax=axes[0], fraction=0.046).set_label("log(pred / gt), mean over frames", fontsize=8)
+    im = axes[1].imshow(maps["abs"], cmap=ERROR_CMAP, vmin=0)
     ratios = ", ".join(f"{k} {v:.2f}" for k, v in maps["ratios"].items())
     axes[1].set_title(f"mean |log error|\nborder / centre: {ratios}", fontsize=9)
-    fig.colorbar(im, ax=axes[1], fraction=0.046)
+    fig.colorbar(im, ax=axes[1], fraction=0.046).set_label("|log(pred / gt)|, mean over frames", fontsize=8)
     for ax in axes:
         ax.axis("off")
     if title:

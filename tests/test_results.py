@@ -2,10 +2,12 @@
 
 Trained weights differ between computers (CPU math kernels sum in different orders), so the
 notebook cells that print them are not compared digit by digit by nbval. Each such notebook
-ends with a "# results record" cell printing every one of those numbers as JSON. This test
-executes the notebook on the machine at hand (reusing cached checkpoints, as nbval does next)
-and compares its fresh record with the committed one (when `reproduce` already executed the same
-notebook in this workspace, that run's record is used instead of executing it again):
+ends with a "# results record" cell that writes every one of those numbers to
+`records/<notebook>.json` in its run folder; the committed reference is
+`notebooks/records/<notebook>.json`. This test executes the notebook on the machine at hand
+(reusing cached checkpoints, as nbval does next) and compares its fresh record with the committed
+one (when `reproduce` already executed the same notebook in this workspace, that run's record is
+used instead of executing it again):
 
 - metrics of trained models: |fresh - committed| <= ABS_TOL[metric] + REL_TOL * |committed|;
 - baselines (no training involved): within 1e-3.
@@ -54,8 +56,8 @@ import nbformat
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-NOTEBOOKS = sorted(p for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb")
-                   if "# results record" in p.read_text())
+RECORDS = ROOT / "notebooks" / "records"
+NOTEBOOKS = sorted(p for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb") if (RECORDS / f"{p.stem}.json").exists())
 BASELINE_KEYS = ("constant", "mean_depth_map", "shading_prior")
 REL_TOL = 0.05
 DEFAULT_ABS_TOL = 0.045  # other numbers of the records (notebook 07: one frame's Abs Rel, wall errors)
@@ -66,12 +68,16 @@ PAIRED_TOL = 8.5  # percentage points, for the ends of notebook 05's paired inte
 ABS_TOL = {"abs_rel": 0.01, "sq_rel": 0.02, "rmse": 0.05, "rmse_log": 0.015, "a1": 0.02, "a2": 0.015, "a3": 0.01}
 
 
-def record_of(nb) -> dict:
-    for cell in nb.cells:
-        if cell.cell_type == "code" and cell.source.lstrip().startswith("# results record"):
-            text = "".join(o.get("text", "") for o in cell.get("outputs", []) if o.get("name") == "stdout")
-            return json.loads(text)
-    raise AssertionError("no '# results record' cell with output")
+def committed_record(path: Path) -> dict:
+    """The committed reference record of notebook ``path``."""
+    return json.loads((RECORDS / f"{path.stem}.json").read_text())
+
+
+def record_in(run_dir: Path, path: Path) -> dict:
+    """The record an execution of notebook ``path`` wrote into its run folder."""
+    rec = Path(run_dir) / "records" / f"{path.stem}.json"
+    assert rec.is_file(), f"{path.name} wrote no results record {rec.name}: its last cell calls notebook.save_record"
+    return json.loads(rec.read_text())
 
 
 def reproduced_copy(path: Path, nb):
@@ -153,7 +159,10 @@ def test_a_verdict_may_change_only_where_its_interval_ends_near_zero():
 
 
 def test_records_exist():
-    assert {p.name[:2] for p in NOTEBOOKS} >= {"04", "05", "06"}
+    assert {p.name[:2] for p in NOTEBOOKS} >= {"04", "05", "06", "07"}
+    for p in NOTEBOOKS:  # the notebook writes its record in a cell of its own
+        cells = [c for c in nbformat.read(str(p), as_version=4).cells if c.cell_type == "code"]
+        assert any(c.source.lstrip().startswith("# results record") and f'"{p.stem}"' in c.source for c in cells)
 
 
 def use_real_workspace(monkeypatch) -> None:
@@ -185,14 +194,18 @@ def test_record_matches_committed(path, tmp_path, monkeypatch, teach_models):
 
     use_real_workspace(monkeypatch)
     nb = nbformat.read(str(path), as_version=4)
-    committed = record_of(nb)
+    committed = committed_record(path)
     done = reproduced_copy(path, nb)
     if done is None:  # else `reproduce` executed this very notebook on this machine: use its outputs
         out = tmp_path / path.name
         pm.execute_notebook(str(path), str(out), parameters={"run_dir": str(tmp_path / "run")},
                             kernel_name="python3", progress_bar=False, cwd=str(path.parent))
         done = nbformat.read(str(out), as_version=4)
-    fresh = record_of(done)
+        fresh = record_in(tmp_path / "run", path)
+    else:
+        from geodepth_lite import reproduce
+
+        fresh = record_in(reproduce.resolve_run_dir("teach"), path)
     assert sorted(fresh) == sorted(committed), "the record's entries changed: re-execute the notebook"
     bad = [f"{k}: committed {committed[k]}, now {fresh[k]} (tolerance {tolerance(k, committed[k]):.3f})"
            for k in committed if abs(fresh[k] - committed[k]) > tolerance(k, committed[k])]
