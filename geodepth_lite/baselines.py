@@ -67,7 +67,10 @@ def _resize_depth(depth: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 def constant_depth(images: Any) -> np.ndarray:
     """Depth 1 everywhere: the floor any model must clear, since median scaling turns it into
-    the frame's median ground-truth depth (its Abs Rel is the spread of the depths alone)."""
+    the frame's median ground-truth depth (its Abs Rel is the spread of the depths alone).
+
+    Explained with its formula in notebook 04, "The three baselines as formulas".
+    """
     x = _images(images)
     return np.ones((x.shape[0], x.shape[2], x.shape[3]), dtype=np.float32)
 
@@ -79,6 +82,7 @@ def mean_depth_map(train_depths: Iterable | np.ndarray, valid: Iterable | np.nda
     train_depths: N x H x W (or N x 1 x H x W) array/tensor, or any iterable of H x W maps
     (streamed: only the running sum and count are kept). ``valid``: the same, boolean.
     A model that only learned the average scene layout would score like this map.
+    Explained with its formula in notebook 04, "The three baselines as formulas".
     """
     total = count = None
     valids = iter(valid) if valid is not None else None
@@ -137,7 +141,10 @@ def shading_prior(images: Any, sigma: float = 2.0) -> np.ndarray:
     ``sigma`` px (0: no blur). With the light at the lens, brightness ~ albedo / distance^2, so
     this is the depth a "darker is farther" model gets without learning anything. Gray is
     clipped below at ``SHADING_EPS_REL`` x the frame's brightest pixel (black pixels then lie
-    at most ~32x farther than the brightest); an all-black frame gets a constant depth."""
+    at most ~32x farther than the brightest); an all-black frame gets a constant depth.
+
+    Explained with its formula in notebook 04, "The three baselines as formulas".
+    """
     x = _images(images).astype(np.float64)
     gray = np.tensordot(np.asarray(LUMA_WEIGHTS), x, axes=([0], [1]))  # N x H x W
     if sigma > 0:

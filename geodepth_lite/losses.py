@@ -69,6 +69,8 @@ def border_weight_map(height: int, width: int, beta: float, like: torch.Tensor |
     network sees less context at the border and its error there is larger (notebook 06's border
     map; docs/teach_recipe.md); weighting those pixels more spends more of its effort there.
     Notebook 04 ("What the network minimises") writes the weight out as an equation.
+
+    Explained with its equation in notebook 04, "What the network minimises" (the border weight w_p).
     """
     if not beta >= 0:
         raise ValueError(f"border weight must be a non-negative number, got {beta!r}")
@@ -96,7 +98,10 @@ def depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None =
                weight: torch.Tensor | None = None) -> torch.Tensor:
     """L_depth = || D_pred - D_gt ||_1, as the mean absolute difference over valid pixels (Sec. 3.C, Eq. 1).
 
-    ``weight``: optional per-pixel weights (e.g. :func:`border_weight_map`); the mean becomes weighted."""
+    ``weight``: optional per-pixel weights (e.g. :func:`border_weight_map`); the mean becomes weighted.
+
+    Explained with its equation in notebook 03, section 1 (Eq. 1).
+    """
     gt_safe, valid = _prepare(pred, gt, mask)
     return masked_mean((pred - gt_safe).abs(), valid, weight)
 
@@ -127,6 +132,8 @@ def silog_depth_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | 
     keeps the scale anchored. Mean over the frames that have valid pixels. ``weight``: optional
     per-pixel weights (e.g. :func:`border_weight_map`): the per-frame means become weighted means.
     Notebook 04 ("What the network minimises") writes it out as an equation.
+
+    Explained with its equation in notebook 04, "What the network minimises" (L_silog).
     """
     gt_safe, valid = _prepare(pred, gt, mask)
     d = torch.where(valid, torch.log(pred.clamp(min=1e-6)) - torch.log(gt_safe), torch.zeros_like(pred))
@@ -148,6 +155,8 @@ def smoothness_loss(pred: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
 
     |grad I| is the channel mean of the absolute image differences; the loss is the mean over
     pixels of the squared, edge-weighted x differences plus that of the y differences.
+
+    Explained with its equation in notebook 03, section 2.
     """
     if image.dim() != 4 or image.shape[0] != pred.shape[0] or image.shape[-2:] != pred.shape[-2:]:
         raise ValueError(f"image must be B x 3 x H x W matching pred {tuple(pred.shape)}, got {tuple(image.shape)}")
@@ -167,6 +176,8 @@ def gradient_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | Non
     """L_grad = ||grad_x D_pred - grad_x D_gt||_1 + ||grad_y D_pred - grad_y D_gt||_1 (Sec. 3.C, Eq. 3).
 
     Each term is a mean over the valid differences (depth units per pixel).
+
+    Explained with its equation in notebook 03, section 3.
     """
     (ex, vx), (ey, vy) = gradient_maps(pred, gt, mask)
     return masked_mean(ex, vx) + masked_mean(ey, vy)
@@ -198,7 +209,10 @@ def normal_map(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None =
 
 
 def normal_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """L_normal = 1 - <n_gt, n_pred> / (|n_gt| |n_pred|), mean over valid pixels (Sec. 3.C, Eq. 4)."""
+    """L_normal = 1 - <n_gt, n_pred> / (|n_gt| |n_pred|), mean over valid pixels (Sec. 3.C, Eq. 4).
+
+    Explained with its equation in notebook 03, section 4.
+    """
     per_pixel, v = normal_map(pred, gt, mask)
     return masked_mean(per_pixel, v)
 
@@ -222,6 +236,8 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     cKDTree on the CPU, chunked brute force on CUDA. ``signed=False`` gives the unsigned variant
     (for comparison). ``cache``: ground-truth fields are reused for frames seen before
     (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search).
+
+    Explained with its equation in notebook 03, section 5 (the grid, the sign rule, L_SDF).
     """
     fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule) if f is not None]
     if not fields:
@@ -310,6 +326,8 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     settings (``config.ABLATION_CASES``). ``lambdas``: see :func:`group_weights`. ``depth_term``:
     "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
     ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).
+
+    Explained with its equation in notebook 04, "What the network minimises" (Eq. 11).
     """
     if depth_term not in DEPTH_TERMS:
         raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")

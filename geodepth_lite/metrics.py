@@ -40,7 +40,10 @@ def _as_frames(x, name: str) -> np.ndarray:
 
 def eval_mask(gt, min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH, valid=None) -> np.ndarray:
     """The pixels the protocol scores: finite ground truth with ``min_depth < gt < max_depth``,
-    and ``valid`` where the dataset marks its own invalid pixels. Any shape; a boolean array."""
+    and ``valid`` where the dataset marks its own invalid pixels. Any shape; a boolean array.
+
+    Explained with its equation in notebook 04, "How every depth map is scored" (the mask V).
+    """
     gt = np.asarray(gt)
     with np.errstate(invalid="ignore"):
         mask = np.isfinite(gt) & (gt > min_depth) & (gt < max_depth)
@@ -52,7 +55,10 @@ def eval_mask(gt, min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX
 def median_scale(pred: np.ndarray, gt: np.ndarray) -> float:
     """The protocol's median scaling: ``median(gt) / median(pred)`` over the same scored pixels
     (two 1-D arrays, e.g. ``gt[mask]`` and ``pred[mask]``). Monocular depth has no scale; this
-    factor gives each frame the ground truth's."""
+    factor gives each frame the ground truth's.
+
+    Explained with its equation in notebook 04, "How every depth map is scored" (median scaling).
+    """
     return float(np.median(gt) / np.median(pred))
 
 
@@ -83,6 +89,8 @@ def compute_depth_metrics(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_de
     - ``"n_frames"``: number of frames averaged.
     Raises ValueError for mismatched shapes, a bad depth range, non-finite or non-positive
     predictions on valid pixels, or when no frame has a valid pixel.
+
+    Explained with its equation in notebook 04, "How every depth map is scored" (the seven metrics).
     """
     p, g = _as_frames(pred, "pred"), _as_frames(gt, "gt")
     if p.shape != g.shape:

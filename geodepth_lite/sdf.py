@@ -150,6 +150,8 @@ def grid_points(lower: torch.Tensor, upper: torch.Tensor, grid=DEFAULT_SDF_GRID)
 
     X_ijk = X_lb + (i/(r_x-1), j/(r_y-1), k/(r_z-1)) * (X_ub - X_lb),  i < r_x, j < r_y, k < r_z.
     lower, upper: 3-vectors -> (r_x r_y r_z) x 3 points, i slowest (x), k fastest (z).
+
+    Explained with its equation in notebook 03, section 5 (the sample grid X_ijk).
     """
     rx, ry, rz = _grid_shape(grid)
     axes = [torch.linspace(0.0, 1.0, r, dtype=lower.dtype, device=lower.device) for r in (rx, ry, rz)]
@@ -225,6 +227,8 @@ def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "
       fronto-parallel plane z = d both rules give sign(d - q_z); they differ behind occluding
       edges (a point behind a near step whose nearest surface point is on the far wall).
     points: N x 3, queries: M x 3 -> M signed distances (unsigned when ``signed=False``).
+
+    Explained with its equation in notebook 03, section 5 (phi and its sign rule).
     """
     idx = nearest_indices(points, queries, method)  # (M,)
     view = None
