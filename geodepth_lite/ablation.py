@@ -7,13 +7,14 @@ runs are **paired by seed**: with seed s every case starts from the same weights
 the frames in the same order (``utils.seed_everything`` before the network is built, the
 same DataLoader generator), so case k minus Case 1 at seed s removes most of the seed's luck.
 
-For each claim (case k lowers metric m against Case 1) the paired differences
-d_s = m(case k, seed s) - m(case 1, seed s) give a mean and a 95% Student-t interval
-(n - 1 degrees of freedom). The verdict is read from the interval alone:
-
-- ``reproduced``: the whole interval is below 0 (case k is better, as the paper says);
-- ``opposite``: the whole interval is above 0 (case k is worse);
-- ``undecided at this power``: the interval contains 0 (more seeds or a larger profile needed).
+For each claim (case k changes metric m against Case 1 by the paper's percent) the seeds'
+relative changes r_s = 100 (m(case k, s) / m(Case 1, s) - 1) give a mean, a paired t-test and
+a Student-t interval (n - 1 degrees of freedom). All the claims shown together form one family:
+whether a change differs from zero follows Holm's rule at a family-wise alpha of 0.05, and
+the intervals are at the Bonferroni level 1 - 0.05 / m. The verdict carries the size
+(:func:`size_verdict`, the rule of docs/study_plan.md): "paper's size reproduced", "direction
+reproduced, smaller than the paper (paper's value excluded)", "no effect detected; effects
+beyond X% excluded", "undecided" or "opposite".
 
 Everything is evaluated on the training recipe's test split (in domain) and on the held-out
 texture x lighting groups (unseen appearance: the paper's own ablation is cross-domain, it
@@ -38,7 +39,7 @@ PAPER_REDUCTION = {2: {"rmse": -10.0, "abs_rel": -20.4}, 3: {"rmse": -13.0, "abs
 HELDOUT_GROUPS = {"T1-L1": "heldout_T1L1", "T2-L2": "heldout_T2L2", "T3-L3": "heldout_T3L3"}
 IN_DOMAIN = "test split"
 HELDOUT = "held-out T x L"
-VERDICTS = ("reproduced", "opposite", "undecided at this power")
+ALPHA = 0.05  # family-wise error rate of the verdicts (Holm), two-sided
 
 
 def evaluation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
@@ -92,32 +93,61 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float]:
     return m, m - half, m + half
 
 
-def verdict(low: float, high: float, lower_is_better: bool = True) -> str:
-    """The claim "case k improves on Case 1" read from the interval of (case k - Case 1)."""
-    if not lower_is_better:
-        low, high = -high, -low
-    if high < 0:
-        return "reproduced"
-    if low > 0:
+def holm(pvalues: list[float], alpha: float = ALPHA) -> list[bool]:
+    """Holm's step-down rule: which of the hypotheses are rejected at family-wise level ``alpha``.
+
+    Sort the p-values p_(1) <= ... <= p_(m); reject while p_(i) <= alpha / (m - i + 1), and stop
+    at the first that is not (it and all larger ones are kept).
+    """
+    order = sorted(range(len(pvalues)), key=lambda i: pvalues[i])
+    rejected = [False] * len(pvalues)
+    for rank, i in enumerate(order):
+        if not pvalues[i] <= alpha / (len(pvalues) - rank):
+            break
+        rejected[i] = True
+    return rejected
+
+
+def size_verdict(low: float, high: float, mean: float, paper: float, rejected: bool) -> str:
+    """The verdict on "case k changes the metric by the paper's ``paper`` percent", from the
+    comparison's interval [low, high] (percent, negative = better) and whether the family's
+    multiplicity rule (:func:`holm`) rejects zero for it. The rule of docs/study_plan.md:
+
+    - zero rejected, on the paper's side: "paper's size reproduced" if low <= paper <= high,
+      else "direction reproduced, smaller than the paper (paper's value excluded)" (or larger);
+    - zero rejected, on the other side: "opposite";
+    - zero kept: "no effect detected; effects beyond X% excluded" when the paper's value lies
+      outside the interval (X = the interval's larger end in size), else "undecided".
+    """
+    if rejected and (mean < 0) == (paper < 0):
+        if low <= paper <= high:
+            return "paper's size reproduced"
+        smaller = abs(paper) > max(abs(low), abs(high))
+        return (f"direction reproduced, {'smaller' if smaller else 'larger'} than the paper "
+                "(paper's value excluded)")
+    if rejected:
         return "opposite"
-    return "undecided at this power"
+    if not low <= paper <= high:
+        return f"no effect detected; effects beyond {max(abs(low), abs(high)):.1f}% excluded"
+    return "undecided"
 
 
 def paired(result: dict, metric: str, set_name: str, case: int, level: float = 0.95) -> dict:
     """Paired comparison of ``case`` against Case 1 on ``metric`` and ``set_name``.
 
-    Returns {"diffs": per-seed differences, "mean", "low", "high" (absolute units), "rel", "rel_low",
-    "rel_high" (percent of Case 1's mean), "verdict"}.
+    The unit is the seed: r_s = 100 (m(case, s) / m(Case 1, s) - 1), the relative change of seed
+    s's run. Returns {"diffs": absolute per-seed differences, "rel_diffs": the r_s, "rel": their
+    mean, "rel_low", "rel_high": its Student-t interval at ``level`` (percent of Case 1),
+    "p": the two-sided p-value of the paired t-test of mean 0}.
     """
     seeds = result["seeds"]
     a = np.array([result["scores"][(case, s)][set_name][metric] for s in seeds])
     b = np.array([result["scores"][(1, s)][set_name][metric] for s in seeds])
-    mean, low, high = t_interval(a - b, level)
-    base = float(b.mean())
-    lower_is_better = metric not in ("a1", "a2", "a3")
-    return {"diffs": (a - b).tolist(), "mean": mean, "low": low, "high": high,
-            "rel": 100 * mean / base, "rel_low": 100 * low / base, "rel_high": 100 * high / base,
-            "verdict": verdict(low, high, lower_is_better)}
+    r = 100 * (a / b - 1)  # (n_seeds,)
+    mean, low, high = t_interval(r, level)
+    p = float(stats.ttest_1samp(r, 0.0).pvalue) if r.size > 1 and r.std() > 0 else (0.0 if mean else 1.0)
+    return {"diffs": (a - b).tolist(), "rel_diffs": r.tolist(), "rel": mean, "rel_low": low, "rel_high": high,
+            "p": p}
 
 
 def case_stats(result: dict, set_name: str, metric: str) -> dict[int, tuple[float, float]]:
@@ -139,14 +169,24 @@ def beats_baselines(result: dict, set_name: str, metric: str = "abs_rel", margin
 PAIRED_METRICS = ("abs_rel", "rmse")  # the metrics whose paired intervals decide the verdicts
 
 
-def comparisons(result: dict):
-    """Every claim the verdicts judge, in their order: (set, metric, case, ``paired(...)``) for each
-    evaluation set, each of PAIRED_METRICS and each case against Case 1."""
-    for set_name in result["baselines"]:
-        for metric in PAIRED_METRICS:
-            for c in result["cases"]:
-                if c != 1:
-                    yield set_name, metric, c, paired(result, metric, set_name, c)
+def comparisons(result: dict, alpha: float = ALPHA) -> list[tuple[str, str, int, dict]]:
+    """Every claim the verdicts judge, in their order, as one family: (set, metric, case, comparison)
+    for each evaluation set, each of PAIRED_METRICS and each case against Case 1.
+
+    Each comparison is :func:`paired` at the Bonferroni level 1 - alpha / m (m = the family's
+    size, so the m intervals cover their true values together with probability at least
+    1 - alpha), plus "rejected" (Holm's rule over the m p-values), "paper" (the paper's percent)
+    and "verdict" (:func:`size_verdict`).
+    """
+    keys = [(set_name, metric, c) for set_name in result["baselines"] for metric in PAIRED_METRICS
+            for c in result["cases"] if c != 1]
+    level = 1 - alpha / max(len(keys), 1)
+    out = [(k[0], k[1], k[2], paired(result, k[1], k[0], k[2], level)) for k in keys]
+    for (set_name, metric, c, p), rejected in zip(out, holm([p["p"] for *_, p in out], alpha)):
+        paper = PAPER_REDUCTION[c][metric]
+        p.update(rejected=rejected, paper=paper, level=level,
+                 verdict=size_verdict(p["rel_low"], p["rel_high"], p["rel"], paper, rejected))
+    return out
 
 
 def claims(result: dict, margin: float = 0.2) -> list[str]:

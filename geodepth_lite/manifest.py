@@ -91,7 +91,8 @@ def _check_type(field: str, value, template) -> None:
     else:
         ok = isinstance(value, type(template))
     if not ok:
-        raise ValueError(f"manifest field '{field}' must be a {_type_name(template)}, "
+        name = _type_name(template)
+        raise ValueError(f"manifest field '{field}' must be {'an' if name[0] in 'aeiou' else 'a'} {name}, "
                          f"got {_type_name(value)} {value!r}")
 
 

@@ -15,12 +15,25 @@ def test_t_interval_hand_computed():
     assert ablation.t_interval([5.0])[1:] == (-math.inf, math.inf)
 
 
-def test_verdict_reads_the_interval():
-    assert ablation.verdict(-0.3, -0.1) == "reproduced"
-    assert ablation.verdict(0.1, 0.3) == "opposite"
-    assert ablation.verdict(-0.1, 0.1) == "undecided at this power"
-    # higher is better (a1): a positive interval is an improvement
-    assert ablation.verdict(0.1, 0.3, lower_is_better=False) == "reproduced"
+def test_holm_step_down_hand_computed():
+    # m = 4, alpha 0.05: thresholds 0.0125, 0.0167, 0.025, 0.05 for the sorted p-values
+    assert ablation.holm([0.01, 0.04, 0.03, 0.005]) == [True, False, False, True]  # 0.03 > 0.025 stops
+    assert ablation.holm([0.01, 0.02, 0.03, 0.04]) == [True, False, False, False]  # 0.02 > 0.0167 stops
+    assert ablation.holm([0.04, 0.015, 0.02, 0.01]) == [True, True, True, True]
+    assert ablation.holm([0.02, 0.001]) == [True, True]  # 0.001 <= 0.025, then 0.02 <= 0.05
+    assert ablation.holm([0.029, 0.009, 0.5] + [0.9] * 9) == [False] * 12  # 0.009 > 0.05 / 12 stops at once
+    # a rule without the correction (every p <= 0.05 rejected) would pass these two: Holm must not
+    assert ablation.holm([0.03, 0.04]) == [False, False]
+
+
+def test_size_verdicts_follow_the_plans_rule():
+    v = ablation.size_verdict
+    assert v(-15.0, -8.0, -11.0, -13.0, True) == "paper's size reproduced"
+    assert v(-5.1, -0.7, -2.9, -13.0, True) == "direction reproduced, smaller than the paper (paper's value excluded)"
+    assert v(-40.0, -30.0, -35.0, -22.0, True) == "direction reproduced, larger than the paper (paper's value excluded)"
+    assert v(0.7, 5.1, 2.9, -13.0, True) == "opposite"
+    assert v(-2.7, 1.9, -0.4, -20.4, False) == "no effect detected; effects beyond 2.7% excluded"
+    assert v(-25.0, 3.0, -11.0, -20.4, False) == "undecided"
 
 
 def _result(case_offsets, seed_effects, cases=(1, 2)):
@@ -40,14 +53,14 @@ def test_pairing_removes_the_seed_effect():
     r = _result({1: [0, 0, 0], 2: [-0.01, -0.011, -0.009]}, [0.0, 0.05, 0.10])
     p = ablation.paired(r, "abs_rel", ablation.IN_DOMAIN, 2)
     assert p["diffs"] == pytest.approx([-0.01, -0.011, -0.009])
-    assert p["verdict"] == "reproduced"
-    assert p["rel"] == pytest.approx(100 * -0.01 / 0.25)
+    assert p["rel_diffs"] == pytest.approx([-5.0, -100 * 0.011 / 0.25, -100 * 0.009 / 0.3])
+    assert p["rel"] == pytest.approx(sum(p["rel_diffs"]) / 3) and p["rel_high"] < 0 and p["p"] < 0.05
     stats = ablation.case_stats(r, ablation.IN_DOMAIN, "abs_rel")
     assert stats[1][1] == pytest.approx(0.05)  # the seed spread the pairing removed
     worse = _result({1: [0, 0, 0], 2: [0.02, 0.03, 0.025]}, [0.0, 0.05, 0.10])
-    assert ablation.paired(worse, "abs_rel", ablation.IN_DOMAIN, 2)["verdict"] == "opposite"
+    assert ablation.comparisons(worse)[0][3]["verdict"] == "opposite"  # [0]: Abs Rel, [1]: RMSE
     mixed = _result({1: [0, 0, 0], 2: [0.02, -0.03, 0.0]}, [0.0, 0.05, 0.10])
-    assert ablation.paired(mixed, "abs_rel", ablation.IN_DOMAIN, 2)["verdict"] == "undecided at this power"
+    assert ablation.comparisons(mixed)[0][3]["verdict"] == "undecided"
 
 
 def test_baselines_margin_and_record():
@@ -58,10 +71,10 @@ def test_baselines_margin_and_record():
     rec = ablation.record(r)
     assert rec[f"case1 seed2 | {ablation.IN_DOMAIN} | abs_rel"] == 0.2
     assert rec[f"baselines | {ablation.IN_DOMAIN} | shading_prior | abs_rel"] == 0.16
-    # Case 2 is 0.1 better at every seed: its interval is that point, -0.1 / 0.15 (Case 1's mean) = -66.67%
-    for end in ("low", "high"):
-        assert rec[f"paired | {ablation.IN_DOMAIN} | abs_rel | case2 | {end} %"] == -66.67
+    # Case 2 is 0.1 better at every seed: -0.1 / 0.12, -0.1 / 0.13, -0.1 / 0.20 of each seed's Case 1
+    low, high = (rec[f"paired | {ablation.IN_DOMAIN} | abs_rel | case2 | {end} %"] for end in ("low", "high"))
+    assert low < -100 * 0.1 / 0.12 < -100 * 0.1 / 0.20 < high
     lines = ablation.claims(r)
-    assert any("Case 2 vs Case 1 -> reproduced" in line for line in lines)
+    assert any("Abs Rel: Case 2 vs Case 1 -> " in line for line in lines)
     assert (f"{ablation.IN_DOMAIN}: runs below every baseline in Abs Rel: 5 of 6; "
             "at least 20% below the best baseline: 4 of 6") in lines
