@@ -20,6 +20,7 @@ import numpy as np
 from geodepth_lite.augment import AUGMENTS
 from geodepth_lite.losses import DEPTH_TERMS, group_weights
 from geodepth_lite.model import PADDINGS
+from geodepth_lite.sdf import SDF_SAMPLINGS
 
 PROFILES: dict[str, dict] = {
     "smoke": {
@@ -142,11 +143,12 @@ IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
     "threads", "lr_schedule", "optimizer", "depth_term", "augment", "padding", "border_weight",
-    "input_pad",
+    "input_pad", "sdf_sampling", "sdf_sign",
 )
 # Keys added after checkpoints existed: part of a configuration's identity only when they differ from
 # this default, so checkpoints trained before the key was added keep their names and stay valid.
-LATER_KEY_DEFAULTS = {"border_weight": 0.0, "input_pad": 0}
+LATER_KEY_DEFAULTS = {"border_weight": 0.0, "input_pad": 0, "sdf_sampling": "bbox", "sdf_sign": "view"}
+SDF_SIGNS = ("view", "masked")  # sign rules of a training run (sdf.SIGN_RULES; "nearest" is for comparison only)
 LR_SCHEDULES = ("constant", "cosine")
 OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
 
@@ -180,6 +182,8 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "padding": p.get("padding", "zeros"),   # the network's convolution padding (model.PADDINGS)
         "border_weight": p.get("border_weight", 0.0),  # beta of the depth term's border weight (losses)
         "input_pad": p.get("input_pad", 0),     # mirrored pixels around the network's input (model.DepthNet)
+        "sdf_sampling": p.get("sdf_sampling", "bbox"),  # SDF samples: bbox (the paper's Eq. 9) | frustum
+        "sdf_sign": p.get("sdf_sign", "view"),  # SDF sign: view (the paper's) | masked (out-of-view points left out)
         "seed": int(seed),
         "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
@@ -197,14 +201,16 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
 
 CONFIG_DEFAULTS = {"dataset_overrides": None, "train_frames": None, "val_frames": None, "encoder_weights": None,
                    "threads": None, "betas": [0.9, 0.999], "lr_schedule": "constant", "optimizer": "adam",
-                   "depth_term": "l1", "augment": "none", "padding": "zeros", "border_weight": 0.0, "input_pad": 0}
+                   "depth_term": "l1", "augment": "none", "padding": "zeros", "border_weight": 0.0, "input_pad": 0,
+                   "sdf_sampling": "bbox", "sdf_sign": "view"}
 
 
 def validate_config(cfg: dict) -> dict:
     """Check a training configuration; a clear error naming the field. Returns a normalised copy."""
     cfg = {**{k: (list(v) if isinstance(v, list) else v) for k, v in CONFIG_DEFAULTS.items()}, **cfg}
     for key, allowed in (("optimizer", OPTIMIZERS), ("depth_term", tuple(DEPTH_TERMS)), ("augment", AUGMENTS),
-                         ("padding", PADDINGS), ("lr_schedule", LR_SCHEDULES)):
+                         ("padding", PADDINGS), ("lr_schedule", LR_SCHEDULES),
+                         ("sdf_sampling", tuple(SDF_SAMPLINGS)), ("sdf_sign", SDF_SIGNS)):
         if cfg[key] not in allowed:
             raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
     missing = [k for k in IDENTITY_KEYS if k not in cfg]

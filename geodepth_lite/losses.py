@@ -15,8 +15,8 @@ Image gradients are forward differences in depth units per pixel:
 a difference is valid when both of its pixels are valid.
 
 The SDF term (:func:`sdf_loss`) is built on :mod:`geodepth_lite.sdf`: the exact nearest-point
-search, the signed fields with their sign rule (the paper's view rule by default) and the
-cache of ground-truth fields.
+search, the signed fields with their sign rule (the paper's view rule by default), where the
+samples lie (the paper's bounding-box grid by default) and the cache of ground-truth fields.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from .sdf import (  # the SDF machinery; valid_mask and check_depths are shared 
     GT_FIELD_CACHE,
     GTFieldCache,
     check_depths,
+    check_sdf_options,
     sdf_fields,
     valid_mask,
 )
@@ -219,7 +220,8 @@ def normal_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None 
 
 # ----------------------------------------------------------------------------- SDF loss
 def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-             cache: GTFieldCache | None = GT_FIELD_CACHE, sign_rule: str = "view") -> torch.Tensor:
+             cache: GTFieldCache | None = GT_FIELD_CACHE, sign_rule: str = "view",
+             sampling: str = "bbox") -> torch.Tensor:
     """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 10).
 
     The fields come from :mod:`geodepth_lite.sdf`. Both depth maps are back-projected with K
@@ -237,9 +239,21 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     (for comparison). ``cache``: ground-truth fields are reused for frames seen before
     (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search).
 
+    Two options, not the paper's (docs/network_and_losses.md, "Where the SDF samples lie"):
+    ``sign_rule="masked"`` leaves out the points where the view rule does not apply in either
+    field (q_z <= 0, outside the image, on an invalid pixel): each image's loss is the mean of
+    |phi_pred - phi_gt| over the remaining points, the batch's the mean over images that have
+    some (0 if none). ``sampling="frustum"`` samples r_x x r_y pixels times r_z log-spaced depths
+    between the ground truth's nearest and farthest valid depth instead of the bounding box
+    (:func:`geodepth_lite.sdf.frustum_points`).
+
     Explained with its equation in notebook 03, section 5 (the grid, the sign rule, L_SDF).
     """
-    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule) if f is not None]
+    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule, sampling)
+              if f is not None]
+    if sign_rule == "masked":
+        per_image = [(f["pred"] - f["gt"]).abs()[f["known"]].mean() for f in fields if bool(f["known"].any())]
+        return torch.stack(per_image).mean() if per_image else pred.sum() * 0.0
     if not fields:
         return pred.sum() * 0.0
     return (torch.stack([f["pred"] for f in fields]) - torch.stack([f["gt"] for f in fields])).abs().mean()
@@ -257,6 +271,8 @@ class LossInputs:
     sdf_grid: tuple = DEFAULT_SDF_GRID    # r_x, r_y, r_z of the SDF sample grid
     depth_term: str = "l1"                # the depth term's variant (DEPTH_TERMS)
     border_weight: float = 0.0            # beta of border_weight_map in the depth term; 0 = all pixels alike
+    sdf_sampling: str = "bbox"            # where the SDF samples lie (sdf.SDF_SAMPLINGS)
+    sdf_sign: str = "view"                # the SDF sign rule (sdf.SIGN_RULES)
 
 
 def _depth_term(p: torch.Tensor, x: LossInputs) -> torch.Tensor:
@@ -282,7 +298,8 @@ LOSS_TERMS: dict[str, LossTerm] = {
     "smooth": LossTerm(lambda p, x: smoothness_loss(p, x.image), "lambda1", "Eq. 2"),
     "grad": LossTerm(lambda p, x: gradient_loss(p, x.gt, x.mask), "lambda2", "Eq. 3"),
     "normal": LossTerm(lambda p, x: normal_loss(p, x.gt, x.mask), "lambda2", "Eq. 4"),
-    "sdf": LossTerm(lambda p, x: sdf_loss(p, x.gt, x.K, x.sdf_grid, x.mask), "lambda3", "Eq. 10"),
+    "sdf": LossTerm(lambda p, x: sdf_loss(p, x.gt, x.K, x.sdf_grid, x.mask, sign_rule=x.sdf_sign,
+                                          sampling=x.sdf_sampling), "lambda3", "Eq. 10"),
 }
 
 
@@ -317,7 +334,8 @@ def group_weights(lambdas) -> dict[str, float]:
 
 
 def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID,
-               depth_term: str = "l1", border_weight: float = 0.0):
+               depth_term: str = "l1", border_weight: float = 0.0, sdf_sampling: str = "bbox",
+               sdf_sign: str = "view"):
     """L_total: each group's weight times the sum of its terms (``LOSS_TERMS``; Sec. 3.C, Eq. 11).
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats with
@@ -326,13 +344,16 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     settings (``config.ABLATION_CASES``). ``lambdas``: see :func:`group_weights`. ``depth_term``:
     "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
     ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).
+    ``sdf_sampling``, ``sdf_sign``: the SDF term's ``sampling`` and ``sign_rule`` (:func:`sdf_loss`;
+    "bbox" and "view" are the paper's).
 
     Explained with its equation in notebook 04, "What the network minimises" (Eq. 11).
     """
     if depth_term not in DEPTH_TERMS:
         raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
+    check_sdf_options(sdf_sign, sdf_sampling)
     weights = group_weights(lambdas)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
     zero = pred.sum() * 0.0
     t = {name: (term.fn(pred, inputs) if weights[term.group] else zero) for name, term in LOSS_TERMS.items()}
     loss = None
@@ -346,17 +367,19 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
 
 
 def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID, depth_term: str = "l1",
-                        terms=None, border_weight: float = 0.0) -> dict[str, float]:
+                        terms=None, border_weight: float = 0.0, sdf_sampling: str = "bbox",
+                        sdf_sign: str = "view") -> dict[str, float]:
     """||dL_term / dD_pred||_2 of each unweighted term at the network's output (a loss-balancing diagnostic).
 
     The network sees the losses only through this gradient on its output depth map, so the
     ratio of two norms says how strongly each term pulls on the prediction at a given lambda:
     a term whose gradient is 10x the depth term's dominates the update at lambda = 1.
     ``pred`` is detached here (nothing reaches the network); returns {term: norm} for ``terms``
-    (default: every term of ``LOSS_TERMS``).
+    (default: every term of ``LOSS_TERMS``). The other arguments as in :func:`total_loss`.
     """
+    check_sdf_options(sdf_sign, sdf_sampling)
     p = pred.detach().float().clone().requires_grad_(True)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
     out = {}
     for name in terms or term_names():
         (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)

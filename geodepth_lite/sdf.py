@@ -37,7 +37,18 @@ surface point, i.e. whether q lies on the camera's side of the surface at X_n (t
 estimate of the same thing: for q near a front-facing smooth surface both rules agree). The
 two rules differ behind occluding edges, e.g. a point behind a near step, nearest to the far
 wall. The "nearest" rule uses the nearest-point sign everywhere (the former rule, for
-comparison). The magnitude is always the exact Euclidean nearest distance.
+comparison). The magnitude is always the exact Euclidean nearest distance. The "masked" rule
+(not the paper's) signs by the view rule and leaves the points where it does not apply, in either
+map's field, out of the loss (:func:`geodepth_lite.losses.sdf_loss`); its fields are the view
+rule's, so cached ground-truth fields are shared.
+
+Sampling (:data:`SDF_SAMPLINGS`; the paper gives Eq. 9's box, but not where the box lies nor the
+grid size). "bbox" (default): Eq. 9's uniform grid over the ground truth's bounding box
+(:func:`grid_points`). "frustum": r_x x r_y pixel positions uniform over the image times r_z
+depths uniform in log depth between the ground truth's nearest and farthest valid depth
+(:func:`frustum_points`): every sample projects inside the image and the samples are dense near
+the camera, where most pixels are. :func:`view_rule_coverage` measures, per image, the share of
+samples the view rule signs (docs/network_and_losses.md has the measured shares).
 """
 
 from __future__ import annotations
@@ -58,6 +69,13 @@ KDTREE_WORKERS = -1  # threads of each cKDTree query (-1: all cores)
 SIGN_RULES = {  # SDF sign rules, with the tag that keys cached ground-truth fields
     "view": "sign:view-ray-projection,fallback:nearest-direction",  # the paper's (default)
     "nearest": "sign:nearest-direction",  # sign((X_n - q) . X_n) everywhere (the former rule)
+    # the view rule's field, with the points it does not sign left out of the loss (losses.sdf_loss):
+    # the fields are those of "view", so their cached ground-truth fields are shared
+    "masked": "sign:view-ray-projection,fallback:nearest-direction",
+}
+SDF_SAMPLINGS = {  # where the SDF samples lie, with the tag that keys cached ground-truth fields
+    "bbox": "grid:bbox-uniform",  # Eq. 9: uniform over the ground truth's 3D bounding box (default)
+    "frustum": "grid:pixel-uniform,log-depth-uniform",  # pixels x log-spaced depths (frustum_points)
 }
 
 
@@ -159,9 +177,61 @@ def grid_points(lower: torch.Tensor, upper: torch.Tensor, grid=DEFAULT_SDF_GRID)
     return lower + t * (upper - lower)  # (M, 3)
 
 
+def frustum_points(K: torch.Tensor, height: int, width: int, z_near: torch.Tensor, z_far: torch.Tensor,
+                   grid=DEFAULT_SDF_GRID) -> torch.Tensor:
+    """Samples that follow the pixels (``sampling="frustum"``; not the paper's, whose Eq. 9 is a box):
+
+    q_ijk = z_k ((u_i - cx)/fx, (v_j - cy)/fy, 1) = z_k K^-1 [u_i, v_j, 1] (zero skew, as
+    :func:`geodepth_lite.camera.backproject`), u_i = i (W-1)/(r_x-1), v_j = j (H-1)/(r_y-1) (pixel
+    centres, edge to edge), z_k = z_near (z_far/z_near)^(k/(r_z-1)) (uniform in log depth). Every
+    sample projects inside the image, and half of the depths lie below sqrt(z_near z_far).
+    K: 3 x 3; z_near, z_far: 0 < z_near <= z_far, 0-dim tensors whose dtype and device the points
+    take -> (r_x r_y r_z) x 3 points, ordered as :func:`grid_points` (i slowest (u), k fastest (z)).
+    """
+    rx, ry, rz = _grid_shape(grid)
+    z_near, z_far = torch.as_tensor(z_near), torch.as_tensor(z_far)
+    if not bool(0 < z_near <= z_far < float("inf")):
+        raise ValueError(f"frustum depths must satisfy 0 < z_near <= z_far < inf, got {float(z_near)}, {float(z_far)}")
+    dtype, device = z_near.dtype, z_near.device
+    K = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K).to(dtype=dtype, device=device)
+    u = torch.linspace(0.0, width - 1, rx, dtype=dtype, device=device)  # (rx,) pixel columns
+    v = torch.linspace(0.0, height - 1, ry, dtype=dtype, device=device)  # (ry,) pixel rows
+    t = torch.linspace(0.0, 1.0, rz, dtype=dtype, device=device)  # (rz,)
+    z = z_near * torch.pow(z_far.to(dtype) / z_near, t)  # (rz,) log-spaced, z[0] = z_near
+    x = (u - K[0, 2]) / K[0, 0]  # (rx,) normalised image coordinates
+    y = (v - K[1, 2]) / K[1, 1]  # (ry,)
+    X, Y, Z = torch.meshgrid(x, y, z, indexing="ij")  # (rx, ry, rz) each
+    return torch.stack((X * Z, Y * Z, Z), dim=-1).reshape(-1, 3)  # (M, 3), M = rx ry rz
+
+
+def _samples(g_pts: torch.Tensor, K: torch.Tensor, hw: tuple[int, int], shape, sampling: str, hit=None):
+    """One image's SDF samples: (q, lower, upper), q: M x 3, lower/upper: 3-vectors (the samples' box).
+
+    g_pts: N x 3, the ground truth's valid points (z = its depth); K: 3 x 3; hw: (H, W); ``hit``:
+    a cached (lower, upper, field) whose box the "bbox" grid reuses.
+    """
+    if sampling == "frustum":
+        z = g_pts[:, 2]  # (N,) the valid depths
+        q = frustum_points(K, hw[0], hw[1], z.min(), z.max(), shape)  # (M, 3)
+        return q, q.min(0).values, q.max(0).values
+    if hit is not None:
+        lower, upper = hit[0].to(g_pts), hit[1].to(g_pts)  # (3,) each
+    else:
+        lower, upper = g_pts.min(0).values, g_pts.max(0).values  # (3,) each: X_lb, X_ub of the ground truth
+    return grid_points(lower, upper, shape), lower, upper  # (M, 3), (3,), (3,)
+
+
 def _check_sign_rule(sign_rule: str) -> None:
     if sign_rule not in SIGN_RULES:
         raise ValueError(f"sign_rule must be one of {', '.join(SIGN_RULES)}, got {sign_rule!r}")
+
+
+def check_sdf_options(sign_rule: str = "view", sampling: str = "bbox") -> None:
+    """Raise ValueError naming the option unless ``sign_rule`` is in :data:`SIGN_RULES` and
+    ``sampling`` in :data:`SDF_SAMPLINGS`."""
+    _check_sign_rule(sign_rule)
+    if sampling not in SDF_SAMPLINGS:
+        raise ValueError(f"sdf sampling must be one of {', '.join(SDF_SAMPLINGS)}, got {sampling!r}")
 
 
 @torch.no_grad()
@@ -252,8 +322,9 @@ def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "
 # ----------------------------------------------------------------------------- cache
 class GTFieldCache:
     """LRU cache of ground-truth SDF fields, keyed by the bytes of the frame (depth, validity, K),
-    the grid, ``signed`` and the sign rule's tag (:data:`SIGN_RULES`; fields signed under another
-    rule, such as the former nearest-point-only sign, never match).
+    the grid, ``signed``, the sign rule's tag (:data:`SIGN_RULES`; fields signed under another
+    rule, such as the former nearest-point-only sign, never match) and the sampling's tag
+    (:data:`SDF_SAMPLINGS`; fields sampled at other points never match).
 
     The ground truth's field does not depend on the network, and training sees every frame once
     per epoch, so from the second epoch on only the prediction's field has to be searched. A
@@ -272,13 +343,13 @@ class GTFieldCache:
 
     @staticmethod
     def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, grid, signed: bool,
-            sign_rule: str = "view") -> str:
+            sign_rule: str = "view", sampling: str = "bbox") -> str:
         h = hashlib.blake2b(digest_size=20)
         for t in (gt_b, valid_b, K_b):
             t = t.detach().cpu().contiguous()
             h.update(str((t.dtype, tuple(t.shape))).encode())
             h.update(t.numpy().tobytes())
-        h.update(repr((tuple(grid), bool(signed), SIGN_RULES[sign_rule])).encode())
+        h.update(repr((tuple(grid), bool(signed), SIGN_RULES[sign_rule], SDF_SAMPLINGS[sampling])).encode())
         return h.hexdigest()
 
     def get(self, key: str):
@@ -321,17 +392,30 @@ GT_FIELD_CACHE = GTFieldCache()  # used by losses.sdf_loss / losses.total_loss u
 
 
 # ----------------------------------------------------------------------------- fields of a batch
+def _batch_inputs(gt: torch.Tensor, K, mask, B: int):
+    """(valid B x 1 x H x W bool, gt with invalid pixels set to 1, K as B x 3 x 3) of a batch."""
+    valid = valid_mask(gt, mask)  # (B, 1, H, W) bool
+    gt_safe = torch.where(valid, gt, torch.ones_like(gt))  # (B, 1, H, W), no NaN/inf can reach autograd
+    Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K)  # (3, 3) or (B, 3, 3)
+    if not (Kt.shape == (3, 3) or (Kt.dim() == 3 and Kt.shape[0] == B and Kt.shape[1:] == (3, 3))):
+        raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {B}, got {tuple(Kt.shape)}")
+    return valid, gt_safe, Kt.expand(B, 3, 3)  # ..., (B, 3, 3)
+
+
 def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-               cache: GTFieldCache | None = None, sign_rule: str = "view"):
+               cache: GTFieldCache | None = None, sign_rule: str = "view", sampling: str = "bbox"):
     """Per image: the sample grid and the signed fields of prediction and ground truth.
 
     Returns a list (one entry per image; None when the image has no valid pixel) of dicts
     {"grid": M x 3, "lower", "upper": 3-vectors, "pred": M, "gt": M}, M = r_x r_y r_z; fields are
     ordered as :func:`grid_points` (reshape to r_x x r_y x r_z). Each field is
     :func:`signed_distance` of one surface, the depth map back-projected with K at the ground
-    truth's valid pixels, on the grid over the ground truth's bounding box; the prediction's is
-    differentiable in ``pred``, the ground truth's is not. With a ``cache``
-    (:class:`GTFieldCache`), ground-truth fields already computed for an identical frame are reused.
+    truth's valid pixels, at the samples of ``sampling``: "bbox" (default, the paper's Eq. 9) the
+    grid over the ground truth's bounding box [lower, upper]; "frustum" :func:`frustum_points`
+    between the ground truth's nearest and farthest valid depth (lower, upper: the samples' box).
+    The prediction's field is differentiable in ``pred``, the ground truth's is not. With a
+    ``cache`` (:class:`GTFieldCache`), ground-truth fields already computed for an identical frame
+    (and sampling, sign rule, grid) are reused.
 
     Sign (``sign_rule``, no gradient): "view" (default, the paper's) projects each grid point
     with K to its nearest pixel and compares q_z with each map's own depth there: the
@@ -340,18 +424,15 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     > 0 for the prediction's). Fallback, for points with q_z <= 0, projecting outside the image
     or onto an unusable pixel: the nearest-point sign sign((X_n - q) . X_n). "nearest" uses the
     nearest-point sign everywhere (the former rule, for comparison). See :func:`signed_distance`.
+    "masked": the fields of "view", and each dict also holds "known" (M bool): where the view
+    rule applies in both fields (what :func:`geodepth_lite.losses.sdf_loss` keeps).
     """
-    _check_sign_rule(sign_rule)
+    check_sdf_options(sign_rule, sampling)
     check_depths(pred, gt)
     B = pred.shape[0]
-    valid = valid_mask(gt, mask)  # (B, 1, H, W) bool
-    gt_safe = torch.where(valid, gt, torch.ones_like(gt))  # (B, 1, H, W), no NaN/inf can reach autograd
-    Kt = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K)  # (3, 3) or (B, 3, 3)
-    if not (Kt.shape == (3, 3) or (Kt.dim() == 3 and Kt.shape[0] == B and Kt.shape[1:] == (3, 3))):
-        raise ValueError(f"K must be 3 x 3 or B x 3 x 3 with B = {B}, got {tuple(Kt.shape)}")
-    Kb = Kt.expand(B, 3, 3)  # (B, 3, 3)
+    valid, gt_safe, Kb = _batch_inputs(gt, K, mask, B)  # (B, 1, H, W) bool, (B, 1, H, W), (B, 3, 3)
     shape = _grid_shape(grid)
-    view = signed and sign_rule == "view"  # else no depth map is passed: the nearest-point sign
+    view = signed and sign_rule in ("view", "masked")  # else no depth map is passed: the nearest-point sign
     S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
     S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
     out: list = []
@@ -363,24 +444,43 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
         sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
         key = None
         if cache is not None and cache.max_bytes > 0:
-            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule)
+            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling)
         out.append(_image_fields(S_pred[b] if sel is None else S_pred[b, sel],  # (N, 3)
                                  S_gt[b] if sel is None else S_gt[b, sel],  # (N, 3)
                                  pred[b, 0].detach() if view else None, gt_safe[b, 0] if view else None,
-                                 Kb[b], valid[b, 0], shape, method, signed, cache, key))
+                                 Kb[b], valid[b, 0], shape, method, signed, cache, key, sampling))
+    if sign_rule == "masked":
+        _mark_known(out, pred, gt_safe, Kb, valid)
     return out
 
 
+@torch.no_grad()
+def _mark_known(fields: list, pred: torch.Tensor, gt_safe: torch.Tensor, K: torch.Tensor,
+                valid: torch.Tensor) -> None:
+    """Add "known" (M bool) to each image's dict of :func:`sdf_fields` (in place): where the view
+    rule signs both the prediction's and the ground truth's field, in one batched projection.
+
+    fields: B entries (None for an image without valid pixels); pred, gt_safe: B x 1 x H x W;
+    K: B x 3 x 3; valid: B x 1 x H x W bool.
+    """
+    idx = [b for b, f in enumerate(fields) if f is not None]
+    if not idx:
+        return
+    q = torch.stack([fields[b]["grid"] for b in idx])  # (B', M, 3)
+    v = valid[idx, 0]  # (B', H, W); indexed by a list: any device
+    known = (_view_sign(q, pred[idx, 0].detach(), K[idx], v)[1]
+             & _view_sign(q, gt_safe[idx, 0], K[idx], v)[1])  # (B', M)
+    for j, b in enumerate(idx):
+        fields[b]["known"] = known[j]
+
+
 def _image_fields(p_pts, g_pts, pred_depth, gt_depth, K, valid, shape, method: str, signed: bool,
-                  cache: GTFieldCache | None, key) -> dict:
-    """One image of :func:`sdf_fields`: the grid over the ground truth's points and both fields
-    (the ground truth's from ``cache`` under ``key`` when it holds them, else computed and stored)."""
+                  cache: GTFieldCache | None, key, sampling: str = "bbox") -> dict:
+    """One image of :func:`sdf_fields`: the samples of ``sampling`` over the ground truth's points
+    and both fields (the ground truth's from ``cache`` under ``key`` when it holds them, else
+    computed and stored)."""
     hit = cache.get(key) if key is not None else None
-    if hit is not None:
-        lower, upper = hit[0].to(g_pts), hit[1].to(g_pts)  # (3,) each
-    else:
-        lower, upper = g_pts.min(0).values, g_pts.max(0).values  # (3,) each: X_lb, X_ub of the ground truth
-    q = grid_points(lower, upper, shape)  # (M, 3)
+    q, lower, upper = _samples(g_pts, K, tuple(valid.shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
     phi_pred = signed_distance(p_pts, q, method, signed, pred_depth, K, valid)  # (M,)
     if hit is not None:
         phi_gt = hit[2].to(phi_pred)  # (M,)
@@ -389,3 +489,34 @@ def _image_fields(p_pts, g_pts, pred_depth, gt_depth, K, valid, shape, method: s
         if key is not None:
             cache.put(key, lower, upper, phi_gt)
     return {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt}
+
+
+@torch.no_grad()
+def view_rule_coverage(gt: torch.Tensor, K, grid=DEFAULT_SDF_GRID, mask: torch.Tensor | None = None,
+                       sampling: str = "bbox") -> torch.Tensor:
+    """Per image, the share of SDF samples at which the view rule signs the ground truth's field.
+
+    The view rule (:func:`signed_distance`) applies at a sample q when q_z > 0 and q projects
+    (rounded to the nearest pixel) inside the image onto a valid pixel; elsewhere the "view" sign
+    falls back to the nearest-point sign and "masked" leaves q out of the loss, so 1 - coverage is
+    the fallback share. The samples are those :func:`sdf_fields` uses under ``sampling``
+    ("bbox": the grid over the ground truth's bounding box; "frustum": :func:`frustum_points`,
+    where the coverage is the share of samples on valid pixels, 1 for a fully valid map).
+    gt: B x 1 x H x W depth; K: 3 x 3 or B x 3 x 3; mask: optional B x 1 x H x W bool ->
+    B shares in [0, 1] (float64; NaN for an image without a valid pixel).
+    """
+    check_sdf_options("view", sampling)
+    if not isinstance(gt, torch.Tensor) or gt.dim() != 4 or gt.shape[1] != 1:
+        raise ValueError(f"gt must be a B x 1 x H x W tensor, got {getattr(gt, 'shape', type(gt).__name__)}")
+    B, _, H, W = gt.shape
+    valid, gt_safe, Kb = _batch_inputs(gt, K, mask, B)  # (B, 1, H, W) bool, (B, 1, H, W), (B, 3, 3)
+    shape = _grid_shape(grid)
+    S_gt = camera.backproject(gt_safe, Kb)  # (B, H*W, 3)
+    out = torch.full((B,), float("nan"), dtype=torch.float64)
+    for b in range(B):
+        vb = valid[b].reshape(-1)  # (H*W,)
+        if bool(vb.any()):
+            q = _samples(S_gt[b, vb], Kb[b], (H, W), shape, sampling)[0]  # (M, 3)
+            known = _view_sign(q[None], gt_safe[b, :1], Kb[b][None], valid[b])[1]  # (1, M) bool
+            out[b] = known.double().mean()
+    return out

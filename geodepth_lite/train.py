@@ -65,7 +65,8 @@ def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict):
     g = cfg["sdf_grid"]
     return losses.total_loss(pred.float(), batch["depth"], batch["image"], batch["K"], lambdas=cfg["lambdas"],
                              mask=batch.get("valid"), sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
-                             border_weight=cfg["border_weight"])
+                             border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
+                             sdf_sign=cfg["sdf_sign"])
 
 
 def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict) -> dict[str, float]:
@@ -73,7 +74,8 @@ def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict) -> dict[str,
     g = cfg["sdf_grid"]
     return losses.term_gradient_norms(pred, batch["depth"], batch["image"], batch["K"], mask=batch.get("valid"),
                                       sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
-                                      border_weight=cfg["border_weight"])
+                                      border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
+                                      sdf_sign=cfg["sdf_sign"])
 
 
 @torch.no_grad()
@@ -191,8 +193,9 @@ class Trainer:
                 raise FileExistsError(f"{self.ckpt_path} exists: pass --resume to continue it, "
                                       "or choose another --run-dir")
             state = ckpt_io.read_checkpoint(self.ckpt_path, for_resume=True)
-            if config.config_identity(config.validate_config(state["cfg"])) != config.config_identity(cfg):
-                diff = [k for k in config.IDENTITY_KEYS if state["cfg"].get(k) != cfg.get(k)]
+            saved = config.validate_config(state["cfg"])  # keys added since it was saved: at their defaults
+            if config.config_identity(saved) != config.config_identity(cfg):
+                diff = [k for k in config.IDENTITY_KEYS if saved.get(k) != cfg.get(k)]
                 raise ValueError(f"cannot resume {self.ckpt_path}: its configuration differs in {', '.join(diff)}")
             if state["epoch"] >= cfg["epochs"]:
                 return self.ckpt_path
