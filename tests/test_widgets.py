@@ -1,5 +1,7 @@
-"""The loss explorer's building blocks (notebook 03): perturbations and the loss report."""
+"""The loss explorer (notebook 03): perturbations, the loss report, and the live explorer's updates
+(one reused figure, coalesced computes, one compute per reset, one number format)."""
 
+import base64
 import math
 
 import numpy as np
@@ -36,22 +38,193 @@ def test_loss_report_known_values():
     assert same["depth"] == same["grad"] == same["sdf"] == 0.0
 
 
-def test_explorer_static_and_live(monkeypatch):
+def explorer_inputs(size=32):
     import matplotlib
 
     matplotlib.use("Agg")
-    gt = tube_like()
-    image = np.full((3, 32, 32), 0.5)
-    K = camera.intrinsics(32)
+    return tube_like(size, size), np.full((3, size, size), 0.5), camera.intrinsics(size)
+
+
+def test_explorer_static_and_live(monkeypatch):
+    gt, image, K = explorer_inputs()
     assert widgets.explorer(gt, image, K, grid=4, live=False) is None
-    ui = widgets.explorer(gt, image, K, grid=4, live=True)
-    sliders = [c for row in ui.children[:2] for c in row.children]
+    ex = widgets.explorer(gt, image, K, grid=4, live=True)
+    sliders = list(ex.ui.children[0].children)
     assert [s.description for s in sliders] == list(widgets.PERTURBATIONS)
-    values = ui.children[2].children[1]
+    values = ex.ui.children[1].children[2]
     assert "depth 0.0000" in values.value
-    sliders[4].value = 0.5  # offset: the loss line follows the slider
-    assert "depth 0.5000" in values.value and "grad 0.0000" in values.value
+    bundle = ex._repr_mimebundle_()  # displayed as the widgets; a PNG and a text where their models are gone
+    assert bundle["application/vnd.jupyter.widget-view+json"]["model_id"] == ex.ui.model_id
+    assert base64.b64decode(bundle["image/png"]) == bytes(ex.image_widget.value)
+    assert "live Jupyter kernel" in bundle["text/plain"]
     monkeypatch.setenv("GEODEPTH_LITE_WIDGETS", "static")
     assert widgets.has_live_frontend() is False
     with pytest.raises(ValueError, match="loss must be"):
         widgets.plot_loss_maps(gt, image, K, {"a": {}}, "bogus")
+
+
+def test_a_slider_change_updates_the_reused_figure():
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    fig, first = ex.figure.fig, bytes(ex.image_widget.value)
+    n_axes = len(fig.axes)
+    ex.sliders["offset"].value = 0.5  # the loss line and the figure follow the slider
+    assert "depth 0.5000" in ex.values.value and "grad 0.0000" in ex.values.value
+    assert bytes(ex.image_widget.value) != first and first.startswith(b"\x89PNG")
+    assert ex.figure.fig is fig and len(fig.axes) == n_axes  # updated, not rebuilt
+    assert np.allclose(ex.figure.artists[2].get_array(), gt + 0.5)
+    assert ex.computes == ex.shown == [widgets.neutral(), {**widgets.neutral(), "offset": 0.5}]
+    assert "updated in" in ex.status.value
+
+
+def test_reset_recomputes_once():
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    for name, value in (("blur", 1.0), ("scale", 1.2), ("offset", 0.3), ("noise", 0.02)):
+        ex.sliders[name].value = value
+    n = len(ex.computes)
+    ex.reset()
+    assert ex.computes[n:] == [widgets.neutral()] and ex.shown[-1] == widgets.neutral()
+    assert ex.settings() == widgets.neutral() and "depth 0.0000" in ex.values.value
+    ex.reset()  # nothing to change: nothing to compute
+    assert len(ex.computes) == n + 1
+
+
+def test_values_changed_during_a_compute_are_computed_once_and_the_stale_result_is_never_shown():
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    compute = ex.compute
+
+    def compute_while_the_student_moves_on(settings):
+        if len(ex.computes) == 2:  # during the first update: two more changes arrive
+            ex.sliders["offset"].value = 0.2
+            ex.sliders["tilt"].value = 0.1
+        return compute(settings)
+
+    ex.compute = compute_while_the_student_moves_on
+    ex.sliders["blur"].value = 1.0
+    first, latest = {**widgets.neutral(), "blur": 1.0}, {**widgets.neutral(), "blur": 1.0, "offset": 0.2, "tilt": 0.1}
+    assert ex.computes == [widgets.neutral(), first, latest]
+    assert ex.shown == [widgets.neutral(), latest]  # the in-between result was dropped
+    assert ex.figure.title.get_text().endswith("blur=1.000, tilt=0.100, offset=0.200")
+
+
+def test_a_result_is_dropped_when_values_change_while_its_figure_is_drawn():
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    png = ex.figure.png
+
+    def png_while_the_student_moves_on():
+        if len(ex.computes) == 2:
+            ex.sliders["noise"].value = 0.01
+        return png()
+
+    ex.figure.png = png_while_the_student_moves_on
+    ex.sliders["ripple"].value = 0.02
+    latest = {**widgets.neutral(), "ripple": 0.02, "noise": 0.01}
+    assert ex.computes[1:] == [{**widgets.neutral(), "ripple": 0.02}, latest]
+    assert ex.shown == [widgets.neutral(), latest]
+
+
+def test_the_worker_thread_coalesces_and_shows_a_busy_sign():
+    import threading
+
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4)
+    assert ex.background and "updated in" in ex.status.value
+    started, release, compute = threading.Event(), threading.Event(), ex.compute
+
+    def slow_compute(settings):
+        started.set()
+        assert release.wait(10)
+        return compute(settings)
+
+    ex.compute = slow_compute
+    ex.sliders["scale"].value = 1.05  # returns at once: the kernel keeps taking slider changes
+    assert started.wait(10)
+    assert ex.status.value == widgets.BUSY_HTML
+    for value in (1.1, 1.15, 1.2):  # quick key presses while the first change computes
+        ex.sliders["scale"].value = value
+    release.set()
+    assert ex.wait(30)
+    latest = {**widgets.neutral(), "scale": 1.2}
+    assert ex.computes[1:] == [{**widgets.neutral(), "scale": 1.05}, latest]
+    assert ex.shown == [widgets.neutral(), latest] and "updated in" in ex.status.value
+
+
+def test_a_failing_compute_is_reported_and_the_explorer_goes_on():
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    compute = ex.compute
+
+    def failing(settings):
+        raise RuntimeError("no memory")
+
+    ex.compute = failing
+    ex.sliders["blur"].value = 1.0
+    assert "error: RuntimeError: no memory" in ex.status.value and ex.shown == [widgets.neutral()]
+    ex.compute = compute
+    ex.sliders["blur"].value = 2.0
+    assert "updated in" in ex.status.value and ex.shown[-1]["blur"] == 2.0
+
+
+def test_slider_numbers_share_one_format_that_shows_every_step_exactly():
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    assert {s.readout_format for s in ex.sliders.values()} == {widgets.READOUT_FORMAT}
+    numbers = [x for lo, hi, step, neutral, _ in widgets.PERTURBATIONS.values() for x in (lo, hi, step, neutral)]
+    shown = [widgets.format_value(x) for x in numbers]
+    assert all(math.isclose(float(t), x, abs_tol=1e-12) for t, x in zip(shown, numbers)), shown
+    assert len({len(t.split(".")[1]) for t in shown}) == 1, shown  # as many decimals everywhere
+    assert widgets.format_value(0) == "0.000" and widgets.format_value(0.5) == "0.500"
+    assert widgets.describe({**widgets.neutral(), "noise": 0.02}).endswith("noise=0.020")
+
+
+def test_the_blitted_png_is_the_full_drawing(tmp_path):
+    import io
+
+    from PIL import Image
+
+    def blitted_and_full():
+        blit = np.asarray(Image.open(io.BytesIO(ex.image_widget.value)).convert("RGB"))
+        ex.figure.fig.canvas.draw()  # everything drawn again from scratch
+        return blit, np.asarray(ex.figure.fig.canvas.buffer_rgba())[..., :3]
+
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=6, background=False)
+    blit, full = blitted_and_full()  # the first figure: background and changing parts drawn apart
+    assert blit.shape == full.shape and np.array_equal(blit, full)
+    for settings in ({"blur": 1.5, "noise": 0.03}, {"scale": 1.3, "ripple": 0.05}):
+        for name, value in settings.items():
+            ex.sliders[name].value = value
+    blit, full = blitted_and_full()
+    assert blit.shape == full.shape and np.array_equal(blit, full)
+
+
+def test_the_live_figure_fits_a_laptop_window_and_the_static_one_keeps_its_shape():
+    w, h = (round(x * widgets.LIVE_DPI) for x in widgets.LIVE_FIGSIZE)
+    assert w <= 1200 and h <= 450  # + sliders (~110 px): well inside a 1400 x 1000 window's notebook area
+    gt, image, K = explorer_inputs()
+    fig, _ = widgets.draw(gt, image, K, {"scale": 1.2}, grid=4)
+    assert repr(fig) == "<Figure size 1500x620 with 19 Axes>"  # the notebook's stored outputs (nbval) say so
+
+
+def test_loss_report_searches_the_ground_truth_field_once(monkeypatch):
+    import torch
+
+    from geodepth_lite import losses, sdf
+
+    gt, image, K = explorer_inputs()
+    gt = gt + 0.123  # a frame no other test has cached
+    searches = []
+    search = sdf.nearest_indices
+    monkeypatch.setattr(sdf, "nearest_indices", lambda *a, **k: searches.append(1) or search(*a, **k))
+    pred = widgets.perturb(gt, blur=1.0)
+    rep = widgets.loss_report(pred, gt, image, K, grid=5)
+    assert len(searches) == 2  # ground truth and prediction
+    rep2 = widgets.loss_report(widgets.perturb(gt, scale=1.1), gt, image, K, grid=5)
+    assert len(searches) == 3  # the prediction only: the ground truth's field is cached
+    t = lambda a: torch.as_tensor(a)[None, None]  # noqa: E731
+    assert math.isclose(rep["sdf"], float(losses.sdf_loss(t(pred), t(gt), torch.as_tensor(K), (5, 5, 5))),
+                        rel_tol=1e-12)
+    assert rep2["sdf"] > 0
