@@ -218,7 +218,8 @@ def record(result: dict, digits: int = 4) -> dict[str, float]:
 
 
 def paired_bounds(result: dict) -> dict[str, float]:
-    """The ends of every verdict's interval, in percent of Case 1's mean, rounded to 0.01:
+    """The ends of every verdict's interval (the mean per-seed relative change, percent, at the
+    family's Bonferroni level; :func:`comparisons`), rounded to 0.01:
     {"paired | <set> | <metric> | case<k> | low %": ..., "... | high %": ...}. A verdict is only as
     firm as its interval's distance from zero, so the record carries the interval, not only the word."""
     out = {}

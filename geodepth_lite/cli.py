@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "convert-checkpoint": ("geodepth_lite.checkpoint", "rewrite checkpoints of the first format so they load safely"),
     "bundle": ("geodepth_lite.bundle", "pack a profile's trained models into one file to hand out (a class bundle)"),
     "unbundle": ("geodepth_lite.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
+    "exercises": ("geodepth_lite.exercises", "write the student release of the notebooks' graded exercises (nbgrader)"),
 }
 
 

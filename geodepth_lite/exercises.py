@@ -1,0 +1,220 @@
+"""Graded exercises: the instructor's notebooks hold them with their solutions; nbgrader makes
+the student release.
+
+Every numbered notebook 01-07 ends with a section "Exercises". Each exercise is a markdown
+prompt followed by two code cells that carry nbgrader's cell metadata:
+
+- the **answer** cell (``grade_id`` ``exNN-K-answer``, a solution cell): the solution sits between
+  ``### BEGIN SOLUTION`` and ``### END SOLUTION``. nbgrader's ``generate_assignment`` replaces that
+  region with ``raise NotImplementedError()`` in the student release;
+- the **check** cell (``grade_id`` ``exNN-K-check``, a graded, locked cell with its points):
+  assertions a student can run, and optionally more between ``### BEGIN HIDDEN TESTS`` and
+  ``### END HIDDEN TESTS``, which the release leaves out and ``nbgrader autograde`` puts back.
+
+An exercise is self-contained: its two cells import what they use and define their own data, so
+it runs on its own (:func:`run_exercise`), in any order, and the tests can prove each check both
+ways: it passes on the solution and fails on the student's unanswered stub.
+
+``python -m geodepth_lite exercises --out DIR`` writes the student release of notebooks 01-07 to
+DIR (nbgrader's ``generate_assignment`` in a temporary course folder; outputs cleared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from geodepth_lite import utils
+
+NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks with a graded section
+GRADE_ID = re.compile(r"^ex(\d\d)-(\d+)-(answer|check)$")
+SOLUTION_MARKERS = ("### BEGIN SOLUTION", "### END SOLUTION")
+HIDDEN_MARKERS = ("### BEGIN HIDDEN TESTS", "### END HIDDEN TESTS")
+ASSIGNMENT = "geodepth"  # nbgrader's assignment name inside the temporary course folder
+
+
+@dataclass
+class Exercise:
+    """One exercise of a notebook: its id ("03-2"), prompt, answer and check cells' sources."""
+    ident: str
+    prompt: str = ""
+    answer: str = ""
+    check: str = ""
+    points: float = 0.0
+    cells: dict = field(default_factory=dict)  # "answer"/"check" -> the notebook cell
+
+
+def _source(cell) -> str:
+    src = cell.get("source", "")
+    return "".join(src) if isinstance(src, list) else src
+
+
+def notebook_paths(folder: Path = NOTEBOOK_DIR) -> list[Path]:
+    """The notebooks with an exercise section, in order."""
+    found = {p.name[:2]: p for p in Path(folder).glob("[0-9][0-9]_*.ipynb")}
+    return [found[n] for n in EXERCISE_NOTEBOOKS if n in found]
+
+
+def collect(nb: dict) -> dict[str, Exercise]:
+    """The exercises of a notebook (nbformat JSON as a dict), keyed by id, in notebook order.
+
+    The prompt is the markdown cell just before an answer cell.
+    """
+    out: dict[str, Exercise] = {}
+    cells = nb["cells"]
+    for i, cell in enumerate(cells):
+        grade_id = cell.get("metadata", {}).get("nbgrader", {}).get("grade_id", "")
+        m = GRADE_ID.match(grade_id)
+        if not m:
+            continue
+        ex = out.setdefault(f"{m.group(1)}-{m.group(2)}", Exercise(f"{m.group(1)}-{m.group(2)}"))
+        ex.cells[m.group(3)] = cell
+        if m.group(3) == "answer":
+            ex.answer = _source(cell)
+            if i > 0 and cells[i - 1]["cell_type"] == "markdown":
+                ex.prompt = _source(cells[i - 1])
+        else:
+            ex.check = _source(cell)
+            ex.points = float(cell["metadata"]["nbgrader"].get("points", 0))
+    return out
+
+
+def solution_lines(answer: str) -> list[str]:
+    """The non-blank lines between the solution markers (what the release must not contain)."""
+    lines, inside = [], False
+    for line in answer.splitlines():
+        if line.strip() == SOLUTION_MARKERS[0]:
+            inside = True
+        elif line.strip() == SOLUTION_MARKERS[1]:
+            inside = False
+        elif inside and line.strip():
+            lines.append(line.strip())
+    return lines
+
+
+def run_exercise(answer: str, check: str) -> None:
+    """Execute an exercise's answer then check cell in a fresh namespace, in a temporary working
+    folder. Raises what the check raises, or an AssertionError when the exercise left files in
+    its working folder (in a notebook that folder is ``notebooks/``)."""
+    namespace: dict = {"__name__": "__exercise__"}
+    with tempfile.TemporaryDirectory(prefix="geodepth-exercise-") as tmp, contextlib.chdir(tmp):
+        exec(compile(answer, "<answer>", "exec"), namespace)  # noqa: S102 - the workbook's own cells
+        exec(compile(check, "<check>", "exec"), namespace)  # noqa: S102
+        left = sorted(os.listdir(tmp))
+    if left:  # in a notebook the working folder is notebooks/: an exercise must not write there
+        raise AssertionError(f"the exercise wrote {left} into its working folder; use a temporary folder")
+
+
+def stub_fails(answer_stub: str, check: str) -> tuple[bool, str]:
+    """Run a student stub and the check: (True, why) when the check rejects the unanswered stub.
+
+    The stub itself raises NotImplementedError where the solution was; the check then runs on
+    whatever the stub left defined, and must raise an AssertionError or NotImplementedError (a
+    NameError would mean the check tests nothing of the answer's own)."""
+    namespace: dict = {"__name__": "__exercise__"}
+    with tempfile.TemporaryDirectory(prefix="geodepth-exercise-") as tmp, contextlib.chdir(tmp):
+        try:
+            exec(compile(answer_stub, "<stub>", "exec"), namespace)  # noqa: S102
+        except NotImplementedError:
+            pass
+        try:
+            exec(compile(check, "<check>", "exec"), namespace)  # noqa: S102
+        except (AssertionError, NotImplementedError) as exc:
+            return True, type(exc).__name__
+        except Exception as exc:  # noqa: BLE001 - any other error is reported, not a pass
+            return False, f"the check raised {type(exc).__name__}: {exc}"
+    return False, "the check passed on the unanswered stub"
+
+
+def _nbgrader_env() -> dict:
+    """nbgrader runs its database migrations through the ``alembic`` script of its own
+    environment: put this interpreter's scripts folder first on PATH."""
+    env = dict(os.environ)
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    return env
+
+
+def release(out: Path, notebooks: list[Path] | None = None) -> list[Path]:
+    """Write the student release of ``notebooks`` (default: 01-07) to ``out``; returns the files.
+
+    nbgrader's ``generate_assignment`` runs in a temporary course folder: solutions become
+    stubs, hidden tests go, outputs are cleared, graded cells are locked. Each released notebook
+    is then checked to hold no solution line and no hidden-test marker; ``out`` is written only
+    when every notebook passes.
+    """
+    notebooks = notebook_paths() if notebooks is None else [Path(p) for p in notebooks]
+    if not notebooks:
+        raise FileNotFoundError(f"no notebook with exercises under {NOTEBOOK_DIR}")
+    utils.check_output_dir(out)
+    with tempfile.TemporaryDirectory(prefix="geodepth-release-") as tmp:
+        source = Path(tmp, "source", ASSIGNMENT)
+        source.mkdir(parents=True)
+        for nb in notebooks:
+            shutil.copy2(nb, source / nb.name)
+        cmd = [sys.executable, "-m", "nbgrader", "generate_assignment", ASSIGNMENT, "--force",
+               f"--CourseDirectory.root={tmp}", "--log-level=WARN"]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=_nbgrader_env(), cwd=tmp)
+        released = Path(tmp, "release", ASSIGNMENT)
+        if proc.returncode != 0 or not released.is_dir():
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
+            raise RuntimeError("nbgrader generate_assignment failed: " + " | ".join(tail))
+        for nb in notebooks:
+            problems = leaks(json.loads(nb.read_text()), json.loads((released / nb.name).read_text()))
+            if problems:
+                raise RuntimeError(f"{nb.name}: the release still holds solution text: {problems[0]}")
+        out.mkdir(parents=True, exist_ok=True)
+        written = []
+        for nb in notebooks:
+            shutil.copy2(released / nb.name, out / nb.name)
+            written.append(out / nb.name)
+    return written
+
+
+def leaks(source_nb: dict, released_nb: dict) -> list[str]:
+    """What of the solutions and hidden tests is still in a released notebook (empty: none)."""
+    text = "\n".join(_source(c) for c in released_nb["cells"])
+    found = [m for m in (*SOLUTION_MARKERS, *HIDDEN_MARKERS) if m in text]
+    released_lines = {ln.strip() for ln in text.splitlines()}
+    exercises = collect(source_nb).values()
+    # a line that the source also has outside any solution (an import, a blank return) is no leak
+    public = {ln.strip() for c in source_nb["cells"] for ln in _without_solutions(_source(c)).splitlines()}
+    for ex in exercises:
+        found += [f"exercise {ex.ident}: {ln!r}" for ln in solution_lines(ex.answer)
+                  if ln in released_lines and ln not in public]
+    return found
+
+
+def _without_solutions(src: str) -> str:
+    """A cell's source with its solution regions taken out."""
+    keep, inside = [], False
+    for line in src.splitlines():
+        if line.strip() == SOLUTION_MARKERS[0]:
+            inside = True
+        elif line.strip() == SOLUTION_MARKERS[1]:
+            inside = False
+        elif not inside:
+            keep.append(line)
+    return "\n".join(keep)
+
+
+def add_arguments_exercises(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", type=Path, default=Path("student-release"),
+                   help="folder for the student notebooks (default: student-release)")
+
+
+def run_exercises(args) -> int:
+    written = release(args.out)
+    counts = {p.name: len(collect(json.loads(p.read_text()))) for p in notebook_paths()}
+    print(f"student release: {len(written)} notebooks, {sum(counts.values())} exercises, in {args.out}")
+    print("grade them with nbgrader (its autograde puts the hidden tests back); solutions stay in notebooks/")
+    return 0

@@ -1,0 +1,88 @@
+"""The graded exercises of notebooks 01-07: enough of them, solutions pass, unanswered stubs fail,
+and the student release (nbgrader's generate_assignment) holds no solution text."""
+
+import json
+
+import pytest
+
+from geodepth_lite import exercises as E
+
+NOTEBOOKS = E.notebook_paths()
+LEVELS = ("recall", "apply", "open")
+
+
+def _load(path):
+    return json.loads(path.read_text())
+
+
+def _all_exercises():
+    return [(p.name, ex) for p in NOTEBOOKS for ex in E.collect(_load(p)).values()]
+
+
+@pytest.fixture(scope="module")
+def released(tmp_path_factory):
+    out = tmp_path_factory.mktemp("release") / "student"
+    E.release(out)
+    return {p.name: _load(out / p.name) for p in NOTEBOOKS}
+
+
+def test_every_lesson_notebook_has_three_graded_exercises_from_recall_to_open():
+    assert [p.name[:2] for p in NOTEBOOKS] == list(E.EXERCISE_NOTEBOOKS)
+    for p in NOTEBOOKS:
+        exs = E.collect(_load(p))
+        assert len(exs) >= 3, f"{p.name}: {len(exs)} exercises"
+        for ex in exs.values():
+            assert set(ex.cells) == {"answer", "check"}, f"{p.name} {ex.ident}: needs an answer and a check cell"
+            assert ex.points > 0 and ex.prompt.lstrip().startswith(f"### Exercise {ex.ident.replace('-', '.')}")
+            assert E.SOLUTION_MARKERS[0] in ex.answer, f"{p.name} {ex.ident}: no solution region"
+        levels = {lvl for ex in exs.values() for lvl in LEVELS if f"({lvl}," in ex.prompt}
+        assert levels == set(LEVELS), f"{p.name}: levels {sorted(levels)}"
+
+
+@pytest.mark.parametrize("name,ex", _all_exercises(), ids=lambda v: getattr(v, "ident", v))
+def test_solution_passes_its_check(name, ex):
+    E.run_exercise(ex.answer, ex.check)
+
+
+@pytest.mark.parametrize("name,ex", _all_exercises(), ids=lambda v: getattr(v, "ident", v))
+def test_check_fails_on_the_students_unanswered_stub(name, ex, released):
+    stub = E.collect(released[name])[ex.ident]
+    assert E.SOLUTION_MARKERS[0] not in stub.answer and "NotImplementedError" in stub.answer
+    fails, why = E.stub_fails(stub.answer, stub.check)
+    assert fails, f"{name} exercise {ex.ident}: {why}"
+
+
+def test_release_holds_no_solution_text_and_no_outputs(released):
+    for p in NOTEBOOKS:
+        source, student = _load(p), released[p.name]
+        assert E.leaks(source, student) == []
+        assert not any(c.get("outputs") for c in student["cells"] if c["cell_type"] == "code")
+        assert len(E.collect(student)) == len(E.collect(source))
+
+
+def test_leak_check_and_stub_check_can_fail():
+    nb = _load(NOTEBOOKS[0])
+    ex = next(iter(E.collect(nb).values()))
+    leaked = json.loads(json.dumps(nb))
+    leaked["cells"].append({"cell_type": "markdown", "metadata": {}, "source": E.solution_lines(ex.answer)[-1]})
+    assert E.leaks(nb, leaked)
+    # a check that passes on the stub (it tests nothing of the answer) is reported
+    fails, why = E.stub_fails("x = None\nraise NotImplementedError()", "assert True")
+    assert not fails and "passed" in why
+    fails, why = E.stub_fails("raise NotImplementedError()", "assert x == 1")
+    assert not fails and "NameError" in why
+
+
+def test_an_exercise_that_writes_into_its_working_folder_is_refused():
+    with pytest.raises(AssertionError, match="wrote"):
+        E.run_exercise("open('left_behind.txt', 'w').write('x')", "assert True")
+    elsewhere = "import tempfile, pathlib\npathlib.Path(tempfile.mkdtemp(), 'ok.txt').write_text('x')"
+    E.run_exercise(elsewhere, "assert True")
+
+
+def test_release_command_writes_the_student_notebooks(tmp_path, capsys):
+    from geodepth_lite import cli
+
+    assert cli.main(["exercises", "--out", str(tmp_path / "class")]) == 0
+    assert sorted(p.name for p in (tmp_path / "class").iterdir()) == sorted(p.name for p in NOTEBOOKS)
+    assert "exercises" in capsys.readouterr().out
