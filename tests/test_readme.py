@@ -89,3 +89,29 @@ def test_link_checker_catches_a_broken_link(tmp_path):
 def test_bash_block_reader_sees_only_bash_blocks():
     text = "```\npython -m pytest\n```\n\n```bash\necho one\npython -m pytest\n```\n"
     assert bash_blocks(text) == ["echo one\npython -m pytest\n"]
+
+
+LOCAL_PATH = re.compile(r"(?<![\w.])/(?:work|tmp|home|root|Users)/[\w.-]+")
+
+
+def output_texts(nb_path: Path) -> list[str]:
+    """The text of every output of a committed notebook (images left out)."""
+    import json
+
+    texts = []
+    for cell in json.loads(nb_path.read_text(encoding="utf-8"))["cells"]:
+        for out in cell.get("outputs", []):
+            texts.append("".join(out.get("text", "")))
+            texts += ["".join(v) for k, v in out.get("data", {}).items() if k.startswith("text/")]
+    return texts
+
+
+@pytest.mark.parametrize("nb_path", sorted((ROOT / "notebooks").glob("*.ipynb")), ids=lambda p: p.name)
+def test_committed_notebook_outputs_hold_no_local_paths(nb_path):
+    found = sorted({m for text in output_texts(nb_path) for m in LOCAL_PATH.findall(text)})
+    assert not found, f"{nb_path.name} prints paths of the machine that executed it: {found[:3]}"
+
+
+def test_local_path_check_can_fail():
+    assert LOCAL_PATH.findall("PosixPath('/work/main/runs/teach/records/x.json')") == ["/work/main"]
+    assert LOCAL_PATH.findall("runs/teach/records and 1/tmp ratio") == []
