@@ -89,17 +89,21 @@ def collect(nb: dict) -> dict[str, Exercise]:
     return out
 
 
+def _split_solutions(src: str) -> tuple[list[str], list[str]]:
+    """(lines inside the solution regions, lines outside them); the marker lines are in neither."""
+    regions: tuple[list[str], list[str]] = ([], [])
+    inside = False
+    for line in src.splitlines():
+        if line.strip() in SOLUTION_MARKERS:
+            inside = line.strip() == SOLUTION_MARKERS[0]
+        else:
+            regions[0 if inside else 1].append(line)
+    return regions
+
+
 def solution_lines(answer: str) -> list[str]:
     """The non-blank lines between the solution markers (what the release must not contain)."""
-    lines, inside = [], False
-    for line in answer.splitlines():
-        if line.strip() == SOLUTION_MARKERS[0]:
-            inside = True
-        elif line.strip() == SOLUTION_MARKERS[1]:
-            inside = False
-        elif inside and line.strip():
-            lines.append(line.strip())
-    return lines
+    return [line.strip() for line in _split_solutions(answer)[0] if line.strip()]
 
 
 def run_exercise(answer: str, check: str) -> None:
@@ -187,24 +191,11 @@ def leaks(source_nb: dict, released_nb: dict) -> list[str]:
     released_lines = {ln.strip() for ln in text.splitlines()}
     exercises = collect(source_nb).values()
     # a line that the source also has outside any solution (an import, a blank return) is no leak
-    public = {ln.strip() for c in source_nb["cells"] for ln in _without_solutions(_source(c)).splitlines()}
+    public = {ln.strip() for c in source_nb["cells"] for ln in _split_solutions(_source(c))[1]}
     for ex in exercises:
         found += [f"exercise {ex.ident}: {ln!r}" for ln in solution_lines(ex.answer)
                   if ln in released_lines and ln not in public]
     return found
-
-
-def _without_solutions(src: str) -> str:
-    """A cell's source with its solution regions taken out."""
-    keep, inside = [], False
-    for line in src.splitlines():
-        if line.strip() == SOLUTION_MARKERS[0]:
-            inside = True
-        elif line.strip() == SOLUTION_MARKERS[1]:
-            inside = False
-        elif not inside:
-            keep.append(line)
-    return "\n".join(keep)
 
 
 def add_arguments_exercises(p: argparse.ArgumentParser) -> None:
