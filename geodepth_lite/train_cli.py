@@ -58,9 +58,7 @@ def run_train(args: argparse.Namespace) -> int:
     if distributed.is_main_process():
         # before any work: an unwritable run folder, then a changed or missing frame, is named now, not
         # after an epoch (rank 0 builds a missing dataset here; the other ranks find it complete in fit)
-        created = utils.missing_dirs(run_dir)
-        utils.check_output_dir(run_dir)
-        utils.remove_empty_dirs(created)  # fit creates it again under its lock; a refused run leaves none
+        utils.check_can_create_dir(run_dir)  # creates nothing: fit makes the folder under its lock
         if not args.no_verify:
             integrity.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
     path = train.fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,

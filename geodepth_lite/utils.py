@@ -166,6 +166,30 @@ def check_output_dir(path: str | os.PathLike, need_bytes: int = 0) -> Path:
     return path
 
 
+def check_can_create_dir(path: str | os.PathLike) -> Path:
+    """``path`` checked as a folder that could be created and written, without creating anything.
+
+    An existing ``path`` is probed as :func:`check_output_dir` does. A missing one is judged by its
+    nearest existing parent: that must be a folder a probe file can be written into. Nothing is
+    made or removed, so two processes checking the same new folder at once cannot disturb each
+    other (one that creates and removes it again could pull it away under the other's probe).
+    """
+    path = Path(path)
+    if path.exists():
+        return check_output_dir(path)
+    missing = missing_dirs(path)
+    parent = (missing[-1] if missing else path.absolute()).parent
+    if not parent.is_dir():
+        raise FileProblem(f"cannot create folder {path}: {parent} is a file, not a folder", path)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-probe.", suffix=".tmp", dir=parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise FileProblem(f"cannot write into {path}: {os_reason(exc)}", path) from exc
+    return path
+
+
 def missing_dirs(path: str | os.PathLike) -> list[Path]:
     """The folders that creating ``path`` would make: ``path`` and its missing parents, innermost first."""
     path, out = Path(path).absolute(), []

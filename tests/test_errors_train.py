@@ -343,3 +343,27 @@ def test_a_failing_multi_worker_run_leaves_no_multiprocessing_temp_folder(smoke_
     time.sleep(0.5)
     assert not list(tmp.glob("pymp-*")), list(tmp.iterdir())
     assert not run.exists()
+
+
+def test_the_early_folder_check_creates_nothing(tmp_path, monkeypatch):
+    """train's check before any work: it judges a new folder by its nearest existing parent, so a
+    second process checking the same folder never finds it pulled away (it makes none to remove)."""
+    run = tmp_path / "a" / "b" / "run"
+    assert utils.check_can_create_dir(run) == run
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "a").write_text("keep me")
+    with pytest.raises(utils.FileProblem, match=r"cannot create folder .*run: .*a is a file, not a folder"):
+        utils.check_can_create_dir(run)
+    assert (tmp_path / "a").read_text() == "keep me"
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    assert utils.check_can_create_dir(existing) == existing
+
+    def read_only(*a, **k):
+        raise OSError(30, "Read-only file system")
+
+    monkeypatch.setattr(utils.tempfile, "mkstemp", read_only)
+    for folder in (tmp_path / "new", existing):
+        with pytest.raises(utils.FileProblem, match="cannot write into .*: read-only file system"):
+            utils.check_can_create_dir(folder)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "existing"]
