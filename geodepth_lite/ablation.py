@@ -213,17 +213,26 @@ def record(result: dict, digits: int = 4) -> dict[str, float]:
     tree = {f"case{c} seed{s}": sets for (c, s), sets in sorted(result["scores"].items())}
     tree["baselines"] = result["baselines"]
     out = tables.flat_record(tree, digits)
-    out |= paired_bounds(result)
+    out |= paired_summary(result)
     return out
 
 
-def paired_bounds(result: dict) -> dict[str, float]:
-    """The ends of every verdict's interval (the mean per-seed relative change, percent, at the
-    family's Bonferroni level; :func:`comparisons`), rounded to 0.01:
-    {"paired | <set> | <metric> | case<k> | low %": ..., "... | high %": ...}. A verdict is only as
-    firm as its interval's distance from zero, so the record carries the interval, not only the word."""
-    out = {}
-    for set_name, metric, c, p in comparisons(result):
-        out[f"paired | {set_name} | {metric} | case{c} | low %"] = round(p["rel_low"], 2)
-        out[f"paired | {set_name} | {metric} | case{c} | high %"] = round(p["rel_high"], 2)
+def paired_summary(result: dict) -> dict[str, float]:
+    """What every verdict's interval is made of, rounded to 0.01: per comparison (:func:`comparisons`)
+    the mean and the sample sd of the per-seed relative changes r_s (percent of Case 1), and once
+    the number of paired seeds and the family's size:
+    {"paired | <set> | <metric> | case<k> | mean %": ..., "... | sd %": ..., "paired | seeds": n,
+    "paired | family size": m}. The interval is mean -/+ t(1 - 0.05 / (2 m), n - 1) sd / sqrt(n).
+
+    These are the numbers another computer's retraining can be held to: a fresh draw of the same
+    seeds moves the mean by a predictable amount given the sd (``tests/test_results.py``), while
+    the interval's ends at few seeds move with the re-estimated sd far more than the mean does.
+    """
+    family = comparisons(result)
+    out = {"paired | seeds": float(len(result["seeds"])), "paired | family size": float(len(family))}
+    for set_name, metric, c, p in family:
+        r = np.asarray(p["rel_diffs"], dtype=np.float64)
+        out[f"paired | {set_name} | {metric} | case{c} | mean %"] = round(float(r.mean()), 2)
+        out[f"paired | {set_name} | {metric} | case{c} | sd %"] = round(float(r.std(ddof=1)) if r.size > 1
+                                                                        else math.nan, 2)
     return out

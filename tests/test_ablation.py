@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 
 from geodepth_lite import ablation
@@ -72,8 +73,10 @@ def test_baselines_margin_and_record():
     assert rec[f"case1 seed2 | {ablation.IN_DOMAIN} | abs_rel"] == 0.2
     assert rec[f"baselines | {ablation.IN_DOMAIN} | shading_prior | abs_rel"] == 0.16
     # Case 2 is 0.1 better at every seed: -0.1 / 0.12, -0.1 / 0.13, -0.1 / 0.20 of each seed's Case 1
-    low, high = (rec[f"paired | {ablation.IN_DOMAIN} | abs_rel | case2 | {end} %"] for end in ("low", "high"))
-    assert low < -100 * 0.1 / 0.12 < -100 * 0.1 / 0.20 < high
+    r_s = [-100 * 0.1 / 0.12, -100 * 0.1 / 0.13, -100 * 0.1 / 0.20]
+    mean, sd = (rec[f"paired | {ablation.IN_DOMAIN} | abs_rel | case2 | {k} %"] for k in ("mean", "sd"))
+    assert mean == pytest.approx(sum(r_s) / 3, abs=0.005) and sd == pytest.approx(np.std(r_s, ddof=1), abs=0.005)
+    assert rec["paired | seeds"] == 3 and rec["paired | family size"] == len(ablation.comparisons(r))
     lines = ablation.claims(r)
     assert any("Abs Rel: Case 2 vs Case 1 -> " in line for line in lines)
     assert (f"{ablation.IN_DOMAIN}: runs below every baseline in Abs Rel: 5 of 6; "
