@@ -1,0 +1,289 @@
+"""The confirmatory ablation study of docs/study_plan.md: its runs, its scores and its verdicts.
+
+Depth term {L1 (the paper's), silog (the teach recipe)} x geometric losses {off (Case 1), all
+(Case 4)}, plus Cases 2 and 3 with silog, each at the same 8 paired seeds: 48 training runs
+of the ``teach`` recipe. Every run is scored on the confirmation set (``scenario_study_confirm``,
+scenes generated after the plan was committed) and, as secondary sets, on the held-out texture x
+lighting groups and the close-ups.
+
+``python -m geodepth_lite reproduce --study`` trains what is missing (seeds 0-2 of the silog
+cells are the default ``reproduce``'s ablation runs), scores every run and writes three tables
+into ``runs/<profile>/study/``:
+
+- ``runs.csv``: one row per run and evaluation set, the seven metrics over the set's frames;
+- ``frames.csv.gz``: one row per run and frame of the confirmation set (the primary endpoint's
+  raw material: a run's row in ``runs.csv`` is the mean of its frames here);
+- ``baselines.csv``: the trivial predictors on every set (no training involved).
+
+The committed copies in ``notebooks/study/`` are what notebook 05 analyses, so its verdicts are
+the same on every computer; ``tests/test_results.py`` retrains the default subset and checks it
+against them. The analysis itself (:func:`family`) is the plan's: ten paired t-tests over the
+seeds, Holm's rule for "differs from zero", Bonferroni intervals for the size.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from geodepth_lite import ablation, checkpoint, config, evaluate, metrics, run_cache, synth, utils
+
+SEEDS = tuple(range(8))          # the plan's paired seeds
+DEFAULT_SEEDS = (0, 1, 2)        # the default reproduce's ablation seeds: a subset a test run retrains
+CONFIRM = "scenario_study_confirm"
+PRIMARY = "confirmation set"
+CLOSEUPS = "close-ups"
+DEPTH_TERMS = ("silog", "l1")
+DEPTH_LABELS = {"silog": "silog", "l1": "L1"}
+CELLS = (("silog", 1), ("silog", 2), ("silog", 3), ("silog", 4), ("l1", 1), ("l1", 4))
+INTERACTION = "interaction"      # the "case" of the two interaction tests in family()
+METRIC_COLUMNS = tuple(metrics.METRIC_NAMES)
+
+
+def committed_dir() -> Path:
+    """``notebooks/study/``: the committed tables notebook 05 reads."""
+    root = utils.project_root()
+    if root is None:
+        raise FileNotFoundError("notebooks/study/ not found: run from a checkout of geodepth-lite")
+    return root / "notebooks" / "study"
+
+
+def run_overrides(profile: str, depth_term: str) -> dict:
+    """The settings of a study run beyond the profile's ablation settings: none for the profile's
+    own depth term (so those runs are the default ablation's), else ``depth_term``."""
+    return {} if config.get_profile(profile).get("depth_term") == depth_term else {"depth_term": depth_term}
+
+
+def study_runs(profile: str = "teach", seeds=SEEDS) -> list[tuple[str, int, int, dict]]:
+    """Every run of the study as (depth term, case, seed, settings for ``run_cache.ensure_runs``)."""
+    return [(term, case, int(s), run_overrides(profile, term)) for term, case in CELLS for s in seeds]
+
+
+def train(profile: str = "teach", seeds=SEEDS, *, workers: int | None = None,
+          progress: bool = False) -> dict[tuple[str, int, int], Path]:
+    """Train (or reuse, or continue) every run of the study; {(depth term, case, seed): checkpoint}."""
+    runs = study_runs(profile, seeds)
+    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress)
+    return {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
+
+
+def evaluation_sets(profile: str = "teach", progress: bool = False) -> dict[str, Any]:
+    """{PRIMARY: the confirmation set, ablation.HELDOUT: the three held-out groups together,
+    CLOSEUPS: the held-out close-ups}, at the profile's sizes."""
+    prof = config.get_profile(profile)
+    sets = {PRIMARY: evaluate.open_eval_dataset(str(synth.ensure_dataset(CONFIRM, progress=progress)))}
+    sets[ablation.HELDOUT] = ablation.evaluation_sets(profile, progress=progress)[ablation.HELDOUT]
+    sets[CLOSEUPS] = evaluate.open_eval_dataset(
+        str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"], progress=progress)))
+    return sets
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.6g}"
+
+
+def score(checkpoints: dict[tuple[str, int, int], Path], sets: dict[str, Any], *,
+          progress: bool = False) -> tuple[list[dict], list[dict]]:
+    """Score every run on every set: (run rows, frame rows of the primary set)."""
+    from tqdm.auto import tqdm
+
+    runs, frames = [], []
+    for (term, case, seed), path in tqdm(sorted(checkpoints.items()), desc="score the study's runs",
+                                         disable=not progress):
+        model, cfg = checkpoint.load_model(path)
+        for name, ds in sets.items():
+            r = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"])
+            runs.append({"depth_term": term, "case": case, "seed": seed, "set": name, "frames": r["n"],
+                         **{m: _fmt(r["overall"][m]) for m in METRIC_COLUMNS}})
+            if name == PRIMARY:
+                frames += [{"depth_term": term, "case": case, "seed": seed, "index": f["index"],
+                            "organ": f["organ"], "group": f["group"],
+                            **{m: _fmt(f[m]) for m in (*METRIC_COLUMNS, "ratio")}} for f in r["frames"]]
+    return runs, frames
+
+
+def score_baselines(profile: str, sets: dict[str, Any]) -> list[dict]:
+    """The trivial predictors on every set, one row each (``ablation.baseline_scores``)."""
+    return [{"set": name, "baseline": b, **{m: _fmt(v[m]) for m in METRIC_COLUMNS}}
+            for name, per in ablation.baseline_scores(profile, sets).items() for b, v in per.items()]
+
+
+def _csv_bytes(rows: list[dict]) -> bytes:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict]) -> Path:
+    """Write runs.csv, frames.csv.gz and baselines.csv into ``out`` (each file whole or not at all)."""
+    out = utils.check_output_dir(out)
+    utils.write_bytes_atomic(out / "runs.csv", _csv_bytes(runs))
+    utils.write_bytes_atomic(out / "frames.csv.gz", gzip.compress(_csv_bytes(frames), mtime=0))
+    utils.write_bytes_atomic(out / "baselines.csv", _csv_bytes(baselines))
+    return out
+
+
+def _read_csv(path: Path) -> list[dict]:
+    if not path.is_file():
+        raise FileNotFoundError(f"study table not found: {path} (`python -m geodepth_lite reproduce --study` "
+                                "writes it)")
+    data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+    return list(csv.DictReader(io.StringIO(data.decode())))
+
+
+def read_tables(folder: str | Path | None = None, frames: bool = False) -> dict:
+    """The study's tables from ``folder`` (default: the committed ``notebooks/study/``), numbers as
+    floats: {"runs": [...], "baselines": [...], "frames": [...] (only with ``frames``)}."""
+    folder = Path(folder) if folder else committed_dir()
+    tables = {"runs": [_typed(r) for r in _read_csv(folder / "runs.csv")],
+              "baselines": [_typed(r) for r in _read_csv(folder / "baselines.csv")]}
+    if frames:
+        tables["frames"] = [_typed(r) for r in _read_csv(folder / "frames.csv.gz")]
+    return tables
+
+
+def _typed(row: dict) -> dict:
+    """A table row with its numbers as int or float (as a CSV round trip gives them)."""
+    out = {}
+    for k, v in row.items():
+        if k in ("case", "seed", "index", "frames"):
+            out[k] = int(v)
+        elif k in (*METRIC_COLUMNS, "ratio"):
+            out[k] = float(v)
+        else:
+            out[k] = v
+    return out
+
+
+def retrain_subset(profile: str = "teach", seeds=DEFAULT_SEEDS, *, workers: int | None = None,
+                   progress: bool = False) -> dict:
+    """The silog cells at ``seeds`` trained (or reused) on this computer and scored on the study's
+    sets: tables like :func:`read_tables`'s, plus "checkpoints" {(term, case, seed): path}. With the
+    default seeds these are the default ``reproduce``'s ablation runs."""
+    runs = [r for r in study_runs(profile, seeds) if r[0] == "silog"]
+    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress)
+    checkpoints = {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
+    sets = evaluation_sets(profile, progress=progress)
+    rows, _ = score(checkpoints, sets, progress=progress)
+    return {"runs": [_typed(r) for r in rows], "baselines": [_typed(r) for r in score_baselines(profile, sets)],
+            "checkpoints": checkpoints}
+
+
+def as_result(tables: dict, depth_term: str, seeds=None) -> dict:
+    """The runs of one depth term in ``ablation``'s result form ({"cases", "seeds", "scores":
+    {(case, seed): {set: metrics}}, "baselines": {set: {baseline: metrics}}}), for its tables
+    and per-case statistics. ``seeds`` keeps only those seeds (default: all in the tables)."""
+    rows = [r for r in tables["runs"] if r["depth_term"] == depth_term and (seeds is None or r["seed"] in seeds)]
+    scores: dict = {}
+    for r in rows:
+        scores.setdefault((r["case"], r["seed"]), {})[r["set"]] = {m: r[m] for m in METRIC_COLUMNS}
+    baselines: dict = {}
+    for r in tables["baselines"]:
+        baselines.setdefault(r["set"], {})[r["baseline"]] = {m: r[m] for m in METRIC_COLUMNS}
+    return {"cases": sorted({c for c, _ in scores}), "seeds": sorted({s for _, s in scores}), "scores": scores,
+            "baselines": baselines}
+
+
+def relative_changes(tables: dict, depth_term: str, case: int, metric: str, set_name: str = PRIMARY,
+                     seeds=None) -> np.ndarray:
+    """r_s = 100 (m(case, s) / m(Case 1, s) - 1) for each seed s (sorted), one depth term."""
+    res = as_result(tables, depth_term, seeds)
+    a = np.array([res["scores"][(case, s)][set_name][metric] for s in res["seeds"]])
+    b = np.array([res["scores"][(1, s)][set_name][metric] for s in res["seeds"]])
+    return 100 * (a / b - 1)
+
+
+def interaction_verdict(low: float, high: float, mean: float, rejected: bool) -> str:
+    """The plan's words for the interaction d_s = r_s(L1, Case 4) - r_s(silog, Case 4) (negative: the
+    geometric losses reduce the error more under L1)."""
+    if rejected and mean < 0:
+        return f"the geometric losses help more against the L1 baseline (by {-high:.1f} to {-low:.1f} points)"
+    if rejected:
+        return "opposite (the geometric losses help more against the silog baseline)"
+    return f"no depth-term dependence detected; differences beyond {max(abs(low), abs(high)):.1f} points excluded"
+
+
+def family(tables: dict, set_name: str = PRIMARY, seeds=None, alpha: float = ablation.ALPHA) -> list[dict]:
+    """The plan's ten tests on ``set_name``, in order: silog Cases 2, 3, 4 against Case 1, L1 Case 4
+    against Case 1, and the interaction, each for RMSE and Abs Rel.
+
+    Each is a paired t-test over the seeds of r_s (percent of Case 1) or, for the interaction, of
+    d_s = r_s(L1) - r_s(silog) (points). Returns one dict per test: "term", "case" (or INTERACTION),
+    "metric", "values", "mean", "sd", "p", "low"/"high" (the Bonferroni interval at 1 - alpha / 10),
+    "rejected" (Holm), "paper" (None for the interaction), "verdict".
+    """
+    specs = [("silog", c) for c in (2, 3, 4)] + [("l1", 4), ("l1 - silog", INTERACTION)]
+    out = []
+    for term, case in specs:
+        for metric in ablation.PAIRED_METRICS[::-1]:  # RMSE first, as the plan lists them
+            if case == INTERACTION:
+                v = (relative_changes(tables, "l1", 4, metric, set_name, seeds)
+                     - relative_changes(tables, "silog", 4, metric, set_name, seeds))
+            else:
+                v = relative_changes(tables, term, case, metric, set_name, seeds)
+            if v.size < 2:  # one seed: nothing is known about the spread
+                p = 1.0
+            elif v.std() > 1e-9 * (1 + abs(v.mean())):
+                p = float(stats.ttest_1samp(v, 0.0).pvalue)
+            else:  # the same change at every seed: certain, unless it is none
+                p = 1.0 if abs(v.mean()) <= 1e-9 else 0.0
+            out.append({"term": term, "case": case, "metric": metric, "values": v.tolist(), "mean": float(v.mean()),
+                        "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan, "p": p})
+    level = 1 - alpha / len(out)
+    for t, rejected in zip(out, ablation.holm([t["p"] for t in out], alpha)):
+        _, t["low"], t["high"] = ablation.t_interval(t["values"], level)
+        t["rejected"], t["level"] = rejected, level
+        if t["case"] == INTERACTION:
+            t["paper"] = None
+            t["verdict"] = interaction_verdict(t["low"], t["high"], t["mean"], rejected)
+        else:
+            t["paper"] = ablation.PAPER_REDUCTION[t["case"]][t["metric"]]
+            t["verdict"] = ablation.size_verdict(t["low"], t["high"], t["mean"], t["paper"], rejected)
+    return out
+
+
+def comparison_key(t: dict, set_name: str = PRIMARY) -> str:
+    """The record key stem of a test of :func:`family`: "paired | <set> | <metric> | <term> case<k>"."""
+    who = f"{t['term']} case{t['case']}" if t["case"] != INTERACTION else t["term"]
+    return f"paired | {set_name} | {t['metric']} | {who}"
+
+
+def paired_record(tables: dict, seeds=None, set_name: str = PRIMARY) -> dict[str, float]:
+    """What the family's intervals are made of, rounded to 0.01: per test of :func:`family` on
+    ``set_name`` that ``seeds`` allow, the mean and sd of its per-seed values ("... | mean %",
+    "... | sd %"), and the number of seeds ("paired | seeds"). Tests that need depth terms
+    missing from the tables (the default subset trains silog only) are left out."""
+    terms = {r["depth_term"] for r in tables["runs"]}
+    out = {}
+    for t in _available_tests(tables, terms, set_name, seeds):
+        out[f"{comparison_key(t, set_name)} | mean %"] = round(t["mean"], 2)
+        out[f"{comparison_key(t, set_name)} | sd %"] = round(t["sd"], 2)
+    out["paired | seeds"] = float(len(as_result(tables, "silog", seeds)["seeds"]))
+    return out
+
+
+def _available_tests(tables: dict, terms: set, set_name: str, seeds) -> list[dict]:
+    if terms >= set(DEPTH_TERMS):
+        return family(tables, set_name, seeds)
+    out = []
+    for case in (2, 3, 4):
+        for metric in ablation.PAIRED_METRICS[::-1]:
+            v = relative_changes(tables, "silog", case, metric, set_name, seeds)
+            out.append({"term": "silog", "case": case, "metric": metric, "mean": float(v.mean()),
+                        "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan})
+    return out
+
+
+def run_record(tables: dict, seeds=None, digits: int = 4) -> dict[str, float]:
+    """Every run's metrics, flat: {"<term> case<k> seed<s> | <set> | <metric>": value}."""
+    return {f"{r['depth_term']} case{r['case']} seed{r['seed']} | {r['set']} | {m}": round(r[m], digits)
+            for r in tables["runs"] if seeds is None or r["seed"] in seeds for m in METRIC_COLUMNS}
