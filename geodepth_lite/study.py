@@ -283,7 +283,90 @@ def _available_tests(tables: dict, terms: set, set_name: str, seeds) -> list[dic
     return out
 
 
-def run_record(tables: dict, seeds=None, digits: int = 4) -> dict[str, float]:
-    """Every run's metrics, flat: {"<term> case<k> seed<s> | <set> | <metric>": value}."""
+def run_record(tables: dict, seeds=None, sets=None, digits: int = 4) -> dict[str, float]:
+    """Every run's metrics, flat: {"<term> case<k> seed<s> | <set> | <metric>": value}, for the
+    runs of ``seeds`` on ``sets`` (default: all)."""
     return {f"{r['depth_term']} case{r['case']} seed{r['seed']} | {r['set']} | {m}": round(r[m], digits)
-            for r in tables["runs"] if seeds is None or r["seed"] in seeds for m in METRIC_COLUMNS}
+            for r in tables["runs"] if (seeds is None or r["seed"] in seeds) and (sets is None or r["set"] in sets)
+            for m in METRIC_COLUMNS}
+
+
+def label(t: dict) -> str:
+    """A test of :func:`family` in words: "Case 3 vs Case 1 (silog)", "interaction (L1 - silog), Case 4"."""
+    if t["case"] == INTERACTION:
+        return "interaction: Case 4 vs Case 1 under L1 minus under silog"
+    return f"Case {t['case']} vs Case 1 ({DEPTH_LABELS[t['term']]})"
+
+
+def cell_stats(tables: dict, set_name: str, metric: str) -> dict[tuple[str, int], tuple[float, float]]:
+    """{(depth term, case): (mean, sample sd) over the seeds} of ``metric`` on ``set_name``."""
+    out = {}
+    for term, case in CELLS:
+        v = np.array([r[metric] for r in tables["runs"]
+                      if (r["depth_term"], r["case"], r["set"]) == (term, case, set_name)])
+        if v.size:
+            out[(term, case)] = (float(v.mean()), float(v.std(ddof=1)) if v.size > 1 else math.nan)
+    return out
+
+
+def claims(tables: dict, margin: float = 0.2) -> list[str]:
+    """The study's conclusions as sentences, computed from the tables: one verdict per test of
+    :func:`family` on the confirmation set, then how every run stands against the baselines."""
+    from geodepth_lite import tables as tbl
+
+    lines = [f"{PRIMARY}, {tbl.METRIC_LABELS[t['metric']]}: {label(t)} -> {t['verdict']}" for t in family(tables)]
+    best = min(r["abs_rel"] for r in tables["baselines"] if r["set"] == PRIMARY)
+    runs = [r for r in tables["runs"] if r["set"] == PRIMARY]
+    for term in DEPTH_TERMS:
+        mine = [r for r in runs if r["depth_term"] == term]
+        lines.append(f"{PRIMARY}, {DEPTH_LABELS[term]} runs below every baseline in Abs Rel: "
+                     f"{sum(r['abs_rel'] < best for r in mine)} of {len(mine)}; at least {100 * margin:.0f}% below "
+                     f"the best baseline: {sum(r['abs_rel'] <= (1 - margin) * best for r in mine)} of {len(mine)}")
+    return lines
+
+
+FRESH_LEVEL = 0.99  # the chance that a correct retraining passes all of check_subset's checks together
+
+
+def prediction_ranges(committed: dict, stem: str, n_fresh: int, n_checks: int,
+                      level: float = FRESH_LEVEL) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Where a fresh draw of ``n_fresh`` seeds of test ``stem`` should fall, given the committed
+    record's mean and sd over its n seeds (:func:`paired_record`): ((low, high) of the mean,
+    (low, high) of the sd), each at level 1 - (1 - ``level``) / ``n_checks`` (Bonferroni over the
+    ``n_checks`` checks made together). The mean's range is the prediction interval
+    mean +/- t(n - 1) sd sqrt(1/n + 1/n_fresh); the sd's comes from the F distribution of the ratio
+    of two sample variances (n_fresh - 1 and n - 1 degrees of freedom). The committed sd stands in
+    for the true one."""
+    n = int(committed["paired | seeds"])
+    mean, sd = committed[f"{stem} | mean %"], committed[f"{stem} | sd %"]
+    a = (1 - level) / n_checks
+    tol = float(stats.t.ppf(1 - a / 2, n - 1)) * sd * math.sqrt(1 / n + 1 / n_fresh)
+    f_lo, f_hi = stats.f.ppf([a / 2, 1 - a / 2], n_fresh - 1, n - 1)
+    return (mean - tol, mean + tol), (sd * math.sqrt(f_lo), sd * math.sqrt(f_hi))
+
+
+def check_subset(fresh: dict, committed: dict, level: float = FRESH_LEVEL) -> list[dict]:
+    """Each test of the ``fresh`` record (a retrained subset, :func:`paired_record`) against the
+    ``committed`` one: its mean and sd within :func:`prediction_ranges` (all checks together at
+    ``level``). One dict per test: "test", "study", "here" (mean (sd) as text), "range" (the fresh
+    mean's), "ok", and "problems" (one line per number outside its range)."""
+    stems = [k[: -len(" | mean %")] for k in fresh if k.endswith(" | mean %")]
+    missing = [s for s in stems if f"{s} | mean %" not in committed]
+    if missing:
+        raise KeyError(f"the committed record has no test {missing[0]!r}")
+    n_fresh, out = int(fresh["paired | seeds"]), []
+    for stem in stems:
+        (m_lo, m_hi), (s_lo, s_hi) = prediction_ranges(committed, stem, n_fresh, 2 * len(stems), level)
+        m, s = fresh[f"{stem} | mean %"], fresh[f"{stem} | sd %"]
+        problems = []
+        if not m_lo <= m <= m_hi:
+            problems.append(f"{stem} | mean %: study {committed[f'{stem} | mean %']}, here {m} "
+                            f"(range {m_lo:.2f} to {m_hi:.2f})")
+        if not s_lo <= s <= s_hi:
+            problems.append(f"{stem} | sd %: study {committed[f'{stem} | sd %']}, here {s} "
+                            f"(range {s_lo:.2f} to {s_hi:.2f})")
+        out.append({"test": stem.removeprefix("paired | "),
+                    "study": f"{committed[f'{stem} | mean %']:+.2f} ({committed[f'{stem} | sd %']:.2f})",
+                    "here": f"{m:+.2f} ({s:.2f})", "range": f"{m_lo:+.2f} to {m_hi:+.2f}", "ok": not problems,
+                    "problems": problems})
+    return out

@@ -99,3 +99,71 @@ def test_the_paired_record_of_the_study_and_of_its_silog_subset():
     runs = study.run_record(tables, seeds=[0])
     assert len(runs) == len(study.CELLS) * len(METRICS)
     assert runs[f"l1 case4 seed0 | {study.PRIMARY} | rmse"] == round(0.10 * (1 - 0.30 + eps[0]), 4)
+
+
+STEMS = [f"paired | {study.PRIMARY} | {m} | silog case{c}" for c in (2, 3, 4) for m in ("rmse", "abs_rel")]
+
+
+def _record(values: dict) -> dict:
+    """A paired record from per-seed values {stem: array of r_s}."""
+    rec = {"paired | seeds": float(len(next(iter(values.values()))))}
+    for stem, v in values.items():
+        rec[f"{stem} | mean %"], rec[f"{stem} | sd %"] = float(v.mean()), float(v.std(ddof=1))
+    return rec
+
+
+def _problems(fresh: dict, committed: dict) -> list[str]:
+    return [line for c in study.check_subset(fresh, committed) for line in c["problems"]]
+
+
+def test_the_subset_check_passes_fresh_draws_and_catches_a_moved_effect():
+    """Brute force: draw a study of 8 seeds and a retrained subset of 3 from one per-seed
+    distribution (mean -4, sd 1.5 points) many times. The check must pass at least FRESH_LEVEL of
+    the pairs, and catch Case 3's RMSE moved by 8 points (about 5 sd of one seed) most of the time.
+    It cannot catch 2 points: three fresh seeds leave that inside the range."""
+    rng = np.random.default_rng(0)
+    trials, passed, caught = 400, 0, {2.0: 0, 8.0: 0}
+    moved = f"paired | {study.PRIMARY} | rmse | silog case3"
+    for _ in range(trials):
+        committed = _record({k: rng.normal(-4.0, 1.5, 8) for k in STEMS})
+        fresh = _record({k: rng.normal(-4.0, 1.5, 3) for k in STEMS})
+        passed += not _problems(fresh, committed)
+        for shift in caught:
+            wrong = {**fresh, f"{moved} | mean %": fresh[f"{moved} | mean %"] + shift}
+            caught[shift] += any(line.startswith(moved) for line in _problems(wrong, committed))
+    assert passed / trials >= study.FRESH_LEVEL - 0.015, passed / trials
+    assert caught[8.0] / trials >= 0.8, caught
+    assert caught[2.0] / trials <= 0.1, caught
+
+
+def test_the_subset_check_names_what_is_out_of_range():
+    committed = _record({k: np.array([-4.0, -2.0, -6.0, -3.0, -5.0, -4.5, -3.5, -4.0]) for k in STEMS})
+    stem = STEMS[2]
+    (lo, hi), (s_lo, s_hi) = study.prediction_ranges(committed, stem, 3, 2 * len(STEMS))
+    # known answer: t(1 - 0.01 / 24, 7) sd sqrt(1/8 + 1/3) around the mean
+    sd = committed[f"{stem} | sd %"]
+    half = stats.t.ppf(1 - 0.01 / 24, 7) * sd * math.sqrt(1 / 8 + 1 / 3)
+    assert (lo, hi) == pytest.approx((-4.0 - half, -4.0 + half))
+    assert s_lo < sd < s_hi
+    fresh = {**committed, "paired | seeds": 3.0, f"{stem} | mean %": hi - 0.01}
+    assert _problems(fresh, committed) == []
+    fresh[f"{stem} | mean %"], fresh[f"{stem} | sd %"] = hi + 0.01, s_hi + 0.01
+    assert [p.split(":")[0] for p in _problems(fresh, committed)] == [f"{stem} | mean %", f"{stem} | sd %"]
+    with pytest.raises(KeyError, match="no test"):
+        study.check_subset({**fresh, "paired | other | rmse | l1 case4 | mean %": 0.0,
+                            "paired | other | rmse | l1 case4 | sd %": 1.0}, committed)
+
+
+def test_claims_and_cell_statistics():
+    eps = [0.01, -0.01, 0.005, -0.005, 0.0, 0.002, -0.002, 0.0]
+    tables = _tables({("silog", 4): [-0.10 + e for e in eps], ("l1", 1): [2.0] * 8, ("l1", 4): [1.5] * 8})
+    lines = study.claims(tables)
+    assert len(lines) == 12 and lines[4].startswith(f"{study.PRIMARY}, RMSE: Case 4 vs Case 1 (silog) -> direction")
+    # silog runs score 0.09-0.107; L1 Case 1 3x that (0.30-0.32), L1 Case 4 2.5x; the baseline 0.3
+    assert lines[-2] == (f"{study.PRIMARY}, silog runs below every baseline in Abs Rel: 32 of 32; "
+                         "at least 20% below the best baseline: 32 of 32")
+    assert lines[-1] == (f"{study.PRIMARY}, L1 runs below every baseline in Abs Rel: 8 of 16; "  # Case 4: 0.25-0.27
+                         "at least 20% below the best baseline: 0 of 16")
+    mean, sd = study.cell_stats(tables, study.PRIMARY, "rmse")[("silog", 1)]
+    v = [0.10 * (1 + s / 100) for s in range(8)]
+    assert (mean, sd) == pytest.approx((np.mean(v), np.std(v, ddof=1)))
