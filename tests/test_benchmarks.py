@@ -53,10 +53,18 @@ def test_every_evidence_row_is_a_logged_run():
     # the check can fail: a row quoting a number its run did not give is caught
     wrong = dict(rows[0], abs_rel=rows[0]["abs_rel"] + 0.002)
     assert not _logged(wrong, log)
+    several = next(row for row in rows if "runs" in row)
+    assert not _logged(dict(several, rmse=several["rmse"] + 0.002), log)
 
 
 def _logged(row: dict, log: list[dict]) -> bool:
-    """Whether ``row``'s validation Abs Rel and RMSE (and close-up score) are those of its logged run."""
+    """Whether ``row``'s validation Abs Rel and RMSE (and close-up score) are those of its logged run,
+    or the means over its logged "runs" (a row of several seeds)."""
+    if "runs" in row:
+        names = [n.strip() for n in row["runs"].split(",")]
+        found = [next((r for r in log if r["name"] == n), None) for n in names]
+        return None not in found and all(
+            abs(sum(r[f"val_{k}"] for r in found) / len(found) - row[k]) <= 5e-4 for k in ("abs_rel", "rmse"))
     runs = [r for r in log if r["name"] == row["run"]]
     ok = any(abs(r.get("val_abs_rel", -1) - row["abs_rel"]) <= 5e-4
              and abs(r.get("val_rmse", -1) - row["rmse"]) <= 5e-4 for r in runs)
