@@ -149,12 +149,7 @@ def check_output_dir(path: str | os.PathLike, need_bytes: int = 0) -> Path:
     missing = missing_dirs(path)
     try:
         make_dir(path)
-        try:
-            fd, probe = tempfile.mkstemp(prefix=".write-probe.", suffix=".tmp", dir=path)
-            os.close(fd)
-            os.unlink(probe)
-        except OSError as exc:
-            raise FileProblem(f"cannot write into {path}: {os_reason(exc)}", path) from exc
+        _probe_write(path, path)
         if need_bytes > 0:
             free = shutil.disk_usage(path).free
             if free < need_bytes:
@@ -181,13 +176,19 @@ def check_can_create_dir(path: str | os.PathLike) -> Path:
     parent = (missing[-1] if missing else path.absolute()).parent
     if not parent.is_dir():
         raise FileProblem(f"cannot create folder {path}: {parent} is a file, not a folder", path)
+    _probe_write(parent, path)
+    return path
+
+
+def _probe_write(folder: Path, named: Path) -> None:
+    """Write and remove a small probe file in ``folder``; a :class:`FileProblem` naming ``named`` if
+    that fails."""
     try:
-        fd, probe = tempfile.mkstemp(prefix=".write-probe.", suffix=".tmp", dir=parent)
+        fd, probe = tempfile.mkstemp(prefix=".write-probe.", suffix=".tmp", dir=folder)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise FileProblem(f"cannot write into {path}: {os_reason(exc)}", path) from exc
-    return path
+        raise FileProblem(f"cannot write into {named}: {os_reason(exc)}", named) from exc
 
 
 def missing_dirs(path: str | os.PathLike) -> list[Path]:
