@@ -32,8 +32,10 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
+from tqdm.auto import tqdm
 
 from geodepth_lite import ablation, checkpoint, config, evaluate, metrics, run_cache, synth, utils
+from geodepth_lite import tables as tbl
 
 SEEDS = tuple(range(8))          # the plan's paired seeds
 DEFAULT_SEEDS = (0, 1, 2)        # the default reproduce's ablation seeds: a subset a test run retrains
@@ -92,8 +94,6 @@ def _fmt(x: float) -> str:
 def score(checkpoints: dict[tuple[str, int, int], Path], sets: dict[str, Any], *,
           progress: bool = False) -> tuple[list[dict], list[dict]]:
     """Score every run on every set: (run rows, frame rows of the primary set)."""
-    from tqdm.auto import tqdm
-
     runs, frames = [], []
     for (term, case, seed), path in tqdm(sorted(checkpoints.items()), desc="score the study's runs",
                                          disable=not progress):
@@ -312,8 +312,6 @@ def cell_stats(tables: dict, set_name: str, metric: str) -> dict[tuple[str, int]
 def claims(tables: dict, margin: float = 0.2) -> list[str]:
     """The study's conclusions as sentences, computed from the tables: one verdict per test of
     :func:`family` on the confirmation set, then how every run stands against the baselines."""
-    from geodepth_lite import tables as tbl
-
     lines = [f"{PRIMARY}, {tbl.METRIC_LABELS[t['metric']]}: {label(t)} -> {t['verdict']}" for t in family(tables)]
     best = min(r["abs_rel"] for r in tables["baselines"] if r["set"] == PRIMARY)
     runs = [r for r in tables["runs"] if r["set"] == PRIMARY]

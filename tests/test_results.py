@@ -332,7 +332,8 @@ def test_a_firm_verdict_may_not_change_and_a_loose_one_may():
     assert len(changed_verdicts([base], [base.replace("12 of 12;", "11 of 12;")], rec)) == 1
     assert verdict_words("a -> no effect detected; effects beyond 2.7% excluded") == \
         verdict_words("a -> no effect detected; effects beyond 13% excluded") != verdict_words("a -> undecided")
-    for words in ("paper's size reproduced", "opposite", "undecided", "no effect detected; effects beyond 1.0% excluded",
+    for words in ("paper's size reproduced", "opposite", "undecided",
+                  "no effect detected; effects beyond 1.0% excluded",
                   "direction reproduced, larger than the paper (paper's value excluded)"):
         assert verdict_aspects(words)  # every word the rule can say is understood
     with pytest.raises(ValueError):
