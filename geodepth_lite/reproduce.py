@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from geodepth_lite import config, run_cache, utils
+from geodepth_lite import config, run_cache, study, utils
 from geodepth_lite.tables import markdown_table
 
 MARKER_DIR = ".reproduce"
@@ -341,7 +341,27 @@ def add_arguments_reproduce(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, help="run folder (default runs/<profile>/)")
     parser.add_argument("--force", action="store_true", help="rerun notebooks that already completed")
     parser.add_argument("--dry-run", action="store_true", help="check everything and show the plan; run nothing")
+    parser.add_argument("--study", action="store_true",
+                        help="the confirmatory ablation study (docs/study_plan.md): train its 48 runs, score them "
+                             "into <run folder>/study/, then run notebook 05 on those tables")
     parser.add_argument("--no-progress", action="store_true")
+
+
+def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True) -> Path:
+    """Train (or reuse) the study's runs, score them and write its tables into ``<run folder>/study/``
+    (``study.write_tables``); returns that folder. An interrupted study continues: finished runs are
+    reused, an unfinished one resumes from its last epoch."""
+    out = resolve_run_dir(profile, run_dir or "") / "study"
+    utils.check_can_create_dir(out)
+    t0 = time.perf_counter()
+    print(f"[reproduce] the study: {len(study.study_runs(profile))} runs ({profile}) ...", flush=True)
+    paths = study.train(profile, progress=progress)
+    print(f"[reproduce] runs ready in {time.perf_counter() - t0:.0f} s; scoring them ...", flush=True)
+    sets = study.evaluation_sets(profile, progress=progress)
+    runs, frames = study.score(paths, sets, progress=progress)
+    folder = study.write_tables(out, runs, frames, study.score_baselines(profile, sets))
+    print(f"[reproduce] study tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
+    return folder
 
 
 def run_reproduce(args: argparse.Namespace) -> int:
@@ -351,6 +371,18 @@ def run_reproduce(args: argparse.Namespace) -> int:
             raise ValueError(f"-p {name} given twice")
         params[name] = parse_value(value)
     t0 = time.perf_counter()
+    if args.study:
+        if args.notebooks:
+            raise ValueError("--study runs notebook 05 on the study's tables: leave out --notebooks")
+        if args.dry_run:
+            runs = study.study_runs(args.profile)
+            todo = sum(not run_cache.is_complete(args.profile, c, s, **o) for _, c, s, o in runs)
+            print(f"study: {len(runs)} runs ({todo} to train), scored into "
+                  f"{resolve_run_dir(args.profile, args.out or '') / 'study'}")
+        else:
+            tables = run_study(args.profile, args.out, progress=not args.no_progress)
+            params["study_tables"] = str(tables)
+        args.notebooks, args.force = ["05"], True
     try:
         report = reproduce(args.profile, notebooks=args.notebooks, params=params, run_dir=args.out,
                            force=args.force, progress=not args.no_progress, dry_run=args.dry_run)

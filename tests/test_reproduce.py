@@ -140,3 +140,28 @@ def test_a_notebook_that_must_train_says_so_with_the_expected_minutes(monkeypatc
     assert trained and "Case 1, seed 0 (teach, 64 px)" in said and "about 2 min" in said
     run_cache.ensure_checkpoint("teach", 1, 0, announce=False)
     assert capsys.readouterr().out == ""
+
+
+def test_the_study_target_runs_notebook_05_on_its_own_tables(tmp_path, monkeypatch, capsys):
+    """``reproduce --study``: the study's tables first (``run_study``, here a stand-in), then notebook
+    05 alone, forced, with ``study_tables`` pointing at them; its dry run trains nothing."""
+    from geodepth_lite import cli
+
+    d = tmp_path / "nbs"
+    d.mkdir()
+    body = 'from pathlib import Path\nPath(run_dir, "seen.txt").write_text(study_tables)'
+    _notebook(d / "04_other.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out', "raise SystemExit('ran')")
+    _notebook(d / "05_study.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out\nstudy_tables = ""  # t', body)
+    monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)
+    tables = tmp_path / "tables"
+    calls = []
+    monkeypatch.setattr(reproduce, "run_study", lambda profile, out, progress: calls.append(profile) or tables)
+    assert cli.main(["reproduce", "--study", "--notebooks", "05"]) == 2
+    assert "leave out --notebooks" in capsys.readouterr().err
+    assert cli.main(["reproduce", "--study", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "study: 48 runs (48 to train)" in out and "05_study.ipynb" in out and "04_other" not in out
+    assert calls == []
+    run_dir = tmp_path / "run"
+    assert cli.main(["reproduce", "--study", "--out", str(run_dir), "--no-progress"]) == 0
+    assert calls == ["teach"] and (run_dir / "seen.txt").read_text() == str(tables)
