@@ -46,6 +46,7 @@ DEPTH_TERMS = ("silog", "l1")
 DEPTH_LABELS = {"silog": "silog", "l1": "L1"}
 CELLS = (("silog", 1), ("silog", 2), ("silog", 3), ("silog", 4), ("l1", 1), ("l1", 4))
 INTERACTION = "interaction"      # the "case" of the two interaction tests in family()
+TESTS = (("silog", 2), ("silog", 3), ("silog", 4), ("l1", 4), ("l1 - silog", INTERACTION))  # family()'s, in order
 METRIC_COLUMNS = tuple(metrics.METRIC_NAMES)
 
 
@@ -221,23 +222,16 @@ def family(tables: dict, set_name: str = PRIMARY, seeds=None, alpha: float = abl
     "metric", "values", "mean", "sd", "p", "low"/"high" (the Bonferroni interval at 1 - alpha / 10),
     "rejected" (Holm), "paper" (None for the interaction), "verdict".
     """
-    specs = [("silog", c) for c in (2, 3, 4)] + [("l1", 4), ("l1 - silog", INTERACTION)]
     out = []
-    for term, case in specs:
-        for metric in ablation.PAIRED_METRICS[::-1]:  # RMSE first, as the plan lists them
-            if case == INTERACTION:
-                v = (relative_changes(tables, "l1", 4, metric, set_name, seeds)
-                     - relative_changes(tables, "silog", 4, metric, set_name, seeds))
-            else:
-                v = relative_changes(tables, term, case, metric, set_name, seeds)
-            if v.size < 2:  # one seed: nothing is known about the spread
-                p = 1.0
-            elif v.std() > 1e-9 * (1 + abs(v.mean())):
-                p = float(stats.ttest_1samp(v, 0.0).pvalue)
-            else:  # the same change at every seed: certain, unless it is none
-                p = 1.0 if abs(v.mean()) <= 1e-9 else 0.0
-            out.append({"term": term, "case": case, "metric": metric, "values": v.tolist(), "mean": float(v.mean()),
-                        "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan, "p": p})
+    for term, case, metric, v in _test_values(tables, TESTS, set_name, seeds):
+        if v.size < 2:  # one seed: nothing is known about the spread
+            p = 1.0
+        elif v.std() > 1e-9 * (1 + abs(v.mean())):
+            p = float(stats.ttest_1samp(v, 0.0).pvalue)
+        else:  # the same change at every seed: certain, unless it is none
+            p = 1.0 if abs(v.mean()) <= 1e-9 else 0.0
+        out.append({"term": term, "case": case, "metric": metric, "values": v.tolist(), "mean": float(v.mean()),
+                    "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan, "p": p})
     level = 1 - alpha / len(out)
     for t, rejected in zip(out, ablation.holm([t["p"] for t in out], alpha)):
         _, t["low"], t["high"] = ablation.t_interval(t["values"], level)
@@ -274,13 +268,23 @@ def paired_record(tables: dict, seeds=None, set_name: str = PRIMARY) -> dict[str
 def _available_tests(tables: dict, terms: set, set_name: str, seeds) -> list[dict]:
     if terms >= set(DEPTH_TERMS):
         return family(tables, set_name, seeds)
-    out = []
-    for case in (2, 3, 4):
+    specs = [(term, case) for term, case in TESTS if term == "silog"]
+    return [{"term": term, "case": case, "metric": metric, "mean": float(v.mean()),
+             "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan}
+            for term, case, metric, v in _test_values(tables, specs, set_name, seeds)]
+
+
+def _test_values(tables: dict, specs, set_name: str, seeds):
+    """(term, case, metric, per-seed values) for each (term, case) of ``specs`` and each paired
+    metric, RMSE first as the plan lists them: r_s, or d_s for the interaction."""
+    for term, case in specs:
         for metric in ablation.PAIRED_METRICS[::-1]:
-            v = relative_changes(tables, "silog", case, metric, set_name, seeds)
-            out.append({"term": "silog", "case": case, "metric": metric, "mean": float(v.mean()),
-                        "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan})
-    return out
+            if case == INTERACTION:
+                v = (relative_changes(tables, "l1", 4, metric, set_name, seeds)
+                     - relative_changes(tables, "silog", 4, metric, set_name, seeds))
+            else:
+                v = relative_changes(tables, term, case, metric, set_name, seeds)
+            yield term, case, metric, v
 
 
 def run_record(tables: dict, seeds=None, sets=None, digits: int = 4) -> dict[str, float]:
