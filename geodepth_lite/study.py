@@ -165,6 +165,40 @@ def _typed(row: dict) -> dict:
     return out
 
 
+def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | None = None) -> list[str]:
+    """What is wrong with study tables read with ``frames=True``, one line each (none: they hold
+    the plan's study). Every run of :func:`study_runs` has one row per evaluation set; its row on
+    the confirmation set is the mean of its frame rows (to the tables' 6 significant digits), and
+    each run has ``frames_per_run`` frames (default: as many as its row says). A metric changed in
+    ``runs.csv`` alone, or a run left out or added, is named."""
+    problems = []
+    want = {(t, c, s) for t, c, s, _ in study_runs(profile)}
+    sets = {r["set"] for r in tables["runs"]}
+    have: dict = {}
+    for r in tables["runs"]:
+        have.setdefault((r["depth_term"], r["case"], r["seed"]), {})[r["set"]] = r
+    problems += [f"run {k} is not in the plan" for k in sorted(set(have) - want)]
+    problems += [f"run {k} is missing" for k in sorted(want - set(have))]
+    problems += [f"run {k} has no row for {sorted(sets - set(v))}" for k, v in sorted(have.items()) if set(v) != sets]
+    frames: dict = {}
+    for f in tables["frames"]:
+        frames.setdefault((f["depth_term"], f["case"], f["seed"]), []).append(f)
+    for key in sorted(want & set(have)):
+        row, fs = have[key].get(PRIMARY), frames.get(key, [])
+        if row is None:
+            continue
+        n = frames_per_run or row["frames"]
+        if len(fs) != n or len({f["index"] for f in fs}) != n:
+            problems.append(f"run {key}: {len(fs)} frame rows, {len({f['index'] for f in fs})} distinct, expected {n}")
+            continue
+        for m in METRIC_COLUMNS:
+            mean = float(np.mean([f[m] for f in fs]))
+            if not math.isclose(row[m], mean, rel_tol=2e-5, abs_tol=1e-9):
+                problems.append(f"run {key}, {m} on the {PRIMARY}: runs.csv says {row[m]:.6g}, "
+                                f"the mean of its frames is {mean:.6g}")
+    return problems
+
+
 def retrain_subset(profile: str = "teach", seeds=DEFAULT_SEEDS, *, workers: int | None = None,
                    progress: bool = False) -> dict:
     """The silog cells at ``seeds`` trained (or reused) on this computer and scored on the study's

@@ -167,3 +167,52 @@ def test_claims_and_cell_statistics():
     mean, sd = study.cell_stats(tables, study.PRIMARY, "rmse")[("silog", 1)]
     v = [0.10 * (1 + s / 100) for s in range(8)]
     assert (mean, sd) == pytest.approx((np.mean(v), np.std(v, ddof=1)))
+
+
+@pytest.fixture(scope="module")
+def committed():
+    return study.read_tables(frames=True)
+
+
+def test_the_committed_study_is_whole_and_its_runs_are_the_means_of_their_frames(committed):
+    assert study.check_tables(committed, frames_per_run=480) == []
+    assert {r["set"] for r in committed["runs"]} == {study.PRIMARY, ablation.HELDOUT, study.CLOSEUPS}
+
+
+def test_a_wrong_study_table_is_caught(committed):
+    """Case 3's paired RMSE change moved by 3 points (every silog Case 3 run's RMSE on the
+    confirmation set 3% of Case 1 lower in runs.csv alone), one run dropped, one frame dropped."""
+    case1 = {r["seed"]: r["rmse"] for r in committed["runs"]
+             if (r["depth_term"], r["case"], r["set"]) == ("silog", 1, study.PRIMARY)}
+    moved = [dict(r) for r in committed["runs"]]
+    for r in moved:
+        if (r["depth_term"], r["case"], r["set"]) == ("silog", 3, study.PRIMARY):
+            r["rmse"] -= 0.03 * case1[r["seed"]]
+    wrong = {**committed, "runs": moved}
+    problems = study.check_tables(wrong)
+    assert len(problems) == 8 and all("('silog', 3, " in p and "rmse" in p for p in problems)
+    before = {(t["case"], t["metric"]): t for t in study.family(committed)}
+    after = {(t["case"], t["metric"]): t for t in study.family(wrong)}
+    assert after[(3, "rmse")]["mean"] == pytest.approx(before[(3, "rmse")]["mean"] - 3.0, abs=1e-6)
+    dropped = {**committed, "runs": [r for r in committed["runs"] if (r["depth_term"], r["seed"]) != ("l1", 7)
+                                     or r["case"] != 4]}
+    assert study.check_tables(dropped) == ["run ('l1', 4, 7) is missing"]
+    short = {**committed, "frames": committed["frames"][1:]}
+    assert len(study.check_tables(short)) == 1 and "479 frame rows" in study.check_tables(short)[0]
+
+
+def test_the_notebook_states_the_verdicts_of_the_committed_tables(committed):
+    """Notebook 05's committed verdict lines are study.claims of the committed tables, word for word
+    and number for number; a flipped verdict is caught."""
+    import nbformat
+
+    from geodepth_lite import utils
+
+    nb = nbformat.read(str(utils.project_root() / "notebooks" / "05_ablation.ipynb"), as_version=4)
+    cell = next(c for c in nb.cells if c.cell_type == "code" and c.source.lstrip().startswith("# verdicts"))
+    shown = "".join(o.get("text", "") for o in cell.outputs if o.get("name") == "stdout").splitlines()
+    lines = study.claims(committed)
+    assert shown == lines
+    flipped = [line.replace("direction reproduced, smaller than the paper (paper's value excluded)",
+                            "paper's size reproduced") for line in lines]
+    assert flipped != lines  # the study has such a verdict, so the comparison above can fail
