@@ -5,9 +5,26 @@ The paper's stage II applies the network trained on synthetic frames to clinical
 For every frame this writes, into ``--out``:
 
 - ``<name>_depth.npy``: float32 H x W z-depth at the frame's own size, in the training
-  set's scene units (relative: monocular depth has no metric scale);
-- ``<name>_depth.png``: the depth colorized (``viz.colorize_depth``);
-- ``<name>.ply``: the coloured back-projected point cloud (or mesh, ``--ply mesh``).
+  set's scene units (relative: monocular depth has no metric scale), NaN outside the
+  endoscope's field of view;
+- ``<name>_depth.png``: the depth colorized (``viz.colorize_depth``), black outside the field
+  of view, its colour range (2nd-98th percentile) taken from the pixels inside;
+- ``<name>_panel.png``: frame | depth with its colour bar (near = bright) | with ``--panel prior``
+  the shading prior (``baselines.shading_prior``), outside the field of view grey; ``--panel none``
+  writes none;
+- ``<name>.ply``: the coloured back-projected point cloud (or mesh, ``--ply mesh``) of the
+  pixels inside the field of view;
+
+and prints one line on it (``frame_summary``): the share masked, the depth range and median
+inside, the PLY's points.
+
+The field of view (``--mask``): real endoscope frames show tissue inside a round or octagonal
+window in a black border, with on-screen text. ``auto`` (the default) finds the border and the
+text in each frame (``fov.detect_mask``; a frame without a border is all inside), ``none``
+takes every pixel as tissue, a path gives one mask image for every frame of the run (nonzero =
+inside; read and checked against the frames' size before any work). The network sees the frame
+with every pixel outside replaced by its nearest inside pixel (``fov.fill_outside``), so the
+border and the text cannot change the depth inside.
 
 Frames of any size from 2 x 2 pixels up are resized to the network's input and the
 prediction back to the frame (``inference.predict_depth``); each depth map is the mean of
@@ -17,16 +34,17 @@ the network's predictions for the frame and its three mirror images, mirrored ba
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
 degrees).
 
-Failures: before any work, the inputs are checked and ``--out`` is created, probed for
-writing and for room for one frame's outputs (``utils.check_output_dir``); a refused run
-leaves no folder behind. Half-written temporary files of an interrupted run are removed
-from ``--out``. A folder's images that ``predict`` itself wrote (``<name>_depth.png`` beside
-``<name>_depth.npy``) are skipped, and ``--out`` may not be the ``--input`` folder. An image
-or video that cannot be read, or a frame whose outputs cannot be made, is reported by name
-and the others are still processed; a frame's outputs are written all or none. At the end
-each failure is one line ``error: <message naming the file>`` on stderr, followed by the
-summary, and the exit status is 2 if anything failed, else 0. A full or read-only disk
-stops the run at the first frame it refuses (exit status 2).
+Failures: before any work, the inputs (and a ``--mask`` image) are checked and ``--out`` is
+created, probed for writing and for room for one frame's outputs (``utils.check_output_dir``);
+a refused run leaves no folder behind. Half-written temporary files of an interrupted run are
+removed from ``--out``. A folder's images that ``predict`` itself wrote (``<name>_depth.png``
+and ``<name>_panel.png`` beside ``<name>_depth.npy``) are skipped, and ``--out`` may not be the
+``--input`` folder. An image or video that cannot be read, a frame of another size than the
+``--mask`` image, or a frame whose outputs cannot be made, is reported by name and the others
+are still processed; a frame's outputs are written all or none. At the end each failure is
+one line ``error: <message naming the file>`` on stderr, followed by the summary, and the exit
+status is 2 if anything failed, else 0. A full or read-only disk stops the run at the first
+frame it refuses (exit status 2).
 """
 
 from __future__ import annotations
@@ -50,7 +68,7 @@ import yaml
 from PIL import Image
 from tqdm.auto import tqdm
 
-from . import camera, checkpoint, recon, utils, viz
+from . import baselines, camera, checkpoint, fov, recon, utils, viz
 from .datasets import resize_image
 from .inference import FLIPS, pick_device, predict_depth
 from .utils import FileProblem, os_reason
@@ -61,6 +79,14 @@ DEFAULT_FOV_DEG = camera.fov_x_deg(camera.intrinsics(1000), 1000)  # the authors
 DEFAULT_BATCH_SIZE = 8
 MIN_SIDE = 2  # the smallest frame side: the colorized depth and the mesh need 2 x 2 pixels
 OUTPUT_SUFFIX = "_depth.png"  # with "_depth.npy" beside it, a file predict wrote (never read as an input)
+PANEL_SUFFIX = "_panel.png"  # the side-by-side view, likewise never read as an input
+MASK_CHOICES = ("auto", "none")  # --mask: detect per frame, every pixel in view; anything else is a mask image
+PANELS = {"none": 0, "depth": 2, "prior": 3}  # --panel: columns of the side-by-side PNG
+PANEL_TILE_PX = 240  # height of each image in the panel, pixels
+PANEL_BAR_PX = 100  # room right of a depth image for its colour bar and labels, pixels
+PANEL_PAD_PX, PANEL_TITLE_PX = 8, 22  # margins and the title line, pixels
+PANEL_DPI = 100
+NEUTRAL = 128  # grey of the pixels outside the field of view in the panel
 ROOM_MARGIN = 2**20  # bytes --out must have free beyond one frame's outputs
 # a write failure with one of these reasons stops the run: every later frame would fail the same way
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS})
@@ -132,11 +158,12 @@ def check_input_path(path: Path) -> None:
 
 
 def is_predict_output(path: Path) -> bool:
-    """Whether ``path`` is a colorized depth that predict wrote: ``<name>_depth.png`` with
-    ``<name>_depth.npy`` beside it (a photo that merely ends in ``_depth.png`` is an input)."""
-    if not path.name.endswith(OUTPUT_SUFFIX):
-        return False
-    return path.with_name(path.name[: -len(OUTPUT_SUFFIX)] + "_depth.npy").is_file()
+    """Whether ``path`` is an image that predict wrote: ``<name>_depth.png`` or ``<name>_panel.png``
+    with ``<name>_depth.npy`` beside it (a photo that merely ends in ``_depth.png`` is an input)."""
+    for suffix in (OUTPUT_SUFFIX, PANEL_SUFFIX):
+        if path.name.endswith(suffix):
+            return path.with_name(path.name[: -len(suffix)] + "_depth.npy").is_file()
+    return False
 
 
 def _is_image_entry(path: Path) -> bool:
@@ -316,13 +343,21 @@ def first_frame_size(files: list[Path], kind: str) -> tuple[int, int]:
     return next((s for s in map(_image_size, files) if s is not None), (0, 0))
 
 
-def frame_output_bytes(width: int, height: int, ply: str = "points", stride: int = 1) -> int:
-    """An upper bound on the bytes of one frame's outputs: .npy (4 B a pixel), uncompressed PNG
-    (3 B), PLY (15 B a point; a mesh 27 B a point and two 13 B triangles)."""
-    n = width * height
+def png_bytes(width: int, height: int) -> int:
+    """An upper bound on an RGB PNG's bytes: uncompressed samples (3 B a pixel), a filter byte a
+    row, 5 B a 64 KiB stored deflate block, and the headers."""
+    raw = (3 * width + 1) * height
+    return raw + 5 * (raw // 65535 + 1) + 1024
+
+
+def frame_output_bytes(width: int, height: int, ply: str = "points", stride: int = 1, panel: str = "depth") -> int:
+    """An upper bound on the bytes of one frame's outputs: .npy (4 B a pixel), the colorized depth
+    and the panel as PNG (``png_bytes``; the panel's size from ``panel_size``), PLY (15 B a
+    point; a mesh 27 B a point and two 13 B triangles)."""
     points = -(-width // stride) * -(-height // stride)
     ply_bytes = {"points": 15 * points, "mesh": 53 * points, "none": 0}[ply]
-    return 4 * n + 3 * n + height + ply_bytes + 4096
+    panel_bytes = png_bytes(*panel_size(width, height, panel)) if panel != "none" and width and height else 0
+    return 4 * width * height + 128 + png_bytes(width, height) + panel_bytes + ply_bytes + 2048
 
 
 def iter_frames(files: list[Path], kind: str, failures: list[str]) -> Iterator[tuple[str, np.ndarray]]:
@@ -397,34 +432,108 @@ def save_npy(array: np.ndarray, path) -> Path:
     return path
 
 
-def output_paths(out_dir: Path, name: str, ply: str = "points") -> list[Path]:
-    """The files one frame gets: depth .npy, colorized depth .png and (unless ply is "none") .ply."""
+def output_paths(out_dir: Path, name: str, ply: str = "points", panel: str = "none") -> list[Path]:
+    """The files one frame gets: depth .npy, colorized depth .png, the panel .png (unless panel is
+    "none") and the .ply (unless ply is "none")."""
     paths = [out_dir / f"{name}_depth.npy", out_dir / f"{name}{OUTPUT_SUFFIX}"]
+    paths += [out_dir / f"{name}{PANEL_SUFFIX}"] if panel != "none" else []
     return paths + ([out_dir / f"{name}.ply"] if ply != "none" else [])
 
 
+def panel_size(width: int, height: int, panel: str = "depth") -> tuple[int, int]:
+    """(width, height) in pixels of the side-by-side PNG of a ``width`` x ``height`` frame: each
+    image ``PANEL_TILE_PX`` tall (wider than 4:1 or taller than 1:4 frames are drawn squeezed)."""
+    tile = round(PANEL_TILE_PX * min(max(width / height, 0.25), 4.0))
+    columns = PANELS[panel]
+    return (columns * tile + (columns - 1) * PANEL_BAR_PX + 4 * PANEL_PAD_PX,  # the frame has no bar
+            PANEL_TILE_PX + PANEL_TITLE_PX + 2 * PANEL_PAD_PX)
+
+
+def panel_image(rgb: np.ndarray, depth: np.ndarray, mask: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+    """The side-by-side view of one frame, H x W x 3 uint8 (``panel_size``): the frame | its depth
+    with a colour bar (``viz.show_depth``: near = bright, range from the inside pixels) | the
+    shading prior when given; pixels outside the field of view ``mask`` are neutral grey."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # heavy, needed only to draw the panel
+    from matplotlib.figure import Figure  # no pyplot: no GUI backend, no figure kept alive
+
+    H, W = depth.shape
+    panel = "prior" if prior is not None else "depth"
+    pw, ph = panel_size(W, H, panel)
+    tile = round(PANEL_TILE_PX * min(max(W / H, 0.25), 4.0))
+    fig = Figure(figsize=(pw / PANEL_DPI, ph / PANEL_DPI), dpi=PANEL_DPI)
+    canvas = FigureCanvasAgg(fig)
+    shown = np.where(mask[..., None], rgb, np.uint8(NEUTRAL))
+    maps = [("predicted depth", depth, "z-depth")]
+    maps += [("shading prior 1/sqrt(brightness)", prior, "prior depth")] if prior is not None else []
+    x = PANEL_PAD_PX
+    for k, (title, image) in enumerate([("frame", shown)] + [(t, d) for t, d, _ in maps]):
+        ax = fig.add_axes((x / pw, PANEL_PAD_PX / ph, tile / pw, PANEL_TILE_PX / ph))
+        if k == 0:
+            ax.imshow(image, aspect="auto", interpolation="nearest")
+            ax.set_xticks([]), ax.set_yticks([])
+        else:
+            im = viz.show_depth(ax, image, label=maps[k - 1][2], bad=f"#{NEUTRAL:02x}{NEUTRAL:02x}{NEUTRAL:02x}")
+            im.set_interpolation("nearest")
+            ax.set_aspect("auto")
+            ax.set_position((x / pw, PANEL_PAD_PX / ph, tile / pw, PANEL_TILE_PX / ph))
+            im.colorbar.ax.set_position(((x + tile + 6) / pw, PANEL_PAD_PX / ph, 10 / pw, PANEL_TILE_PX / ph))
+        ax.set_title(title, fontsize=9)
+        x += tile + (2 * PANEL_PAD_PX if k == 0 else PANEL_BAR_PX)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
 def write_outputs(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray,
-                  ply: str = "points", stride: int = 1) -> list[Path]:
+                  ply: str = "points", stride: int = 1, panel: np.ndarray | None = None) -> dict:
     """The files of one frame (``output_paths``), each written atomically, and all or none: if
     one fails after another was written, the frame's files are all removed again (those an
-    earlier run left under these names too, which would no longer match), then it re-raises."""
-    paths = output_paths(out_dir, name, ply)
-    written = 0
+    earlier run left under these names too, which would no longer match), then it re-raises.
+
+    depth: H x W, NaN outside the field of view (no colour in the PNG, no point in the PLY);
+    panel: the side-by-side image (``panel_image``) or None. Returns {"paths": the files,
+    "points": vertices in the PLY or None, "triangles": its faces or None}.
+    """
+    paths = output_paths(out_dir, name, ply, "none" if panel is None else "depth")
+    written, done = 0, {"paths": paths, "points": None, "triangles": None}
     try:
         save_npy(depth.astype(np.float32), paths[0])
         written += 1
         recon.save_png(viz.colorize_depth(depth), paths[1])
         written += 1
+        if panel is not None:
+            recon.save_png(panel, paths[2])
         if ply != "none":
             poly = (recon.depth_mesh if ply == "mesh" else recon.point_cloud)(depth, K, rgb, stride=stride)
-            recon.save_ply(poly, paths[2])
+            recon.save_ply(poly, paths[-1])
+            done["points"], done["triangles"] = poly.n_points, (poly.n_cells if ply == "mesh" else None)
     except BaseException:
         if written:
             for p in paths:
                 with contextlib.suppress(OSError):
                     p.unlink(missing_ok=True)
         raise
-    return paths
+    return done
+
+
+def frame_summary(name: str, depth: np.ndarray, written: dict) -> str:
+    """One line on a frame: share of pixels outside the field of view, depth range and median
+    inside it, and what the PLY holds, e.g. ``a: 18.2% masked, depth 0.91-7.4 (median 2.3),
+    12 345 points``."""
+    inside = depth[np.isfinite(depth)]
+    line = f"{name}: {100.0 * (1.0 - inside.size / depth.size):.1f}% masked"
+    if inside.size:
+        line += f", depth {inside.min():.3g}-{inside.max():.3g} (median {np.median(inside):.3g})"
+    if written["points"] is None:
+        return line + ", no PLY"
+    line += f", {_grouped(written['points'])} points"
+    if written["triangles"] is not None:
+        line += f", {_grouped(written['triangles'])} triangles"
+    return line
+
+
+def _grouped(n: int) -> str:
+    """An integer with its thousands apart: 12345 -> "12 345"."""
+    return f"{n:_}".replace("_", " ")
 
 
 def stops_the_run(exc: BaseException) -> bool:
@@ -444,13 +553,20 @@ class Tally:
     stopped: str | None = None
 
 
-def _save_frame(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, args, calib, tally: Tally) -> None:
-    """Write one frame's outputs and count it; a failure is added to ``tally`` (a disk failure
-    as ``tally.stopped``), never raised."""
+def _save_frame(out_dir: Path, frame: Frame, depth: np.ndarray, args, calib, tally: Tally) -> None:
+    """Write one frame's outputs, count it and print its summary line (``frame_summary``); a
+    failure is added to ``tally`` (a disk failure as ``tally.stopped``), never raised."""
     H, W = depth.shape
     K = frame_intrinsics(W, H, calib, args.fov)
     try:
-        write_outputs(out_dir, name, rgb, depth, K, args.ply, args.ply_stride)
+        panel = None
+        if args.panel != "none":
+            prior = None
+            if args.panel == "prior":
+                x = frame.net_input.transpose(2, 0, 1).astype(np.float32) / 255.0  # 3 x H x W in [0, 1]
+                prior = np.where(frame.mask, baselines.shading_prior(x)[0], np.nan)
+            panel = panel_image(frame.rgb, depth, frame.mask, prior)
+        written = write_outputs(out_dir, frame.name, frame.rgb, depth, K, args.ply, args.ply_stride, panel)
     except OSError as exc:  # utils.FileProblem: "cannot write <file>: <reason>"
         if stops_the_run(exc):
             tally.stopped = str(exc)
@@ -458,32 +574,69 @@ def _save_frame(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, ar
             tally.failures.append(str(exc))
         return
     except Exception as exc:  # noqa: BLE001 - a frame the reconstruction cannot handle is that frame's failure
-        tally.failures.append(f"cannot write the outputs of {name}: {exc.__class__.__name__}: {exc}")
+        tally.failures.append(f"cannot write the outputs of {frame.name}: {exc.__class__.__name__}: {exc}")
         return
     tally.written += 1
+    tqdm.write(frame_summary(frame.name, depth, written), file=sys.stdout)
 
 
 def _refuse_non_finite(batch, depths, ckpt: Path) -> None:
     """A ValueError if the model predicted NaN or inf for any frame of the batch (nothing of it written)."""
-    for (name, _), depth in zip(batch, depths):
+    for frame, depth in zip(batch, depths):
         if not np.isfinite(depth).all():
-            raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {name}: "
+            raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {frame.name}: "
                              f"nothing written for it; the model is unusable")
 
 
-def predict_into(out_dir: Path, files: list[Path], kind: str, model, cfg: dict, calib, args) -> Tally:
+# --------------------------------------------------------------------------- the field of view
+@dataclass
+class Frame:
+    """One frame on its way through ``predict``: its name, the image as read (H x W x 3 uint8), its
+    field of view (H x W bool, True = tissue) and the network's input (outside filled from inside)."""
+
+    name: str
+    rgb: np.ndarray
+    mask: np.ndarray
+    net_input: np.ndarray
+
+
+def frame_mask(rgb: np.ndarray, mask_arg: str, given: np.ndarray | None) -> np.ndarray:
+    """The field of view of one frame for ``--mask``: "auto" ``fov.detect_mask``, "none" every
+    pixel, else the mask image read before the run (``given``, already checked)."""
+    if mask_arg == "auto":
+        return fov.detect_mask(rgb)
+    if mask_arg == "none":
+        return np.ones(rgb.shape[:2], dtype=bool)
+    return given
+
+
+def masked_frames(frames, mask_arg: str, given: np.ndarray | None, failures: list[str]) -> Iterator[Frame]:
+    """A ``Frame`` per (name, rgb) of ``frames``; a frame whose size differs from the ``--mask``
+    image adds one message naming both to ``failures`` and is skipped."""
+    for name, rgb in frames:
+        if given is not None and given.shape != rgb.shape[:2]:
+            failures.append(f"cannot use --mask {mask_arg} for {name}: the mask is {given.shape[1]} x "
+                            f"{given.shape[0]} pixels, the frame {rgb.shape[1]} x {rgb.shape[0]}")
+            continue
+        mask = frame_mask(rgb, mask_arg, given)
+        yield Frame(name, rgb, mask, fov.fill_outside(rgb, mask))
+
+
+def predict_into(out_dir: Path, files: list[Path], kind: str, model, cfg: dict, calib, args,
+                 given_mask: np.ndarray | None = None) -> Tally:
     """Predict and write every frame of ``files`` into ``out_dir``, in batches; stops early only
-    when the disk refuses a write (``stops_the_run``)."""
+    when the disk refuses a write (``stops_the_run``). The network sees each frame with its outside
+    filled from the inside (``fov.fill_outside``); its depth is NaN outside the field of view."""
     tally = Tally()
     total = len(files) if kind == "images" else None
     frames = iter_frames(files, kind, tally.failures)
     with contextlib.closing(frames), tqdm(total=total, unit="frame", desc="predict", disable=args.no_progress,
                                           file=sys.stderr) as bar:
-        for batch in _batches(frames, args.batch_size):
-            depths = predict_frames(model, [rgb for _, rgb in batch], cfg["image_size"], args.flips)
+        for batch in _batches(masked_frames(frames, args.mask, given_mask, tally.failures), args.batch_size):
+            depths = predict_frames(model, [f.net_input for f in batch], cfg["image_size"], args.flips)
             _refuse_non_finite(batch, depths, Path(args.checkpoint))
-            for (name, rgb), depth in zip(batch, depths):
-                _save_frame(out_dir, name, rgb, depth, args, calib, tally)
+            for frame, depth in zip(batch, depths):
+                _save_frame(out_dir, frame, np.where(frame.mask, depth, np.float32(np.nan)), args, calib, tally)
                 if tally.stopped:
                     return tally
             bar.update(len(batch))
@@ -525,6 +678,14 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
                         help="test-time flips averaged into each depth map: hv (default; the mean over the four "
                         "mirrorings of the frame, 4 passes of the network), h (left-right, 2 passes) or none (one "
                         "pass, as the paper); see the teach profile's predict_flips for what it gains")
+    parser.add_argument("--mask", default="auto",
+                        help="the endoscope's field of view: auto (default: black border and on-screen text found "
+                        "in each frame, fov.detect_mask), none (every pixel is tissue), or a mask image of the "
+                        "frames' size for the whole run (nonzero = inside); pixels outside get no depth (NaN), "
+                        "no colour and no 3D point")
+    parser.add_argument("--panel", choices=tuple(PANELS), default="depth",
+                        help="a side-by-side <name>_panel.png per frame: depth (default: frame | depth with its "
+                        "colour bar), prior (and the shading prior 1/sqrt(brightness) beside them) or none")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -550,7 +711,11 @@ def run_predict(args: argparse.Namespace) -> int:
     ckpt = Path(args.checkpoint)
     if not ckpt.is_file():
         raise FileNotFoundError(f"--checkpoint not found: {ckpt}")
-    need = frame_output_bytes(*first_frame_size(files, kind), args.ply, args.ply_stride) + ROOM_MARGIN
+    width, height = first_frame_size(files, kind)
+    given_mask = None
+    if args.mask not in MASK_CHOICES:  # one mask image for the run: read and sized before any work
+        given_mask = fov.read_mask(args.mask, (height, width) if width else None, what="--mask")
+    need = frame_output_bytes(width, height, args.ply, args.ply_stride, args.panel) + ROOM_MARGIN
     new_folders = utils.missing_dirs(args.out)
     out_dir = utils.check_output_dir(args.out, need)  # creates --out; removes it again if it refuses
     try:
@@ -558,7 +723,7 @@ def run_predict(args: argparse.Namespace) -> int:
         if stale:
             print(f"removed {stale} half-written temporary file(s) of an interrupted run from {out_dir}")
         model, cfg = checkpoint.load_model(ckpt, device=pick_device(args.device))
-        tally = predict_into(out_dir, files, kind, model, cfg, calib, args)
+        tally = predict_into(out_dir, files, kind, model, cfg, calib, args, given_mask)
     finally:  # a run that wrote nothing leaves no folder it made
         utils.remove_empty_dirs(new_folders)
     return report(tally, out_dir)

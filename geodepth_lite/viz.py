@@ -23,7 +23,8 @@ def colorize_depth(depth, vmin=None, vmax=None, cmap: str = "magma") -> np.ndarr
     (the workbook's convention, :data:`DEPTH_CMAP`; :func:`relative_depth_colorbar` is its colour bar).
 
     vmin/vmax default to the 2nd/98th percentiles of the valid (finite, > 0) pixels;
-    invalid pixels are black. Accepts numpy or torch (1 x H x W or H x W).
+    invalid pixels are black: NaN marks pixels outside an endoscope's field of view (``predict``),
+    which thus neither get a colour nor move the range. Accepts numpy or torch (1 x H x W or H x W).
     """
     import matplotlib  # heavy, needed only for its colour maps
 
@@ -53,17 +54,19 @@ def depth_range(depth, lo_pct: float = 2.0, hi_pct: float = 98.0) -> tuple[float
     return float(np.percentile(d[valid], lo_pct)), float(np.percentile(d[valid], hi_pct))
 
 
-def show_depth(ax, depth, vmin=None, vmax=None, *, label: str = "z-depth", colorbar: bool = True):
+def show_depth(ax, depth, vmin=None, vmax=None, *, label: str = "z-depth", colorbar: bool = True,
+               bad: str = "black"):
     """Draw a depth map in the workbook's convention (:data:`DEPTH_CMAP`, near = bright) with a colour
     bar that states its clip: the 2nd-98th percentile by default, else ``vmin``-``vmax``.
-    Invalid pixels (not finite, <= 0) are black. Returns the image artist."""
+    Invalid pixels (not finite, <= 0; NaN outside an endoscope's field of view) are drawn in the
+    colour ``bad`` and never enter the range. Returns the image artist."""
     import matplotlib  # heavy, needed only for its colour maps
 
     d = np.squeeze(np.asarray(depth, dtype=np.float64))
     auto = vmin is None and vmax is None
     lo, hi = depth_range(d)
     vmin, vmax = (lo if vmin is None else float(vmin)), (hi if vmax is None else float(vmax))
-    cmap = matplotlib.colormaps[DEPTH_CMAP].with_extremes(bad="black")
+    cmap = matplotlib.colormaps[DEPTH_CMAP].with_extremes(bad=bad)
     im = ax.imshow(np.ma.masked_where(~(np.isfinite(d) & (d > 0)), d), cmap=cmap, vmin=vmin, vmax=vmax)
     ax.set_xticks([]), ax.set_yticks([])
     if colorbar:

@@ -1,5 +1,5 @@
 """``predict`` against a hostile user: 16-bit images, frames too small, bad video, full disk,
-stale temporary files, --out inside --input, symbolic link loops, and refused runs.
+stale temporary files, --out inside --input, symbolic link loops, refused runs and bad --mask files.
 
 Every failure is one line ``error: <message naming the file>`` on stderr; a folder run
 processes the other files and exits with status 2 if any failed.
@@ -57,6 +57,11 @@ def _folder(root: Path, images: dict) -> Path:
 
 def _outputs(out: Path, name: str) -> list[str]:
     return sorted(p.name for p in out.glob(f"{name}*"))
+
+
+def _last_line(stdout: str) -> str:
+    """The run's summary: stdout's last line (one line per written frame comes before it)."""
+    return stdout.strip().splitlines()[-1]
 
 
 # --------------------------------------------------------------------------- 1. 16-bit images
@@ -144,7 +149,7 @@ def test_too_small_images_are_refused_by_name_and_the_folder_still_runs(tmp_path
                       f"(predict needs at least 2 x 2)"]
     assert stdout.strip().splitlines()[-1] == f"2 frame(s) written to {out}; 2 failed (the error lines above)"
     assert _outputs(out, "a_") == [] and _outputs(out, "b_") == []  # no stray _depth.npy
-    assert _outputs(out, "c_") == ["c_ok.ply", "c_ok_depth.npy", "c_ok_depth.png"]
+    assert _outputs(out, "c_") == ["c_ok.ply", "c_ok_depth.npy", "c_ok_depth.png", "c_ok_panel.png"]
     assert np.load(out / "d_tiny_depth.npy").shape == (2, 2)  # the minimum size works
 
 
@@ -152,7 +157,7 @@ def test_all_frames_written_exits_0_with_no_error_line(tmp_path, ckpt, capsys):
     src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "b.png": _frame(16, 16)})
     assert _run(ckpt, src, tmp_path / "out", "--ply", "none") == 0
     errors, stdout = _errors(capsys)
-    assert errors == [] and stdout.strip() == f"2 frame(s) written to {tmp_path / 'out'}"
+    assert errors == [] and _last_line(stdout) == f"2 frame(s) written to {tmp_path / 'out'}"
 
 
 def test_a_frame_that_fails_after_its_first_file_leaves_none_of_its_files(tmp_path, ckpt, capsys, monkeypatch):
@@ -172,8 +177,8 @@ def test_a_frame_that_fails_after_its_first_file_leaves_none_of_its_files(tmp_pa
     errors, stdout = _errors(capsys)
     assert errors == ["error: cannot write the outputs of b: ValueError: mesh went wrong"]
     assert _outputs(out, "b") == []  # b_depth.npy and b_depth.png were written, then removed
-    assert _outputs(out, "a") == ["a.ply", "a_depth.npy", "a_depth.png"]
-    assert _outputs(out, "c") == ["c.ply", "c_depth.npy", "c_depth.png"]  # the frame after it still ran
+    assert _outputs(out, "a") == ["a.ply", "a_depth.npy", "a_depth.png", "a_panel.png"]
+    assert _outputs(out, "c") == ["c.ply", "c_depth.npy", "c_depth.png", "c_panel.png"]  # the frame after it ran
     assert "2 frame(s) written" in stdout and not list(out.glob(utils.TEMP_GLOB))
 
 
@@ -185,7 +190,7 @@ def test_a_file_that_cannot_be_written_is_named_and_the_others_go_on(tmp_path, c
     errors, _ = _errors(capsys)
     assert len(errors) == 1 and errors[0].startswith(f"error: cannot write {out / 'a_depth.png'}: "), errors
     assert _outputs(out, "a") == ["a_depth.png"] and (out / "a_depth.png").is_dir()  # a_depth.npy removed
-    assert _outputs(out, "b") == ["b_depth.npy", "b_depth.png"]
+    assert _outputs(out, "b") == ["b_depth.npy", "b_depth.png", "b_panel.png"]
 
 
 # --------------------------------------------------------------------------- 4. video
@@ -231,7 +236,7 @@ def test_a_video_that_breaks_midway_names_the_last_good_frame(tmp_path, ckpt, ca
     assert errors == [f"error: cannot read video {video} after frame 2: "
                       f"end of file reached before full frame could be read"]
     assert sorted(p.name for p in out.glob("*.npy")) == [f"clip_{k:06d}_depth.npy" for k in range(3)]
-    assert stdout.strip() == f"3 frame(s) written to {out}; 1 failed (the error lines above)"
+    assert _last_line(stdout) == f"3 frame(s) written to {out}; 1 failed (the error lines above)"
 
 
 # --------------------------------------------------------------------------- 5. full disk
@@ -289,9 +294,22 @@ def test_no_room_for_one_frame_is_refused_before_the_model_is_loaded(tmp_path, c
 @pytest.mark.parametrize("ply", ["points", "mesh", "none"])
 def test_the_room_asked_for_covers_one_frames_outputs(tmp_path, ckpt, ply):
     src = _folder(tmp_path / "in", {"a.png": _frame(48, 64)})
-    assert _run(ckpt, src, tmp_path / "out", "--ply", ply) == 0
+    assert _run(ckpt, src, tmp_path / "out", "--ply", ply, "--panel", "none") == 0
     written = sum(p.stat().st_size for p in (tmp_path / "out").iterdir())
-    assert written <= predict.frame_output_bytes(64, 48, ply) <= 4 * written + 8192
+    assert written <= predict.frame_output_bytes(64, 48, ply, panel="none") <= 4 * written + 8192
+
+
+@pytest.mark.parametrize("panel", ["depth", "prior"])
+def test_the_room_asked_for_covers_the_panel(tmp_path, ckpt, panel):
+    """The panel's bound is its uncompressed size (a frame of noise hardly compresses); the PNG
+    itself is what matplotlib drew, of ``panel_size`` pixels."""
+    src = _folder(tmp_path / "in", {"a.png": _frame(48, 64)})
+    assert _run(ckpt, src, tmp_path / "out", "--ply", "none", "--panel", panel) == 0
+    image = tmp_path / "out" / "a_panel.png"
+    assert Image.open(image).size == predict.panel_size(64, 48, panel)
+    extra = predict.frame_output_bytes(64, 48, "none", panel=panel) - predict.frame_output_bytes(64, 48, "none",
+                                                                                                  panel="none")
+    assert image.stat().st_size <= extra == predict.png_bytes(*predict.panel_size(64, 48, panel))
 
 
 # --------------------------------------------------------------------------- 6. stale temporary files
@@ -307,7 +325,7 @@ def test_stale_temporary_files_in_out_are_removed_and_counted(tmp_path, ckpt, ca
     assert _run(ckpt, src, out, "--ply", "none") == 0
     _, stdout = _errors(capsys)
     assert f"removed 2 half-written temporary file(s) of an interrupted run from {out}" in stdout
-    assert sorted(p.name for p in out.iterdir()) == ["a_depth.npy", "a_depth.png", "notes.tmp"]
+    assert sorted(p.name for p in out.iterdir()) == ["a_depth.npy", "a_depth.png", "a_panel.png", "notes.tmp"]
 
 
 # --------------------------------------------------------------------------- 7. outputs as inputs
@@ -324,17 +342,23 @@ def test_out_is_the_input_folder_is_refused(tmp_path, ckpt, capsys):
 
 
 def test_predicts_own_outputs_in_the_input_folder_are_skipped(tmp_path, ckpt, capsys):
-    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "scan_depth.png": _frame(20, 24, 1)})
-    (src / "a_depth.png").write_bytes((tmp_path / "in" / "a.png").read_bytes())  # an old run's output pair
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "scan_depth.png": _frame(20, 24, 1),
+                                    "b_panel.png": _frame(20, 24, 2)})
+    for old in ("a_depth.png", "a_panel.png"):  # an old run's outputs beside its depth
+        (src / old).write_bytes((tmp_path / "in" / "a.png").read_bytes())
     np.save(src / "a_depth.npy", np.ones((20, 24), np.float32))
     files, _ = predict.list_inputs(src)
-    assert [f.name for f in files] == ["a.png", "scan_depth.png"]  # a photo named *_depth.png stays an input
+    # photos named *_depth.png or *_panel.png without their *_depth.npy stay inputs
+    assert [f.name for f in files] == ["a.png", "b_panel.png", "scan_depth.png"]
     out = src / "pred"  # --out inside --input: the listing is not recursive
     for _ in range(2):
-        assert _run(ckpt, src, out, "--ply", "none") == 0
-        assert _errors(capsys)[1].strip() == f"2 frame(s) written to {out}"
-    assert sorted(p.name for p in out.iterdir()) == ["a_depth.npy", "a_depth.png",
-                                                     "scan_depth_depth.npy", "scan_depth_depth.png"]
+        assert _run(ckpt, src, out, "--ply", "none", "--panel", "none") == 0
+        assert _last_line(_errors(capsys)[1]) == f"3 frame(s) written to {out}"
+    assert sorted(p.name for p in out.iterdir()) == ["a_depth.npy", "a_depth.png", "b_panel_depth.npy",
+                                                     "b_panel_depth.png", "scan_depth_depth.npy",
+                                                     "scan_depth_depth.png"]
+    assert _run(ckpt, out, tmp_path / "again", "--ply", "none") == 2  # a run on predict's own folder
+    assert "holds no images" in _errors(capsys)[0][0]
 
 
 # --------------------------------------------------------------------------- 8. symbolic links
@@ -382,3 +406,57 @@ def test_refused_runs_leave_no_output_folder(tmp_path, ckpt, capsys):
         errors, _ = _errors(capsys)
         assert len(errors) == 1 and needle in errors[0], errors
         assert list((tmp_path / "new").iterdir()) == [], needle
+
+
+# --------------------------------------------------------------------------- 10. --mask files
+
+
+def _mask_cases(tmp_path: Path) -> dict:
+    """{the words the error must hold: the --mask file}, each refused before any work."""
+    from geodepth_lite import fov
+
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
+    small = fov.save_mask(np.ones((10, 12), bool), tmp_path / "small.png")
+    empty = fov.save_mask(np.zeros((20, 24), bool), tmp_path / "empty.png")
+    return {f"--mask not found: {tmp_path / 'nope.png'}": tmp_path / "nope.png",
+            f"cannot read --mask {tmp_path / 'corrupt.png'}: not an image file": tmp_path / "corrupt.png",
+            f"--mask {small} is 12 x 10 pixels but the frames are 24 x 20": small,
+            f"--mask {empty} has no pixel inside the field of view": empty}
+
+
+def test_a_bad_mask_file_is_refused_by_name_before_any_work(tmp_path, ckpt, capsys, monkeypatch):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    monkeypatch.setattr(checkpoint, "load_model", lambda *a, **k: pytest.fail("loaded the model"))
+    for needle, mask in _mask_cases(tmp_path).items():
+        assert _run(ckpt, src, tmp_path / "new" / "out", "--mask", str(mask)) == 2
+        errors, _ = _errors(capsys)
+        assert len(errors) == 1 and needle in errors[0], (needle, errors)
+        assert not (tmp_path / "new").exists()
+
+
+def test_a_bad_mask_file_loses_nothing_already_written(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    out = tmp_path / "out"
+    assert _run(ckpt, src, out) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    for mask in _mask_cases(tmp_path).values():
+        assert _run(ckpt, src, out, "--mask", str(mask)) == 2
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_a_frame_of_another_size_than_the_mask_is_named_and_the_others_go_on(tmp_path, ckpt, capsys):
+    from geodepth_lite import fov
+
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "b.png": _frame(30, 24), "c.png": _frame(20, 24, 1)})
+    mask = np.zeros((20, 24), bool)
+    mask[2:18, 3:21] = True
+    mask_file = fov.save_mask(mask, tmp_path / "mask.png")
+    out = tmp_path / "out"
+    assert _run(ckpt, src, out, "--mask", str(mask_file), "--ply", "none") == 2
+    errors, stdout = _errors(capsys)
+    assert errors == [f"error: cannot use --mask {mask_file} for b: the mask is 24 x 20 pixels, the frame 24 x 30"]
+    assert _outputs(out, "b") == []
+    for name in "ac":
+        np.testing.assert_array_equal(np.isfinite(np.load(out / f"{name}_depth.npy")), mask)
+    assert _last_line(stdout) == f"2 frame(s) written to {out}; 1 failed (the error lines above)"
