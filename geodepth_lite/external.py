@@ -16,18 +16,16 @@ held-out groups, this module scores it on a small public sample from another ren
 
 from __future__ import annotations
 
-import csv
-import hashlib
-import io
 import json
 from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 
-from . import camera, evaluate, inference, metrics, utils
+from . import camera, evaluate, inference, metrics, tables, utils
 from .datasets import MemoryDataset, SimCol3DDataset
+from .integrity import file_sha256
+from .predict import read_frame
 
 METRIC_COLUMNS = tuple(metrics.METRIC_NAMES)
 DECODERS = {"simcol3d": SimCol3DDataset.decode_depth}  # dataset -> depth PNG -> (depth, valid)
@@ -58,10 +56,6 @@ def load_manifest(name: str) -> dict:
     return m
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def check_copy(name: str, root: str | Path) -> list[str]:
     """What is wrong with the copy of sample ``name`` in ``root``, one line per file (none: all
     there and byte for byte the manifest's)."""
@@ -74,7 +68,7 @@ def check_copy(name: str, root: str | Path) -> list[str]:
             p = root / f[kind]
             if not p.is_file():
                 problems.append(f"{p}: missing")
-            elif _sha256(p) != f[f"{kind}_sha256"]:
+            elif file_sha256(p) != f[f"{kind}_sha256"]:
                 problems.append(f"{p}: not the file of the manifest (its SHA-256 differs)")
     return problems
 
@@ -90,7 +84,7 @@ def sample_dataset(name: str, root: str | Path) -> MemoryDataset:
     decode = DECODERS[m["dataset"]]
     items = []
     for i, f in enumerate(m["files"]):
-        rgb = np.asarray(_read_rgb(Path(root) / f["rgb"]), dtype=np.float32) / 255.0
+        rgb = read_frame(Path(root) / f["rgb"]).astype(np.float32) / 255.0
         depth, valid = decode(Path(root) / f["depth"])
         H, W = depth.shape
         if rgb.shape[:2] != (H, W):
@@ -99,11 +93,6 @@ def sample_dataset(name: str, root: str | Path) -> MemoryDataset:
                       "depth": torch.from_numpy(depth)[None], "valid": torch.from_numpy(valid)[None],
                       "K": camera.intrinsics(W, H), "organ": "colon", "group": m["name"], "index": i})
     return MemoryDataset(items)
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
 
 
 def score_sample(dataset, model, image_size: int, flips: str, mean_map: np.ndarray,
@@ -131,23 +120,18 @@ def summary(rows: list[dict]) -> dict[str, dict]:
 
 def write_scores(path: str | Path, rows: list[dict]) -> Path:
     """The rows as CSV (numbers to 6 significant digits), written whole or not at all."""
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=["method", "frame", *METRIC_COLUMNS, "ratio"], lineterminator="\n")
-    w.writeheader()
-    w.writerows({**r, **{k: f"{r[k]:.6g}" for k in (*METRIC_COLUMNS, "ratio")}} for r in rows)
+    numbers = (*METRIC_COLUMNS, "ratio")
+    text = tables.csv_bytes([{"method": r["method"], "frame": r["frame"], **{k: f"{r[k]:.6g}" for k in numbers}}
+                             for r in rows])
     path = Path(path)
-    utils.write_bytes_atomic(path, buf.getvalue().encode())
+    utils.write_bytes_atomic(path, text)
     return path
 
 
 def read_scores(path: str | Path) -> list[dict]:
     """Rows written by ``write_scores``, numbers as floats (frame as int)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"scores not found: {path}")
-    rows = list(csv.DictReader(io.StringIO(path.read_text())))
     return [{"method": r["method"], "frame": int(r["frame"]), **{k: float(r[k]) for k in (*METRIC_COLUMNS, "ratio")}}
-            for r in rows]
+            for r in tables.read_csv(path)]
 
 
 def committed_scores(name: str) -> Path:

@@ -28,7 +28,8 @@ def dataset_files(m: dict) -> list[str]:
     return files
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file, read in 1 MiB chunks (hex digest)."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
@@ -41,7 +42,7 @@ def write_checksums(out: Path, m: dict) -> None:
     lines = []
     for rel in dataset_files(m):
         try:
-            lines.append(f"{_sha256(out / rel)}  {rel}\n")
+            lines.append(f"{file_sha256(out / rel)}  {rel}\n")
         except OSError as exc:
             raise FileProblem(f"cannot read {out / rel}: {os_reason(exc)}", out / rel) from exc
     write_bytes_atomic(out / "checksums.sha256", "".join(lines).encode())
@@ -133,7 +134,7 @@ def verify(root: str | Path) -> list[str]:
             problems.append(f"missing: {rel}")
             continue
         try:
-            actual = _sha256(path)
+            actual = file_sha256(path)
         except OSError as exc:
             problems.append(f"unreadable: {rel} ({os_reason(exc)})")
             continue

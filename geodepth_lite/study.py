@@ -23,9 +23,7 @@ seeds, Holm's rule for "differs from zero", Bonferroni intervals for the size.
 
 from __future__ import annotations
 
-import csv
 import gzip
-import io
 import math
 from pathlib import Path
 from typing import Any
@@ -116,39 +114,27 @@ def score_baselines(profile: str, sets: dict[str, Any]) -> list[dict]:
             for name, per in ablation.baseline_scores(profile, sets).items() for b, v in per.items()]
 
 
-def _csv_bytes(rows: list[dict]) -> bytes:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
-    return buf.getvalue().encode()
-
-
 def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict]) -> Path:
     """Write runs.csv, frames.csv.gz and baselines.csv into ``out`` (each file whole or not at all)."""
     out = utils.check_output_dir(out)
-    utils.write_bytes_atomic(out / "runs.csv", _csv_bytes(runs))
-    utils.write_bytes_atomic(out / "frames.csv.gz", gzip.compress(_csv_bytes(frames), mtime=0))
-    utils.write_bytes_atomic(out / "baselines.csv", _csv_bytes(baselines))
+    utils.write_bytes_atomic(out / "runs.csv", tbl.csv_bytes(runs))
+    utils.write_bytes_atomic(out / "frames.csv.gz", gzip.compress(tbl.csv_bytes(frames), mtime=0))
+    utils.write_bytes_atomic(out / "baselines.csv", tbl.csv_bytes(baselines))
     return out
 
 
-def _read_csv(path: Path) -> list[dict]:
-    if not path.is_file():
-        raise FileNotFoundError(f"study table not found: {path} (`python -m geodepth_lite reproduce --study` "
-                                "writes it)")
-    data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
-    return list(csv.DictReader(io.StringIO(data.decode())))
+def _read(path: Path) -> list[dict]:
+    return tbl.read_csv(path, " (`python -m geodepth_lite reproduce --study` writes it)")
 
 
 def read_tables(folder: str | Path | None = None, frames: bool = False) -> dict:
     """The study's tables from ``folder`` (default: the committed ``notebooks/study/``), numbers as
     floats: {"runs": [...], "baselines": [...], "frames": [...] (only with ``frames``)}."""
     folder = Path(folder) if folder else committed_dir()
-    tables = {"runs": [_typed(r) for r in _read_csv(folder / "runs.csv")],
-              "baselines": [_typed(r) for r in _read_csv(folder / "baselines.csv")]}
+    tables = {"runs": [_typed(r) for r in _read(folder / "runs.csv")],
+              "baselines": [_typed(r) for r in _read(folder / "baselines.csv")]}
     if frames:
-        tables["frames"] = [_typed(r) for r in _read_csv(folder / "frames.csv.gz")]
+        tables["frames"] = [_typed(r) for r in _read(folder / "frames.csv.gz")]
     return tables
 
 

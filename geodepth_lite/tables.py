@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import gzip
 import io
 import json
 import os
@@ -73,6 +74,26 @@ STAGING_PREFIX = ".eval-staging-"  # hidden folder in the output folder where a 
 PREVIOUS_PREFIX = ".eval-previous-"  # hidden folder that holds the replaced set until the new one is in place
 TABLES_BYTES = 4 * 2**20  # room asked for metrics.json, frames.csv and tables.md before any work (a few kB each)
 ERROR_MAP_BYTES = 2**20  # and per error-map PNG (about 0.1-0.3 MB at dpi 80)
+
+
+
+def csv_bytes(rows: list[dict]) -> bytes:
+    """``rows`` (dicts with the same keys, in order) as CSV: a header line, then one line each."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def read_csv(path: str | os.PathLike, missing: str = "") -> list[dict]:
+    """The rows of a CSV file (``.gz``: gzip-compressed) as dicts of strings; a missing file is a
+    FileNotFoundError naming it, followed by ``missing`` (what writes it)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"table not found: {path}{missing}")
+    data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+    return list(csv.DictReader(io.StringIO(data.decode())))
 
 
 def output_bytes_needed(error_maps: int) -> int:

@@ -8,6 +8,7 @@ import torch
 from PIL import Image
 
 from geodepth_lite import external
+from geodepth_lite.integrity import file_sha256
 from geodepth_lite.model import DepthNet
 
 
@@ -41,8 +42,8 @@ def tiny_sample(tmp_path, monkeypatch):
         rgb = np.full((64, 64, 3), 40 + 100 * i, np.uint8)
         Image.fromarray(rgb).save(root / f"FrameBuffer_{i:04d}.png")
         files.append({"rgb": f"FrameBuffer_{i:04d}.png", "depth": f"Depth_{i:04d}.png",
-                      "rgb_sha256": external._sha256(root / f"FrameBuffer_{i:04d}.png"),
-                      "depth_sha256": external._sha256(root / f"Depth_{i:04d}.png")})
+                      "rgb_sha256": file_sha256(root / f"FrameBuffer_{i:04d}.png"),
+                      "depth_sha256": file_sha256(root / f"Depth_{i:04d}.png")})
     manifest = tmp_path / "tiny.json"
     manifest.write_text(json.dumps({"name": "tiny", "dataset": "simcol3d", "source": {}, "licence": "test",
                                     "files": files}))
