@@ -36,6 +36,13 @@ OVERLAY_ON, OVERLAY_OFF = 200, 64  # 0-255: on-screen text colours have every ch
 LINK_FRAC = 0.02  # text glyphs closer than 2 x this fraction of the smaller side (at least 3 px) form one line
 CORNER_FRAC = 0.02  # corner patches of this fraction of the smaller side (at least 1 px) must be mostly black
 MIN_OUTSIDE, MAX_OUTSIDE = 0.005, 0.8  # a border covers between 0.5% and 80% of the frame, else no border
+# inset boxes (a scope-position display): flat, one colour, box-shaped
+INSET_FLAT = 14  # 0-255: a pixel is flat when every channel varies by at most this over its 3 x 3 neighbours
+INSET_AREA = (0.01, 0.15)  # a box covers 1-15% of the frame ...
+INSET_FILL = 0.8  # ... fills at least 80% of its bounding rectangle (holes such as a drawing in it filled) ...
+INSET_ASPECT = (0.5, 2.0)  # ... with height / width in this range ...
+INSET_SPREAD = 12  # ... its colour's standard deviation at most this in every channel ...
+INSET_WHITE = 245  # ... and it is neither white (a saturated highlight is flat too) nor black (DARK_MAX)
 
 SYNTHETIC_KINDS = ("round", "octagon", "none")
 # on-screen text colours of ``add_overlay`` (0-1): white, yellow, green, cyan
@@ -139,8 +146,9 @@ def detect_mask(rgb) -> np.ndarray:
        lumen in the middle of the image is not.
     2. It is a border only if black covers at least half of each of the four corner patches
        (``CORNER_FRAC`` = 2% of the smaller side) and between ``MIN_OUTSIDE`` (0.5%) and
-       ``MAX_OUTSIDE`` (80%) of the frame; otherwise the frame has no border and every pixel
-       is inside (a frame without border, a dark lumen touching one edge, an all-dark frame).
+       ``MAX_OUTSIDE`` (80%) of the frame; otherwise the frame has no border (a frame without
+       border, a dark lumen touching one edge, an all-dark frame) and every pixel is inside
+       but for coloured inset boxes (step 6).
     3. On-screen text: pixels in text colours (``overlay_coloured``: every channel >= 200 or
        <= 64 with green >= 200, i.e. white, yellow, green, cyan) within ``LINK_FRAC`` (2% of
        the smaller side, at least 3 px) of the border or of other such pixels linked to it:
@@ -150,10 +158,14 @@ def detect_mask(rgb) -> np.ndarray:
     5. A field of view is convex (round or octagonal): the region is replaced by its convex
        hull, less the text pixels. This gives back the black bites of a dark lumen or shadow
        that touches the field of view's edge, and keeps the boundary straight or round.
+    6. Inset boxes (``inset_boxes``): a flat box of one colour that the processor draws over the
+       image, such as a scope-position display, is left out with its bounding rectangle.
 
-    Known limits: text in other colours (grey, red) over the image, and a black box behind text
-    over the image, stay inside; a frame whose border does not reach all four corners is taken
-    as borderless. Give a mask image (``read_mask``) for such a video.
+    Known limits: text in other colours (grey, red) over the image, and a black box over the
+    image that joins the border (the hull of rule 5 gives it back), stay inside; white text on
+    bright tissue inside the image is found only where it is linked to the border; a frame whose
+    border does not reach all four corners is taken as borderless. Give a mask image
+    (``read_mask``) for such a video.
     """
     rgb8 = _to_uint8(rgb)
     H, W = rgb8.shape[:2]
@@ -163,7 +175,7 @@ def detect_mask(rgb) -> np.ndarray:
     border = np.isin(labels, _touches_border(labels))
     share = border.mean()
     if not (MIN_OUTSIDE <= share <= MAX_OUTSIDE and _corners_black(border)):
-        return np.ones((H, W), dtype=bool)
+        return ~inset_boxes(rgb8)
     text = overlay_coloured(rgb8)
     link = max(3, round(LINK_FRAC * min(H, W)))
     near = ndimage.binary_dilation(text, structure=eight, iterations=link) | border
@@ -174,7 +186,37 @@ def detect_mask(rgb) -> np.ndarray:
         return np.ones((H, W), dtype=bool)
     sizes = ndimage.sum_labels(np.ones_like(rest), rest, index=np.arange(1, n + 1))
     inside = ndimage.binary_fill_holes(rest == 1 + int(np.argmax(sizes)))
-    return convex_hull_mask(inside) & ~text
+    return convex_hull_mask(inside) & ~text & ~inset_boxes(rgb8)
+
+
+def inset_boxes(rgb) -> np.ndarray:
+    """H x W bool: the bounding rectangles of flat, one-colour boxes drawn over the image, widened
+    by 2 px (the flatness test cannot see a box's outermost pixel, nor JPEG's blur at its edge).
+
+    A box is a connected region of flat pixels (every channel within ``INSET_FLAT`` over the
+    3 x 3 neighbours) covering ``INSET_AREA`` of the frame, filling ``INSET_FILL`` of its bounding
+    rectangle once its holes are filled, of height / width in ``INSET_ASPECT``, with a colour
+    spread (standard deviation) of at most ``INSET_SPREAD`` per channel, neither white nor black
+    (brightest channel below ``INSET_WHITE``, above ``DARK_MAX``). Tissue is never this flat over
+    so large a box; a saturated highlight is white; a black box is taken for border or lumen.
+    """
+    a = _to_uint8(rgb).astype(np.int16)
+    H, W = a.shape[:2]
+    spread = ndimage.maximum_filter(a, size=(3, 3, 1)) - ndimage.minimum_filter(a, size=(3, 3, 1))
+    labels, _ = ndimage.label((spread <= INSET_FLAT).all(axis=-1))
+    out = np.zeros((H, W), dtype=bool)
+    for i, box in enumerate(ndimage.find_objects(labels), start=1):
+        part = labels[box] == i
+        if not INSET_AREA[0] * H * W <= part.sum() <= INSET_AREA[1] * H * W:
+            continue
+        h, w = part.shape
+        colours = a[box][part]
+        colour = np.median(colours, axis=0)
+        if (ndimage.binary_fill_holes(part).mean() < INSET_FILL or not INSET_ASPECT[0] <= h / w <= INSET_ASPECT[1]
+                or colours.std(axis=0).max() > INSET_SPREAD or not DARK_MAX < colour.max() < INSET_WHITE):
+            continue
+        out[max(0, box[0].start - 2):box[0].stop + 2, max(0, box[1].start - 2):box[1].stop + 2] = True
+    return out
 
 
 # --------------------------------------------------------------------------- user masks

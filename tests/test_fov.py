@@ -83,6 +83,53 @@ def test_text_over_the_image_is_excluded_and_text_in_the_border_is_outside():
     assert text_in_border.sum() >= 50 and not (det & text_in_border).any()
 
 
+def _with_box(frame: np.ndarray, y0: int, x0: int, size: int, colour) -> tuple[np.ndarray, np.ndarray]:
+    """``frame`` with a flat ``size`` px box of ``colour`` at (y0, x0) holding a black line drawing
+    (as a scope-position display does); and the box's pixels."""
+    out = frame.copy()
+    box = np.zeros(frame.shape[:2], dtype=bool)
+    box[y0:y0 + size, x0:x0 + size] = True
+    out[box] = colour
+    out[y0 + size // 4:y0 + 3 * size // 4, x0 + size // 2 - 1:x0 + size // 2 + 1] = 0  # the drawing
+    return out, box
+
+
+@pytest.mark.parametrize("kind", ["round", "octagon"])
+def test_an_inset_box_over_the_image_is_left_out(kind):
+    """A flat teal box over the lower left of the image (a scope-position display): out with its
+    rectangle (2 px wider); the rest as before."""
+    frame, valid = endoscope_frame(kind, 0)
+    framed, box = _with_box(frame, H - 40, 22, 34, (16, 163, 134))
+    det = fov.detect_mask(framed)
+    truth = valid & ~ndimage.binary_dilation(box, iterations=2)
+    assert (valid & box).sum() > 100  # the box covers tissue
+    assert not (det & box).any() and iou(det, truth) >= MIN_IOU
+    saved = fov.inset_boxes
+    try:  # the check can fail: without step 6 the box stays in the field of view
+        fov.inset_boxes = lambda rgb: np.zeros(rgb.shape[:2], dtype=bool)
+        assert (fov.detect_mask(framed) & box).sum() > 100
+    finally:
+        fov.inset_boxes = saved
+
+
+@pytest.mark.parametrize("colour, border", [((0, 0, 0), True), ((0, 0, 0), False), ((255, 255, 255), True),
+                                            ((16, 163, 134), False)],
+                         ids=["black lumen, border", "black lumen, no border", "white highlight", "teal, no border"])
+def test_flat_regions_that_are_not_boxes_stay_in(colour, border):
+    """A flat black lumen in the middle and a saturated highlight stay inside; a coloured box is
+    left out of a frame without border too."""
+    if border:
+        frame, valid = endoscope_frame("octagon", 1)
+    else:
+        frame, valid = tissue(H, W, 2), np.ones((H, W), dtype=bool)
+    framed, box = _with_box(frame, H // 2 - 16, W // 2 - 16, 32, colour)
+    det = fov.detect_mask(framed)
+    if colour == (16, 163, 134):
+        assert not (det & box).any() and det[~ndimage.binary_dilation(box, iterations=2)].all()
+    else:
+        assert det[box].all() and iou(det, valid) >= MIN_IOU
+
+
 @pytest.mark.parametrize("lumen", [None, "middle", "left edge", "corner"])
 def test_a_frame_without_border_is_all_inside(lumen):
     """A dark lumen in the middle, or touching one edge or one corner of the frame, is no border."""
