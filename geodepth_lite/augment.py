@@ -11,16 +11,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from geodepth_lite import appearance
+from geodepth_lite import appearance, fov
 from geodepth_lite.camera import scale_intrinsics
 
-AUGMENTS = ("none", "flip", "flip_color", "camera", "crop")  # see augment_batch
+AUGMENTS = ("none", "flip", "flip_color", "camera", "crop", "fov")  # see augment_batch
 # augment="camera": the appearance effects that are cheaper to add to a training image than to
 # render (appearance.py), drawn afresh every time a frame is seen; ranges beyond the datasets'.
 CAMERA_AUGMENT = {"exposure_stops": [-1.0, 1.0], "gamma": [0.8, 1.3], "color_cast": [-1.0, 1.0],
                   "vignetting": [0.0, 0.5], "specular_flecks": [0, 10], "noise": [0.0, 0.04],
                   "p_blur": 0.3, "blur_px": [0.5, 2.0], "p_jpeg": 0.3, "jpeg_quality": [30, 95]}
 CROP_SCALE = (0.5, 1.0)  # augment="crop": the crop's side as a share of the frame's, uniform in this range
+# augment="fov": the share of frames given an endoscope's border, and that border's radius range
+FOV_AUGMENT = {"p": 0.5, "radius": (0.9, 1.3)}
 
 
 def augment_batch(batch: dict, kind: str) -> dict:
@@ -36,6 +38,10 @@ def augment_batch(batch: dict, kind: str) -> dict:
     crop: flip, then per frame a random crop (side CROP_SCALE of the frame's, anywhere in it)
     scaled back to the frame's size, K following (:func:`random_crop_batch`): what lies at the image
     border changes from view to view, so the network cannot learn "near at the border".
+    fov: flip, then a share ``FOV_AUGMENT["p"]`` of the frames get a round or octagonal field of
+    view with on-screen text (``fov.synthetic_mask``, ``fov.add_overlay``), and the outside filled
+    from the inside (``fov.fill_outside``) as ``predict`` does; the loss sees the inside only
+    (``valid``). Trains on what the network sees of a clinical frame.
     """
     if kind == "none":
         return batch
@@ -54,6 +60,8 @@ def augment_batch(batch: dict, kind: str) -> dict:
         out["K"] = K
     if kind == "crop":
         out = random_crop_batch(out, CROP_SCALE)
+    if kind == "fov":
+        out = fov_batch(out, FOV_AUGMENT)
     if kind == "flip_color":
         gain = (0.7 + 0.7 * torch.rand(B)).to(img).view(B, 1, 1, 1)
         gamma = torch.exp(torch.empty(B).uniform_(np.log(0.8), np.log(1.25))).to(img).view(B, 1, 1, 1)
@@ -66,6 +74,32 @@ def augment_batch(batch: dict, kind: str) -> dict:
         done = np.stack([appearance.apply_appearance(f, look) for f, look in zip(frames, looks)])
         out["image"] = torch.from_numpy(done).permute(0, 3, 1, 2).to(img).div(255.0)
     return out
+
+
+def fov_batch(batch: dict, settings: dict) -> dict:
+    """A share ``settings["p"]`` of the frames painted with an endoscope's border and text and
+    filled from the inside (``augment_batch``'s "fov"); ``valid`` is False where they painted.
+    Draws from torch's global RNG (a numpy generator seeded from it per frame)."""
+    img = batch["image"]
+    B, _, H, W = img.shape
+    pick = (torch.rand(B) < settings["p"]).tolist()
+    seeds = torch.randint(0, 2**31 - 1, (B,)).tolist()
+    images = img.clone()
+    valid = (batch["valid"].clone() if batch.get("valid") is not None
+             else torch.ones(B, 1, H, W, dtype=torch.bool, device=img.device))
+    for j in range(B):
+        if not pick[j]:
+            continue
+        rng = np.random.default_rng(seeds[j])
+        kind = ("round", "octagon")[int(rng.integers(2))]
+        mask = fov.synthetic_mask(H, W, kind, radius=float(rng.uniform(*settings["radius"])),
+                                  center=(float(rng.uniform(0.45, 0.55)), float(rng.uniform(0.45, 0.55))))
+        frame = img[j].detach().clamp(0, 1).permute(1, 2, 0).cpu().numpy()
+        painted, inside = fov.add_overlay(frame, mask, rng, over_image=bool(rng.integers(2)))
+        filled = fov.fill_outside(painted, inside)
+        images[j] = torch.from_numpy(np.ascontiguousarray(filled)).permute(2, 0, 1).to(img)
+        valid[j] &= torch.from_numpy(inside).to(valid.device)[None]
+    return dict(batch, image=images, valid=valid)
 
 
 def random_crop_batch(batch: dict, scale: tuple[float, float]) -> dict:

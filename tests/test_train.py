@@ -408,6 +408,32 @@ def test_crop_augmentation_keeps_every_ray():
     assert cropped >= 4  # most frames are really cropped (scale uniform in CROP_SCALE)
 
 
+def test_fov_augmentation_paints_a_border_fills_it_and_leaves_it_out_of_the_loss():
+    """augment="fov": about half the frames get a field of view with text; outside it the image is
+    the nearest inside pixel (what predict shows the network) and ``valid`` is False there; the
+    depth, K and the other frames are the flipped originals."""
+    from geodepth_lite import fov
+
+    B, H, W = 12, 48, 64
+    torch.manual_seed(5)
+    image = torch.rand(B, 3, H, W)
+    depth = torch.rand(B, 1, H, W) + 1.0
+    K = torch.eye(3, dtype=torch.float64).expand(B, 3, 3).clone()
+    out = augment.augment_batch({"image": image, "depth": depth, "K": K}, "fov")
+    painted = [b for b in range(B) if not bool(out["valid"][b].all())]
+    assert 2 <= len(painted) <= B - 2 and out["valid"].dtype == torch.bool
+    for b in range(B):
+        flipped = not torch.equal(out["depth"][b], depth[b])
+        assert torch.equal(out["depth"][b], depth[b].flip(-1) if flipped else depth[b])
+        original = image[b].flip(-1) if flipped else image[b]
+        inside = out["valid"][b, 0].numpy()
+        np.testing.assert_allclose(out["image"][b].permute(1, 2, 0)[inside].numpy(),
+                                   original.permute(1, 2, 0)[inside].numpy(), atol=1e-6)
+        if b in painted:
+            refilled = fov.fill_outside(out["image"][b].permute(1, 2, 0).numpy(), inside)
+            np.testing.assert_allclose(refilled, out["image"][b].permute(1, 2, 0).numpy(), atol=1e-6)
+
+
 
 def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smoke_root):
     """One job per run folder (notebooks 04, 06 and 07 ask for the same model; an override equal
