@@ -164,6 +164,8 @@ def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
 
 
 MODELS_KEY = "geodepth_lite"  # notebook metadata: {"models": [spec, ...]}, the models the notebook loads
+# a spec's "settings": the training settings beyond (case, seed) of each kind of model
+SETTINGS = {"predict": run_cache.predict_settings, "real": run_cache.real_settings, "ablation": lambda profile: {}}
 
 
 def notebook_models(nb: Path) -> list[dict]:
@@ -171,15 +173,16 @@ def notebook_models(nb: Path) -> list[dict]:
 
     Each spec names the trained models by (case, seed): ``"case"``/``"seed"`` or ``"cases"``/
     ``"seeds"`` hold a number (or list) or the name of one of the notebook's parameters;
-    ``"settings"`` is "predict" (the profile's ``predict`` model, ``run_cache.predict_settings``)
-    or "ablation" (the profile's own settings); ``"workers"`` optionally names the parameter
+    ``"settings"`` is "predict" (the profile's ``predict`` model, ``run_cache.predict_settings``),
+    "real" (its model for real frames, ``run_cache.real_settings``) or "ablation" (the profile's
+    own settings); ``"workers"`` optionally names the parameter
     with the number of runs trained side by side. A notebook without the key loads no model.
     """
     meta = json.loads(nb.read_text()).get("metadata", {}).get(MODELS_KEY, {})
     specs = meta.get("models", [])
     for spec in specs:
-        if spec.get("settings") not in ("predict", "ablation"):
-            raise ValueError(f"{nb.name}: metadata {MODELS_KEY}.models: settings must be 'predict' or 'ablation', "
+        if spec.get("settings") not in SETTINGS:
+            raise ValueError(f"{nb.name}: metadata {MODELS_KEY}.models: settings must be one of {', '.join(SETTINGS)}, "
                              f"got {spec.get('settings')!r}")
     return specs
 
@@ -197,7 +200,7 @@ def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tup
             value = lambda key: p[spec[key]] if isinstance(spec.get(key), str) else spec[key]  # noqa: E731
             cases = value("cases") if "cases" in spec else [value("case")]
             seeds = value("seeds") if "seeds" in spec else [value("seed")]
-            overrides = run_cache.predict_settings(profile) if spec["settings"] == "predict" else {}
+            overrides = SETTINGS[spec["settings"]](profile)
             runs += [(int(c), int(s), dict(overrides)) for c in cases for s in seeds]
             if "workers" in spec:
                 workers = int(value("workers")) or None

@@ -88,6 +88,20 @@ def predict_settings(profile: str) -> dict:
     return {**prof.get("predict_overrides", {}), "image_size": prof["predict_image_size"]}
 
 
+def real_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: bool = False) -> Path:
+    """The checkpoint of the model for real endoscope frames (notebook 07's zero-shot sections and
+    gallery, ``predict`` on your frames): the ``predict`` model with the profile's ``real_overrides``
+    (teach: random crops in training, which take away the lumen-in-the-middle prior that real
+    close-ups expose; docs/teach_recipe.md). Where those are empty it is the ``predict`` model."""
+    return ensure_checkpoint(profile, case, seed, progress=progress, **real_settings(profile))
+
+
+def real_settings(profile: str) -> dict:
+    """The training settings of ``profile``'s model for real frames: ``predict_settings`` and the
+    profile's ``real_overrides``."""
+    return {**predict_settings(profile), **config.get_profile(profile).get("real_overrides", {})}
+
+
 def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: int | None = None,
                        progress: bool = False, **overrides: Any) -> dict[tuple[int, int], Path]:
     """``ensure_checkpoint`` for several (case, seed) runs, trained side by side in processes.

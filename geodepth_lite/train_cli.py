@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 
 from geodepth_lite import checkpoint, config, distributed, integrity, train, utils
+from geodepth_lite.augment import AUGMENTS
 from geodepth_lite.datasets import resolve_dataset
 
 
@@ -33,6 +34,8 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input-pad", type=int, default=None,
                         help="mirrored pixels added around the network's input and cropped off its depth "
                              "(a multiple of 16; 0 = off)")
+    parser.add_argument("--augment", default=None, choices=AUGMENTS,
+                        help="override the profile's training augmentation (crop: the model for real frames)")
     parser.add_argument("--dataset", default=None, help="manifest name or dataset directory (default: the profile's)")
     parser.add_argument("--encoder-weights", default=None,
                         help="torchvision-style resnet18 ImageNet state dict (.pth) for the encoder")
@@ -48,7 +51,8 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
 def run_train(args: argparse.Namespace) -> int:
     cfg = config.make_config(args.profile, args.case, args.seed, epochs=args.epochs, batch_size=args.batch_size,
                              lr=args.lr, lr_schedule=args.lr_schedule, image_size=args.image_size,
-                             border_weight=args.border_weight, input_pad=args.input_pad, dataset=args.dataset,
+                             border_weight=args.border_weight, input_pad=args.input_pad, augment=args.augment,
+                             dataset=args.dataset,
                              encoder_weights=args.encoder_weights)
     run_dir = (Path(args.run_dir) if args.run_dir
                else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}")

@@ -113,15 +113,16 @@ def test_a_failing_notebook_is_named_and_not_marked_complete(fake_notebooks, cap
 
 def test_the_models_of_the_real_notebooks_are_trained_together():
     """reproduce trains what notebooks 04-07 load before it runs them: the predict model of 04, 06
-    and 07 (one run folder) and 05's case x seed runs, with 05's worker count."""
+    and 07 (one run folder), 07's model for real frames, and 05's case x seed runs, with 05's
+    worker count."""
     from geodepth_lite import run_cache
 
     nbs = {p.name[:2]: p for p in reproduce.list_notebooks()}
-    predict = run_cache.predict_settings("teach")
+    predict, real = run_cache.predict_settings("teach"), run_cache.real_settings("teach")
     runs, workers = reproduce.training_runs("teach", [(nbs["04"], {}), (nbs["05"], {"seeds": [0, 1], "workers": 1}),
                                                      (nbs["06"], {"seed": 2}), (nbs["07"], {})])
-    assert runs[0] == (4, 0, predict) and runs[-1] == (4, 2, predict) and len(runs) == 10
-    assert runs[1:-1] == [(c, s, {}) for c in (1, 2, 3, 4) for s in (0, 1)] and workers == 1
+    assert runs[0] == (4, 0, predict) and runs[-2:] == [(4, 2, predict), (4, 0, real)] and len(runs) == 11
+    assert runs[1:-2] == [(c, s, {}) for c in (1, 2, 3, 4) for s in (0, 1)] and workers == 1
     assert reproduce.training_runs("teach", [(nbs["01"], {}), (nbs["05"], {})]) == (
         [(c, s, {}) for c in (1, 2, 3, 4) for s in (0, 1, 2)], None)
     assert reproduce.training_runs("teach", [(nbs["00"], {})]) == ([], None)

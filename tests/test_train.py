@@ -346,6 +346,27 @@ def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, sm
         config.make_config(name, 4, 0, **run_cache.predict_settings(name))
 
 
+def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides():
+    """teach: the predict settings and augment="crop", its own run folder; paper: the predict model
+    itself (no overrides). The train command's --augment names the same run."""
+    from geodepth_lite import cli, config, reproduce
+
+    real, pred = run_cache.real_settings("teach"), run_cache.predict_settings("teach")
+    assert real == {**pred, "augment": "crop"}
+    assert run_cache.checkpoint_dir("teach", 4, 0, **real) != run_cache.checkpoint_dir("teach", 4, 0, **pred)
+    assert run_cache.real_settings("paper") == run_cache.predict_settings("paper")
+    for name in config.PROFILES:
+        config.make_config(name, 4, 0, **run_cache.real_settings(name))
+    assert reproduce.SETTINGS["real"]("teach") == real
+    args = cli.build_parser().parse_args(["train", "--image-size", "96", "--input-pad", "16", "--border-weight",
+                                          "2", "--augment", "crop"])
+    cfg = config.make_config("teach", 4, 0, image_size=args.image_size, input_pad=args.input_pad,
+                             border_weight=args.border_weight, augment=args.augment)
+    assert config.config_hash(cfg) == config.config_hash(config.make_config("teach", 4, 0, **real))
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["train", "--augment", "zoom"])
+
+
 def test_a_sixth_loss_term_is_one_table_entry(monkeypatch, smoke_root, tmp_path):
     """A dummy term (total variation of the prediction, in a new weight group) added to
     losses.LOSS_TERMS: total_loss weights it by name, and one smoke epoch trains and logs it."""
