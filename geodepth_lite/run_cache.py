@@ -22,9 +22,10 @@ from geodepth_lite.datasets import resolve_dataset
 from geodepth_lite.train import fit
 
 # one thread, 64 x 64 input, one training frame forward + backward with every loss term plus its
-# share of validation: a teach ablation run (8 epochs x 600 frames) takes about 1.5 min on a
-# 2-core laptop-class CPU (docs/timings.md). Time grows with the pixel count of the padded input.
-SECONDS_PER_FRAME_64 = 0.019
+# share of validation, two runs side by side on a 2-core laptop-class CPU: a teach ablation run
+# (8 epochs x 600 frames) takes 2.6-3.0 min (docs/timings.md). Time grows with the pixel count
+# of the padded input (the 96 px models with 16 px padding: about 10 min).
+SECONDS_PER_FRAME_64 = 0.035
 
 
 def estimated_minutes(cfg: dict) -> float:
