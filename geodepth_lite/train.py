@@ -260,7 +260,8 @@ class Trainer:
         if len(self.train_ds) == 0:
             raise ValueError(f"dataset {root} has no training frames")
         in_memory = isinstance(self.train_ds, MemoryDataset)
-        self.num_workers = (0 if in_memory else min(4, os.cpu_count() or 1)) if num_workers is None else num_workers
+        self.num_workers = utils.workers_fit_temp_dir(
+            (0 if in_memory else min(4, os.cpu_count() or 1)) if num_workers is None else num_workers)
 
     def make_loader(self) -> None:
         cfg = self.cfg

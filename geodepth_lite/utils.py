@@ -32,6 +32,28 @@ def worker_init(worker_id: int) -> None:
     np.random.seed(seed)
 
 
+# A DataLoader worker hands tensors to the main process over a Unix socket that multiprocessing
+# makes at <temp folder>/pymp-XXXXXXXX/listener-XXXXXXXX; Linux allows 107 bytes for its path.
+SOCKET_PATH_MAX = 107
+SOCKET_NAME_BYTES = len("/pymp-12345678/listener-12345678")
+
+
+def workers_fit_temp_dir(num_workers: int) -> int:
+    """``num_workers``, or 0 where the temporary folder's path is too long for the workers' sockets.
+
+    Too long a path (``TMPDIR``) makes each worker fail to send its batch, and the loader wait for
+    it for ever; loading in the main process instead is slower, never stuck. Says so when it drops
+    the workers.
+    """
+    folder = tempfile.gettempdir()
+    if num_workers <= 0 or len(os.fsencode(folder)) + SOCKET_NAME_BYTES <= SOCKET_PATH_MAX:
+        return num_workers
+    print(f"the temporary folder {folder} is too long for data-loading worker processes (their sockets "
+          f"allow {SOCKET_PATH_MAX - SOCKET_NAME_BYTES} characters): loading in the main process instead "
+          f"of {num_workers} worker(s); set TMPDIR to a shorter folder to use them", flush=True)
+    return 0
+
+
 class FileProblem(OSError):
     """A file that cannot be read or written, as one line: ``cannot <action> <path>: <reason>``.
 

@@ -12,6 +12,7 @@ import pickle
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -328,8 +329,7 @@ def test_dry_run_refuses_what_the_real_run_refuses(capsys):
 
 
 def test_a_failing_multi_worker_run_leaves_no_multiprocessing_temp_folder(smoke_root, tmp_path, capsys):
-    tmp = tmp_path / "tmp"
-    tmp.mkdir()
+    tmp = Path(tempfile.mkdtemp(prefix="gd-", dir="/tmp"))  # short: the workers' sockets live in it
     broken = tmp_path / "broken"
     shutil.copytree(smoke_root, broken)
     depth = sorted((broken / "train" / "depth").iterdir())[0]
@@ -341,8 +341,35 @@ def test_a_failing_multi_worker_run_leaves_no_multiprocessing_temp_folder(smoke_
     assert done.returncode == 2, done.stderr
     assert str(depth) in done.stderr and "Traceback" not in done.stderr
     time.sleep(0.5)
-    assert not list(tmp.glob("pymp-*")), list(tmp.iterdir())
+    left = list(tmp.glob("pymp-*"))
+    shutil.rmtree(tmp)
+    assert not left, left
     assert not run.exists()
+
+
+def test_a_temp_folder_too_long_for_worker_sockets_loads_in_the_main_process(smoke_root, tmp_path):
+    """Workers send batches over a Unix socket under TMPDIR; with too long a path they cannot, and a
+    loader with workers would wait for ever (the timeout here catches that). Training drops the
+    workers, says why, and finishes."""
+    long_tmp = tmp_path / ("t" * 60) / ("u" * 60)
+    long_tmp.mkdir(parents=True)
+    run = tmp_path / "run"
+    argv = [sys.executable, "-m", "geodepth_lite", *_train_argv(smoke_root, run, "--num-workers", "2", "--no-cache")]
+    done = subprocess.run(argv, env={**os.environ, "TMPDIR": str(long_tmp)}, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "too long for data-loading worker processes" in done.stdout and "instead of 2 worker(s)" in done.stdout
+    assert (run / "checkpoint.pt").is_file() and "Traceback" not in done.stderr
+
+
+def test_worker_count_is_kept_where_the_temp_folder_is_short(monkeypatch, capsys):
+    monkeypatch.setattr(tempfile, "tempdir", "/tmp")
+    assert utils.workers_fit_temp_dir(3) == 3 and utils.workers_fit_temp_dir(0) == 0
+    limit = "/" + "x" * (utils.SOCKET_PATH_MAX - utils.SOCKET_NAME_BYTES - 1)  # exactly at the limit
+    monkeypatch.setattr(tempfile, "tempdir", limit)
+    assert utils.workers_fit_temp_dir(2) == 2
+    monkeypatch.setattr(tempfile, "tempdir", limit + "x")
+    assert utils.workers_fit_temp_dir(2) == 0 and "instead of 2 worker(s)" in capsys.readouterr().out
 
 
 def test_the_early_folder_check_creates_nothing(tmp_path, monkeypatch):
