@@ -51,6 +51,7 @@ def test_the_family_computes_the_plans_ten_tests():
     # -10% +/- 1: differs from 0, the paper's -22% far outside: smaller than the paper
     assert c4["verdict"] == "direction reproduced, smaller than the paper (paper's value excluded)"
     assert by[("silog", 3, "rmse")]["verdict"].startswith("no effect detected; effects beyond")
+    assert not any(t["too_wide"] for t in fam)
     inter = by[("l1 - silog", study.INTERACTION, "abs_rel")]
     d = 100 * np.array([-0.30 + 2 * e for e in eps]) - r
     assert inter["values"] == pytest.approx(d.tolist()) and inter["paper"] is None
@@ -59,9 +60,30 @@ def test_the_family_computes_the_plans_ten_tests():
     assert [t["rejected"] for t in fam] == ablation.holm(p)
 
 
+def test_the_family_says_undecided_for_an_interval_wider_than_the_bound():
+    """L1 Case 4 with seeds spread +-12% around 0 (sd 8 points): zero kept, the interval about
+    [-11.4, +11.4], 22.8 points wide, the paper's -22% outside it. Over the bound of 20 points:
+    "undecided", for it and for the interaction; with no bound the old words come back."""
+    spread = [0.12, -0.12, 0.08, -0.08, 0.04, -0.04, 0.0, 0.0]
+    tables = _tables({("l1", 4): spread})
+    by = {(t["term"], t["case"], t["metric"]): t for t in study.family(tables)}
+    l1, inter = by[("l1", 4, "rmse")], by[("l1 - silog", study.INTERACTION, "rmse")]
+    assert 20 < l1["high"] - l1["low"] < 24 and l1["paper"] < l1["low"] and l1["too_wide"] and not l1["rejected"]
+    assert l1["verdict"] == "undecided" and inter["verdict"] == "undecided" and inter["too_wide"]
+    old = {(t["term"], t["case"], t["metric"]): t for t in study.family(tables, max_width=None)}
+    assert old[("l1", 4, "rmse")]["verdict"] == f"no effect detected; effects beyond {l1['high']:.1f}% excluded"
+    assert old[("l1 - silog", study.INTERACTION, "rmse")]["verdict"].startswith("no depth-term dependence detected")
+    assert not old[("l1", 4, "rmse")]["too_wide"]
+
+
 def test_interaction_words():
     assert study.interaction_verdict(-3.0, 2.0, -0.5, False) == \
         "no depth-term dependence detected; differences beyond 3.0 points excluded"
+    # the close-ups' +-43 points: too wide to exclude anything (the bound: 20 points)
+    assert study.interaction_verdict(-42.6, 43.0, 0.2, False, max_width=20.0) == "undecided"
+    assert study.interaction_verdict(-42.6, 43.0, 0.2, False).endswith("beyond 43.0 points excluded")  # no bound
+    assert study.interaction_verdict(-3.0, 2.0, -0.5, False, max_width=20.0).startswith("no depth-term")
+    assert study.interaction_verdict(-45.0, -24.0, -34.5, True, max_width=20.0).startswith("the geometric")
     assert study.interaction_verdict(1.0, 4.0, 2.5, True).startswith("opposite")
     assert study.interaction_verdict(-9.0, -4.0, -6.5, True) == \
         "the geometric losses help more against the L1 baseline (by 4.0 to 9.0 points)"
