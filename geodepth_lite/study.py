@@ -457,3 +457,15 @@ def detectable_shifts(committed: dict, power: float = 0.8, n_fresh: int = len(DE
                     "shift": shift, "caught": (mean - shift, mean + shift), "flag_if_correct": rate(0.0),
                     "flag_if_zero": rate(-mean)})
     return out
+
+
+def detectable_markdown(committed: dict, power: float = 0.8) -> str:
+    """:func:`detectable_shifts` of the ``committed`` record as the Markdown table of
+    docs/training_and_evaluation.md ("What the cross-machine check can see")."""
+    rows = [[s["test"].split(" | ", 1)[1].replace(" | ", ", "), f"{s['mean']:+.2f} ({s['sd']:.2f})",
+             f"{s['range'][0]:+.1f} to {s['range'][1]:+.1f}", f"{s['shift']:.1f}",
+             f"<= {s['caught'][0]:+.1f} or >= {s['caught'][1]:+.1f}", f"{100 * s['flag_if_zero']:.1f}%"]
+            for s in detectable_shifts(committed, power)]
+    return tbl.markdown_table(["test", "study: mean (sd)", "fresh 3-seed mean accepted",
+                               f"shift caught with {100 * power:.0f}% power (points)", "true mean caught",
+                               "flagged if the true change is 0"], rows)

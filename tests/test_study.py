@@ -238,3 +238,36 @@ def test_the_notebook_states_the_verdicts_of_the_committed_tables(committed):
     flipped = [line.replace("direction reproduced, smaller than the paper (paper's value excluded)",
                             "paper's size reproduced") for line in lines]
     assert flipped != lines  # the study has such a verdict, so the comparison above can fail
+
+
+def test_the_smallest_change_the_cross_machine_check_catches(committed):
+    """For Case 3's RMSE change of the committed study: a simulated retraining of 3 seeds whose
+    true mean is shifted by the computed 80%-power amount (per-seed changes normal with the
+    committed sd) is flagged by check_subset in about 80% of seeded draws; one shifted by a quarter
+    of it rarely. A shift that puts the fresh mean's centre on the range's end is caught half the
+    time (known answer of the analytic rate)."""
+    rec = study.paired_record(committed)
+    shifts = {s["test"]: s for s in study.detectable_shifts(rec)}
+    assert len(shifts) == 6 and all(s["shift"] > 0 for s in shifts.values())
+    stem = f"paired | {study.PRIMARY} | rmse | silog case3"
+    c3 = shifts[stem.removeprefix("paired | ")]
+    assert c3["range"] == pytest.approx((-8.14, 1.84), abs=0.01)  # the audit's "-8.1% to +1.8%"
+    assert study.check_flag_rate(rec, stem, c3["shift"]) == pytest.approx(0.8, abs=1e-6)
+    assert study.check_flag_rate(rec, stem, c3["range"][1] - c3["mean"]) == pytest.approx(0.5, abs=0.01)
+    assert c3["flag_if_zero"] < 0.05  # "the SDF loss has no effect" is not told from the committed -3%
+    stems = study.checked_stems(rec)
+    rng = np.random.default_rng(1)
+
+    def flagged(shift: float, reps: int) -> float:
+        hits = 0
+        for _ in range(reps):
+            fresh = {"paired | seeds": 3.0}
+            for k in stems:
+                v = rng.normal(rec[f"{k} | mean %"] + (shift if k == stem else 0.0), rec[f"{k} | sd %"], 3)
+                fresh[f"{k} | mean %"], fresh[f"{k} | sd %"] = round(v.mean(), 2), round(v.std(ddof=1), 2)
+            hits += any(line.startswith(stem) for line in _problems(fresh, rec))
+        return hits / reps
+
+    assert 0.75 <= flagged(c3["shift"], 800) <= 0.85
+    assert flagged(-c3["shift"], 200) >= 0.7  # the range is symmetric: either way
+    assert flagged(c3["shift"] / 4, 200) <= 0.05
