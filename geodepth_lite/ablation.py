@@ -40,6 +40,10 @@ HELDOUT_GROUPS = {"T1-L1": "heldout_T1L1", "T2-L2": "heldout_T2L2", "T3-L3": "he
 IN_DOMAIN = "test split"
 HELDOUT = "held-out T x L"
 ALPHA = 0.05  # family-wise error rate of the verdicts (Holm), two-sided
+# The confirmatory studies' "too wide" bound (docs/study_plan.md, Amendments; docs/study_plan_2.md): an
+# interval wider than twice the smallest change the paper reports (10%) cannot tell an effect of the
+# paper's smallest size from none, so a comparison that keeps zero with such an interval is "undecided".
+WIDTH_BOUND = 2 * min(abs(v) for per in PAPER_REDUCTION.values() for v in per.values())  # 20 points
 
 
 def evaluation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
@@ -108,7 +112,8 @@ def holm(pvalues: list[float], alpha: float = ALPHA) -> list[bool]:
     return rejected
 
 
-def size_verdict(low: float, high: float, mean: float, paper: float, rejected: bool) -> str:
+def size_verdict(low: float, high: float, mean: float, paper: float, rejected: bool,
+                 max_width: float | None = None) -> str:
     """The verdict on "case k changes the metric by the paper's ``paper`` percent", from the
     comparison's interval [low, high] (percent, negative = better) and whether the family's
     multiplicity rule (:func:`holm`) rejects zero for it. The rule of docs/study_plan.md:
@@ -117,7 +122,10 @@ def size_verdict(low: float, high: float, mean: float, paper: float, rejected: b
       else "direction reproduced, smaller than the paper (paper's value excluded)" (or larger);
     - zero rejected, on the other side: "opposite";
     - zero kept: "no effect detected; effects beyond X% excluded" when the paper's value lies
-      outside the interval (X = the interval's larger end in size), else "undecided".
+      outside the interval (X = the interval's larger end in size), else "undecided";
+    - zero kept and the interval wider than ``max_width`` points (high - low > max_width; None:
+      no bound): "undecided", whatever the paper's value (the confirmatory studies pass
+      :data:`WIDTH_BOUND`).
     """
     if rejected and (mean < 0) == (paper < 0):
         if low <= paper <= high:
@@ -127,9 +135,16 @@ def size_verdict(low: float, high: float, mean: float, paper: float, rejected: b
                 "(paper's value excluded)")
     if rejected:
         return "opposite"
+    if too_wide(low, high, max_width):
+        return "undecided"
     if not low <= paper <= high:
         return f"no effect detected; effects beyond {max(abs(low), abs(high)):.1f}% excluded"
     return "undecided"
+
+
+def too_wide(low: float, high: float, max_width: float | None) -> bool:
+    """Whether the interval [low, high] is wider than ``max_width`` points (None: never)."""
+    return max_width is not None and not high - low <= max_width
 
 
 def paired(result: dict, metric: str, set_name: str, case: int, level: float = 0.95) -> dict:

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from geodepth_lite import config, run_cache, study, utils
+from geodepth_lite import config, run_cache, study, study2, utils
 from geodepth_lite.tables import markdown_table
 
 MARKER_DIR = ".reproduce"
@@ -347,6 +347,9 @@ def add_arguments_reproduce(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--study", action="store_true",
                         help="the confirmatory ablation study (docs/study_plan.md): train its 48 runs, score them "
                              "into <run folder>/study/, then run notebook 05 on those tables")
+    parser.add_argument("--study2", action="store_true",
+                        help="the second study (docs/study_plan_2.md): train its 24 runs, score them into "
+                             "<run folder>/study2/, then run notebook 05 on those tables")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -367,6 +370,30 @@ def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progres
     return folder
 
 
+def run_study2(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True) -> Path:
+    """The second study's :func:`run_study`: its 24 runs trained (or reused), scored and written into
+    ``<run folder>/study2/`` (``study2.write_tables``); returns that folder."""
+    out = resolve_run_dir(profile, run_dir or "") / "study2"
+    utils.check_can_create_dir(out)
+    t0 = time.perf_counter()
+    print(f"[reproduce] the second study: {len(study2.study_runs(profile))} runs ({profile}) ...", flush=True)
+    paths = study2.train(profile, progress=progress)
+    print(f"[reproduce] runs ready in {time.perf_counter() - t0:.0f} s; scoring them ...", flush=True)
+    sets = study.evaluation_sets(profile, progress=progress)
+    runs, frames = study2.score(paths, sets, progress=progress)
+    folder = study2.write_tables(out, runs, frames, study.score_baselines(profile, sets))
+    print(f"[reproduce] second study tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
+    return folder
+
+
+def _study_notebook_declares(name: str) -> None:
+    """Refuse ``--study2`` before any training when notebook 05 has no parameter ``name``."""
+    nb = [p for p in list_notebooks() if p.stem.startswith("05")]
+    if nb and name not in notebook_parameters(nb[0]):
+        raise ValueError(f"{nb[0].name} does not declare the parameter {name!r}: it cannot read the tables "
+                         "that --study2 writes")
+
+
 def run_reproduce(args: argparse.Namespace) -> int:
     params: dict[str, Any] = {}
     for name, value in args.parameter:
@@ -374,6 +401,8 @@ def run_reproduce(args: argparse.Namespace) -> int:
             raise ValueError(f"-p {name} given twice")
         params[name] = parse_value(value)
     t0 = time.perf_counter()
+    if getattr(args, "study2", False):  # checked before the first study's runs too
+        _study_notebook_declares("study2_tables")
     if args.study:
         if args.notebooks:
             raise ValueError("--study runs notebook 05 on the study's tables: leave out --notebooks")
@@ -385,6 +414,18 @@ def run_reproduce(args: argparse.Namespace) -> int:
         else:
             tables = run_study(args.profile, args.out, progress=not args.no_progress)
             params["study_tables"] = str(tables)
+        args.notebooks, args.force = ["05"], True
+    if getattr(args, "study2", False):
+        if args.notebooks and not args.study:
+            raise ValueError("--study2 runs notebook 05 on the second study's tables: leave out --notebooks")
+        if args.dry_run:
+            runs = study2.study_runs(args.profile)
+            todo = sum(not run_cache.is_complete(args.profile, c, s, **o) for _, c, s, o in runs)
+            print(f"study2: {len(runs)} runs ({todo} to train), scored into "
+                  f"{resolve_run_dir(args.profile, args.out or '') / 'study2'}")
+        else:
+            tables = run_study2(args.profile, args.out, progress=not args.no_progress)
+            params["study2_tables"] = str(tables)
         args.notebooks, args.force = ["05"], True
     try:
         report = reproduce(args.profile, notebooks=args.notebooks, params=params, run_dir=args.out,

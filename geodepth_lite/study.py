@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 from tqdm.auto import tqdm
 
 from geodepth_lite import ablation, checkpoint, config, evaluate, metrics, run_cache, synth, utils
@@ -151,14 +151,16 @@ def _typed(row: dict) -> dict:
     return out
 
 
-def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | None = None) -> list[str]:
+def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | None = None,
+                 want=None) -> list[str]:
     """What is wrong with study tables read with ``frames=True``, one line each (none: they hold
     the plan's study). Every run of :func:`study_runs` has one row per evaluation set; its row on
     the confirmation set is the mean of its frame rows (to the tables' 6 significant digits), and
     each run has ``frames_per_run`` frames (default: as many as its row says). A metric changed in
-    ``runs.csv`` alone, or a run left out or added, is named."""
+    ``runs.csv`` alone, or a run left out or added, is named. ``want``: the runs expected, as
+    (depth term, case, seed) (default: this study's)."""
     problems = []
-    want = {(t, c, s) for t, c, s, _ in study_runs(profile)}
+    want = set(want) if want is not None else {(t, c, s) for t, c, s, _ in study_runs(profile)}
     sets = {r["set"] for r in tables["runs"]}
     have: dict = {}
     for r in tables["runs"]:
@@ -223,45 +225,59 @@ def relative_changes(tables: dict, depth_term: str, case: int, metric: str, set_
     return 100 * (a / b - 1)
 
 
-def interaction_verdict(low: float, high: float, mean: float, rejected: bool) -> str:
+def interaction_verdict(low: float, high: float, mean: float, rejected: bool,
+                        max_width: float | None = None) -> str:
     """The plan's words for the interaction d_s = r_s(L1, Case 4) - r_s(silog, Case 4) (negative: the
-    geometric losses reduce the error more under L1)."""
+    geometric losses reduce the error more under L1). Zero kept with an interval wider than
+    ``max_width`` points (None: no bound) reads "undecided" (the plan's amendment of the "too wide"
+    bound, :data:`ablation.WIDTH_BOUND`)."""
     if rejected and mean < 0:
         return f"the geometric losses help more against the L1 baseline (by {-high:.1f} to {-low:.1f} points)"
     if rejected:
         return "opposite (the geometric losses help more against the silog baseline)"
+    if ablation.too_wide(low, high, max_width):
+        return "undecided"
     return f"no depth-term dependence detected; differences beyond {max(abs(low), abs(high)):.1f} points excluded"
 
 
-def family(tables: dict, set_name: str = PRIMARY, seeds=None, alpha: float = ablation.ALPHA) -> list[dict]:
+def paired_t_p(values) -> float:
+    """The two-sided p of the paired t-test of mean 0 over ``values`` (one per seed): 1 for a single
+    value (nothing is known about the spread); for values all equal, 0 unless they are 0."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size < 2:
+        return 1.0
+    if v.std() > 1e-9 * (1 + abs(v.mean())):
+        return float(stats.ttest_1samp(v, 0.0).pvalue)
+    return 1.0 if abs(v.mean()) <= 1e-9 else 0.0
+
+
+def family(tables: dict, set_name: str = PRIMARY, seeds=None, alpha: float = ablation.ALPHA,
+           max_width: float | None = ablation.WIDTH_BOUND) -> list[dict]:
     """The plan's ten tests on ``set_name``, in order: silog Cases 2, 3, 4 against Case 1, L1 Case 4
     against Case 1, and the interaction, each for RMSE and Abs Rel.
 
     Each is a paired t-test over the seeds of r_s (percent of Case 1) or, for the interaction, of
     d_s = r_s(L1) - r_s(silog) (points). Returns one dict per test: "term", "case" (or INTERACTION),
     "metric", "values", "mean", "sd", "p", "low"/"high" (the Bonferroni interval at 1 - alpha / 10),
-    "rejected" (Holm), "paper" (None for the interaction), "verdict".
+    "rejected" (Holm), "paper" (None for the interaction), "too_wide" (high - low > ``max_width``,
+    the plan's amended bound; None: no bound), "verdict".
     """
     out = []
     for term, case, metric, v in _test_values(tables, TESTS, set_name, seeds):
-        if v.size < 2:  # one seed: nothing is known about the spread
-            p = 1.0
-        elif v.std() > 1e-9 * (1 + abs(v.mean())):
-            p = float(stats.ttest_1samp(v, 0.0).pvalue)
-        else:  # the same change at every seed: certain, unless it is none
-            p = 1.0 if abs(v.mean()) <= 1e-9 else 0.0
+        p = paired_t_p(v)
         out.append({"term": term, "case": case, "metric": metric, "values": v.tolist(), "mean": float(v.mean()),
                     "sd": float(v.std(ddof=1)) if v.size > 1 else math.nan, "p": p})
     level = 1 - alpha / len(out)
     for t, rejected in zip(out, ablation.holm([t["p"] for t in out], alpha)):
         _, t["low"], t["high"] = ablation.t_interval(t["values"], level)
         t["rejected"], t["level"] = rejected, level
+        t["too_wide"] = ablation.too_wide(t["low"], t["high"], max_width)
         if t["case"] == INTERACTION:
             t["paper"] = None
-            t["verdict"] = interaction_verdict(t["low"], t["high"], t["mean"], rejected)
+            t["verdict"] = interaction_verdict(t["low"], t["high"], t["mean"], rejected, max_width)
         else:
             t["paper"] = ablation.PAPER_REDUCTION[t["case"]][t["metric"]]
-            t["verdict"] = ablation.size_verdict(t["low"], t["high"], t["mean"], t["paper"], rejected)
+            t["verdict"] = ablation.size_verdict(t["low"], t["high"], t["mean"], t["paper"], rejected, max_width)
     return out
 
 
@@ -392,3 +408,64 @@ def check_subset(fresh: dict, committed: dict, level: float = FRESH_LEVEL) -> li
                     "here": f"{m:+.2f} ({s:.2f})", "range": f"{m_lo:+.2f} to {m_hi:+.2f}", "ok": not problems,
                     "problems": problems})
     return out
+
+
+def checked_stems(committed: dict) -> list[str]:
+    """The tests the cross-machine check holds a retrained default subset to: the silog ones of the
+    ``committed`` record (:func:`paired_record`), in its order."""
+    return [k[: -len(" | mean %")] for k in committed if k.endswith(" | mean %") and "| silog case" in k]
+
+
+def check_flag_rate(committed: dict, stem: str, shift: float, n_fresh: int = len(DEFAULT_SEEDS),
+                    n_checks: int | None = None, level: float = FRESH_LEVEL) -> float:
+    """The chance that :func:`check_subset` flags test ``stem`` of a retraining of ``n_fresh`` seeds
+    whose true mean change is the committed mean + ``shift`` (points), analytically: the per-seed
+    changes normal with the committed sd as their true sd, so the fresh mean is normal with sd
+    sd / sqrt(n_fresh) and, independent of it, (n_fresh - 1) s^2 / sd^2 is chi-square with n_fresh - 1
+    degrees of freedom. Flagged when the mean or the sd falls outside :func:`prediction_ranges`
+    (``n_checks`` checks together; default: two per test of :func:`checked_stems`)."""
+    n_checks = n_checks or 2 * len(checked_stems(committed))
+    (lo, hi), (s_lo, s_hi) = prediction_ranges(committed, stem, n_fresh, n_checks, level)
+    mean, sd = committed[f"{stem} | mean %"], committed[f"{stem} | sd %"]
+    se = sd / math.sqrt(n_fresh)
+    p_mean = float(stats.norm.cdf((lo - mean - shift) / se) + stats.norm.sf((hi - mean - shift) / se))
+    k = n_fresh - 1
+    p_sd = float(stats.chi2.cdf(k * (s_lo / sd) ** 2, k) + stats.chi2.sf(k * (s_hi / sd) ** 2, k))
+    return 1 - (1 - p_mean) * (1 - p_sd)
+
+
+def detectable_shifts(committed: dict, power: float = 0.8, n_fresh: int = len(DEFAULT_SEEDS),
+                      level: float = FRESH_LEVEL, stems=None) -> list[dict]:
+    """What the cross-machine check can see: for each test it checks (default :func:`checked_stems`),
+    the smallest shift of the true mean change that :func:`check_subset` flags with probability
+    ``power`` (:func:`check_flag_rate`, analytic; the range is symmetric, so a shift of the same
+    size either way). One dict per test: "test", "mean", "sd" (the committed record's), "range"
+    (where a fresh mean is accepted), "shift" (points), "caught" (the true means caught with
+    ``power``: at most mean - shift or at least mean + shift), "flag_if_correct" (the chance that
+    a correct retraining is flagged on this test) and "flag_if_zero" (the chance when the true
+    change is 0: the effect absent)."""
+    stems = list(stems) if stems is not None else checked_stems(committed)
+    n_checks = 2 * len(stems)
+    out = []
+    for stem in stems:
+        mean, sd = committed[f"{stem} | mean %"], committed[f"{stem} | sd %"]
+        (lo, hi), _ = prediction_ranges(committed, stem, n_fresh, n_checks, level)
+        rate = lambda d: check_flag_rate(committed, stem, d, n_fresh, n_checks, level)  # noqa: E731
+        top = hi - lo + 10 * sd + 1.0
+        shift = float(optimize.brentq(lambda d: rate(d) - power, 0.0, top, xtol=1e-6))
+        out.append({"test": stem.removeprefix("paired | "), "mean": mean, "sd": sd, "range": (lo, hi),
+                    "shift": shift, "caught": (mean - shift, mean + shift), "flag_if_correct": rate(0.0),
+                    "flag_if_zero": rate(-mean)})
+    return out
+
+
+def detectable_markdown(committed: dict, power: float = 0.8) -> str:
+    """:func:`detectable_shifts` of the ``committed`` record as the Markdown table of
+    docs/training_and_evaluation.md ("What the cross-machine check can see")."""
+    rows = [[s["test"].split(" | ", 1)[1].replace(" | ", ", "), f"{s['mean']:+.2f} ({s['sd']:.2f})",
+             f"{s['range'][0]:+.1f} to {s['range'][1]:+.1f}", f"{s['shift']:.1f}",
+             f"<= {s['caught'][0]:+.1f} or >= {s['caught'][1]:+.1f}", f"{100 * s['flag_if_zero']:.1f}%"]
+            for s in detectable_shifts(committed, power)]
+    return tbl.markdown_table(["test", "study: mean (sd)", "fresh 3-seed mean accepted",
+                               f"shift caught with {100 * power:.0f}% power (points)", "true mean caught",
+                               "flagged if the true change is 0"], rows)

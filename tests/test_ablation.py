@@ -37,6 +37,21 @@ def test_size_verdicts_follow_the_plans_rule():
     assert v(-25.0, 3.0, -11.0, -20.4, False) == "undecided"
 
 
+def test_an_interval_wider_than_the_bound_reads_undecided():
+    """The confirmatory studies' bound: twice the paper's smallest change (10%), 20 points. Zero
+    kept with a wider interval is "undecided" even when the paper's value lies outside it; a
+    rejected comparison keeps its words, and without a bound nothing changes."""
+    v = ablation.size_verdict
+    assert ablation.WIDTH_BOUND == 20.0
+    assert v(-15.3, 11.4, -2.0, -20.4, False) == "no effect detected; effects beyond 15.3% excluded"  # no bound
+    assert v(-15.3, 11.4, -2.0, -20.4, False, max_width=20.0) == "undecided"  # 26.7 points wide
+    assert v(-9.3, 8.3, -0.5, -25.4, False, max_width=20.0) == "no effect detected; effects beyond 9.3% excluded"
+    assert v(-10.0, 10.0, 0.0, -25.4, False, max_width=20.0).startswith("no effect detected")  # 20: not wider
+    assert v(-10.0, 10.01, 0.0, -25.4, False, max_width=20.0) == "undecided"
+    assert v(-40.0, -15.0, -27.0, -22.0, True, max_width=20.0) == "paper's size reproduced"
+    assert v(5.0, 30.0, 17.0, -22.0, True, max_width=20.0) == "opposite"
+
+
 def _result(case_offsets, seed_effects, cases=(1, 2)):
     scores = {}
     for c in cases:

@@ -166,3 +166,28 @@ def test_the_study_target_runs_notebook_05_on_its_own_tables(tmp_path, monkeypat
     run_dir = tmp_path / "run"
     assert cli.main(["reproduce", "--study", "--out", str(run_dir), "--no-progress"]) == 0
     assert calls == ["teach"] and (run_dir / "seen.txt").read_text() == str(tables)
+
+
+def test_the_study2_target_runs_notebook_05_on_the_second_studys_tables(tmp_path, monkeypatch, capsys):
+    """``reproduce --study2``: refused before any training when notebook 05 does not declare
+    ``study2_tables``; else the tables first (``run_study2``, a stand-in), then notebook 05 with
+    ``study2_tables`` pointing at them; its dry run trains nothing."""
+    from geodepth_lite import cli
+
+    d = tmp_path / "nbs"
+    d.mkdir()
+    _notebook(d / "05_study.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out\nstudy_tables = ""  # t', "x = 1")
+    monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)
+    tables, calls = tmp_path / "tables2", []
+    monkeypatch.setattr(reproduce, "run_study2", lambda profile, out, progress: calls.append(profile) or tables)
+    assert cli.main(["reproduce", "--study2", "--no-progress"]) == 2
+    assert "does not declare the parameter 'study2_tables'" in capsys.readouterr().err and calls == []
+    body = 'from pathlib import Path\nPath(run_dir, "seen.txt").write_text(study2_tables)'
+    _notebook(d / "05_study.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out\nstudy2_tables = ""  # t', body)
+    assert cli.main(["reproduce", "--study2", "--notebooks", "05"]) == 2
+    assert "leave out --notebooks" in capsys.readouterr().err
+    assert cli.main(["reproduce", "--study2", "--dry-run"]) == 0
+    assert "study2: 24 runs (24 to train)" in capsys.readouterr().out and calls == []
+    run_dir = tmp_path / "run"
+    assert cli.main(["reproduce", "--study2", "--out", str(run_dir), "--no-progress"]) == 0
+    assert calls == ["teach"] and (run_dir / "seen.txt").read_text() == str(tables)

@@ -51,6 +51,7 @@ def test_the_family_computes_the_plans_ten_tests():
     # -10% +/- 1: differs from 0, the paper's -22% far outside: smaller than the paper
     assert c4["verdict"] == "direction reproduced, smaller than the paper (paper's value excluded)"
     assert by[("silog", 3, "rmse")]["verdict"].startswith("no effect detected; effects beyond")
+    assert not any(t["too_wide"] for t in fam)
     inter = by[("l1 - silog", study.INTERACTION, "abs_rel")]
     d = 100 * np.array([-0.30 + 2 * e for e in eps]) - r
     assert inter["values"] == pytest.approx(d.tolist()) and inter["paper"] is None
@@ -59,9 +60,30 @@ def test_the_family_computes_the_plans_ten_tests():
     assert [t["rejected"] for t in fam] == ablation.holm(p)
 
 
+def test_the_family_says_undecided_for_an_interval_wider_than_the_bound():
+    """L1 Case 4 with seeds spread +-12% around 0 (sd 8 points): zero kept, the interval about
+    [-11.4, +11.4], 22.8 points wide, the paper's -22% outside it. Over the bound of 20 points:
+    "undecided", for it and for the interaction; with no bound the old words come back."""
+    spread = [0.12, -0.12, 0.08, -0.08, 0.04, -0.04, 0.0, 0.0]
+    tables = _tables({("l1", 4): spread})
+    by = {(t["term"], t["case"], t["metric"]): t for t in study.family(tables)}
+    l1, inter = by[("l1", 4, "rmse")], by[("l1 - silog", study.INTERACTION, "rmse")]
+    assert 20 < l1["high"] - l1["low"] < 24 and l1["paper"] < l1["low"] and l1["too_wide"] and not l1["rejected"]
+    assert l1["verdict"] == "undecided" and inter["verdict"] == "undecided" and inter["too_wide"]
+    old = {(t["term"], t["case"], t["metric"]): t for t in study.family(tables, max_width=None)}
+    assert old[("l1", 4, "rmse")]["verdict"] == f"no effect detected; effects beyond {l1['high']:.1f}% excluded"
+    assert old[("l1 - silog", study.INTERACTION, "rmse")]["verdict"].startswith("no depth-term dependence detected")
+    assert not old[("l1", 4, "rmse")]["too_wide"]
+
+
 def test_interaction_words():
     assert study.interaction_verdict(-3.0, 2.0, -0.5, False) == \
         "no depth-term dependence detected; differences beyond 3.0 points excluded"
+    # the close-ups' +-43 points: too wide to exclude anything (the bound: 20 points)
+    assert study.interaction_verdict(-42.6, 43.0, 0.2, False, max_width=20.0) == "undecided"
+    assert study.interaction_verdict(-42.6, 43.0, 0.2, False).endswith("beyond 43.0 points excluded")  # no bound
+    assert study.interaction_verdict(-3.0, 2.0, -0.5, False, max_width=20.0).startswith("no depth-term")
+    assert study.interaction_verdict(-45.0, -24.0, -34.5, True, max_width=20.0).startswith("the geometric")
     assert study.interaction_verdict(1.0, 4.0, 2.5, True).startswith("opposite")
     assert study.interaction_verdict(-9.0, -4.0, -6.5, True) == \
         "the geometric losses help more against the L1 baseline (by 4.0 to 9.0 points)"
@@ -216,3 +238,36 @@ def test_the_notebook_states_the_verdicts_of_the_committed_tables(committed):
     flipped = [line.replace("direction reproduced, smaller than the paper (paper's value excluded)",
                             "paper's size reproduced") for line in lines]
     assert flipped != lines  # the study has such a verdict, so the comparison above can fail
+
+
+def test_the_smallest_change_the_cross_machine_check_catches(committed):
+    """For Case 3's RMSE change of the committed study: a simulated retraining of 3 seeds whose
+    true mean is shifted by the computed 80%-power amount (per-seed changes normal with the
+    committed sd) is flagged by check_subset in about 80% of seeded draws; one shifted by a quarter
+    of it rarely. A shift that puts the fresh mean's centre on the range's end is caught half the
+    time (known answer of the analytic rate)."""
+    rec = study.paired_record(committed)
+    shifts = {s["test"]: s for s in study.detectable_shifts(rec)}
+    assert len(shifts) == 6 and all(s["shift"] > 0 for s in shifts.values())
+    stem = f"paired | {study.PRIMARY} | rmse | silog case3"
+    c3 = shifts[stem.removeprefix("paired | ")]
+    assert c3["range"] == pytest.approx((-8.14, 1.84), abs=0.01)  # the audit's "-8.1% to +1.8%"
+    assert study.check_flag_rate(rec, stem, c3["shift"]) == pytest.approx(0.8, abs=1e-6)
+    assert study.check_flag_rate(rec, stem, c3["range"][1] - c3["mean"]) == pytest.approx(0.5, abs=0.01)
+    assert c3["flag_if_zero"] < 0.05  # "the SDF loss has no effect" is not told from the committed -3%
+    stems = study.checked_stems(rec)
+    rng = np.random.default_rng(1)
+
+    def flagged(shift: float, reps: int) -> float:
+        hits = 0
+        for _ in range(reps):
+            fresh = {"paired | seeds": 3.0}
+            for k in stems:
+                v = rng.normal(rec[f"{k} | mean %"] + (shift if k == stem else 0.0), rec[f"{k} | sd %"], 3)
+                fresh[f"{k} | mean %"], fresh[f"{k} | sd %"] = round(v.mean(), 2), round(v.std(ddof=1), 2)
+            hits += any(line.startswith(stem) for line in _problems(fresh, rec))
+        return hits / reps
+
+    assert 0.75 <= flagged(c3["shift"], 800) <= 0.85
+    assert flagged(-c3["shift"], 200) >= 0.7  # the range is symmetric: either way
+    assert flagged(c3["shift"] / 4, 200) <= 0.05
