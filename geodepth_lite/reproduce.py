@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import hashlib
 import json
 import logging
@@ -367,12 +368,38 @@ def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progres
     return folder
 
 
+def reproduce_locks(profile: str, run_dir: str | os.PathLike | None = None) -> contextlib.ExitStack:
+    """The locks one ``reproduce`` holds while it trains and runs notebooks: the profile's folder
+    ``runs/<profile>/`` (where its models are trained) and the run folder, if another, taken in one
+    order (sorted paths), so two reproduces never hold one each and wait for the other. A busy one
+    is waited for (``utils.wait_for_lock``: one line "waiting for reproduce (PID n) holding ..."),
+    then this one goes on, finding the models the other trained."""
+    folders = {(utils.runs_dir() / profile).resolve(), resolve_run_dir(profile, run_dir or "").resolve()}
+    stack = contextlib.ExitStack()
+    try:
+        for folder in sorted(folders):
+            lock = utils.wait_for_lock(utils.FolderLock(folder), "reproduce")
+            stack.callback(lock.release)
+    except BaseException:
+        stack.close()
+        raise
+    return stack
+
+
 def run_reproduce(args: argparse.Namespace) -> int:
     params: dict[str, Any] = {}
     for name, value in args.parameter:
         if name in params:
             raise ValueError(f"-p {name} given twice")
         params[name] = parse_value(value)
+    if args.dry_run:
+        return _run_reproduce(args, params)
+    config.get_profile(args.profile)
+    with reproduce_locks(args.profile, args.out):
+        return _run_reproduce(args, params)
+
+
+def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
     t0 = time.perf_counter()
     if args.study:
         if args.notebooks:
