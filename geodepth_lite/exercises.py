@@ -151,9 +151,10 @@ def _nbgrader_env() -> dict:
 NOTEBOOK_MAX_BYTES = 64 * 2**20  # a lesson notebook with its figures is a few MB
 
 
-def read_notebook(path: Path) -> dict:
+def read_notebook(path: Path, solutions: bool = True) -> dict:
     """A notebook's JSON, checked to be a notebook whose exercises can be collected; a ValueError
-    "cannot read <path>: <reason>" for a damaged, oversized or tampered file."""
+    "cannot read <path>: <reason>" for a damaged, oversized or tampered file. ``solutions``: each
+    answer cell must hold matched solution markers (an instructor's notebook; not a released one)."""
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -185,7 +186,7 @@ def read_notebook(path: Path) -> dict:
             except (TypeError, ValueError):
                 raise ValueError(f"cannot read {path}: cell {i} ({grading['grade_id']}) has points "
                                  f"{grading.get('points')!r}, not a number") from None
-            if grading["grade_id"].endswith("answer"):
+            if solutions and grading["grade_id"].endswith("answer"):
                 regions = [ln.strip() for ln in _source(c).splitlines() if ln.strip() in SOLUTION_MARKERS]
                 if regions != list(SOLUTION_MARKERS) * (len(regions) // 2) or not regions:
                     raise ValueError(f"cannot read {path}: exercise {grading['grade_id']} has unmatched "
@@ -289,7 +290,7 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
             names = ", ".join(nb.name for nb in sources)
             raise ValueError(f"cannot release {names}: nbgrader generate_assignment failed: " + " | ".join(tail))
         for nb, source_nb in sources.items():
-            problems = leaks(source_nb, read_notebook(released / nb.name))
+            problems = leaks(source_nb, read_notebook(released / nb.name, solutions=False))
             if problems:
                 raise ValueError(f"cannot release {nb}: the release still holds solution text: {problems[0]}")
         written = []

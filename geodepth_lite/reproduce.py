@@ -394,9 +394,22 @@ def run_reproduce(args: argparse.Namespace) -> int:
         params[name] = parse_value(value)
     if args.dry_run:
         return _run_reproduce(args, params)
-    config.get_profile(args.profile)
+    check_request(args.profile, ["05"] if args.study else args.notebooks, params)  # before any lock or folder
     with reproduce_locks(args.profile, args.out):
         return _run_reproduce(args, params)
+
+
+def check_request(profile: str, notebooks: list[str] | None, params: dict[str, Any]) -> None:
+    """What ``reproduce`` checks before it writes anything (profile, notebooks, parameters, the
+    models' cases and seeds), without making a folder: refused requests take no lock either."""
+    config.get_profile(profile)
+    selected = select_notebooks(notebooks, list_notebooks())
+    if not selected:
+        raise FileNotFoundError(f"no numbered notebooks (NN_*.ipynb) in {notebooks_dir()}")
+    per_nb = check_parameters(selected, dict(params))
+    plan = [(nb, {"profile": profile, "run_dir": "", **per_nb[nb]}) for nb in selected]
+    for c, s, o in training_runs(profile, plan)[0]:
+        config.make_config(profile, c, s, **o)
 
 
 def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
