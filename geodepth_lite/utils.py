@@ -288,8 +288,10 @@ class FolderLock:
     The kernel frees the lock when its holder exits, however it exits (kill -9 included), so a
     crashed run never leaves the folder locked. A second writer is refused at once with
     :class:`FolderBusy`, naming the holder's PID (written into the lock file). The lock file
-    stays after release (removing it could let two writers lock two different files); where
-    ``fcntl`` is missing (Windows) the lock is a no-op.
+    stays after release, unless ``remove_file`` (a user's output folder): then it is unlinked while
+    still held, and a writer that opened it meanwhile finds the name gone and tries again on a new
+    file (the inode check in ``acquire``), so two writers never hold the same name's lock at once
+    while either writes. Where ``fcntl`` is missing (Windows) the lock is a no-op.
     """
 
     def __init__(self, folder: str | os.PathLike, what: str = "run folder", *, remove_file: bool = False):
