@@ -379,7 +379,8 @@ def _write_runs(zf: zipfile.ZipFile, infos: dict[str, zipfile.ZipInfo], index: d
             except ValueError as exc:
                 reason = str(exc).replace(str(temps[ckpt]), "").strip()
                 raise _refuse(path, f"its {files[ckpt]} is refused ({reason})") from None
-        for target, tmp in temps.items():
+        # checkpoints first: a rename failing after one leaves a run that a rerun finds complete and keeps
+        for target, tmp in sorted(temps.items(), key=lambda t: t[0].name != checkpoint.CHECKPOINT_NAME):
             try:
                 os.replace(tmp, target)
             except OSError as exc:

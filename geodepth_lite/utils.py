@@ -9,6 +9,7 @@ import random
 import re
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -356,8 +357,6 @@ def wait_for_lock(lock: FolderLock, waiting_for: str, max_wait: float | None = N
     """``lock`` acquired, waiting while another process holds it: one line "waiting for <waiting_for>
     (PID n) holding <folder> ..." when it must wait, then a poll every ``poll`` seconds. After
     ``max_wait`` seconds (default ``$GEODEPTH_LOCK_WAIT``, else a day) the :class:`FolderBusy` is raised."""
-    import time
-
     if max_wait is None:
         try:
             max_wait = float(os.environ.get(LOCK_WAIT_ENV, "") or LOCK_WAIT_DEFAULT)

@@ -132,6 +132,7 @@ def test_exercises_keeps_a_students_edited_notebook_unless_forced(tmp_path, caps
     assert cli.main(["exercises", "--out", str(out)]) == 2
     one_line_error(capsys, str(out), "not empty", "--force")
     assert (out / name).read_text() == "my answers" and sorted(os.listdir(out)) == [name]
+    exercises.check_release_folder(out, force=True)  # --force: an earlier release may be replaced
 
 
 # --------------------------------------------------------------------------- 2. one writer per output folder
