@@ -72,7 +72,8 @@ def check_subsets(args: argparse.Namespace, public: bool, kw: dict) -> int:
 def run_evaluate(args: argparse.Namespace) -> int:
     """``evaluate``: check --out, verify the dataset, score the checkpoint, write the set of result files.
 
-    --out is checked (a folder, writable, room for the tables) before the model is loaded; a run
+    --out is checked (a folder, writable, room for the tables) and locked (``utils.FolderLock``: a
+    second evaluation into it is refused, naming this one's PID) before the model is loaded; a run
     that fails leaves no folder it created behind, and never part of a result set
     (``tables.write_results``)."""
     public = args.dataset in datasets.REGISTRY
@@ -89,7 +90,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     created = utils.missing_dirs(out)
     # before any work: a refusal costs nothing
     tables.prepare_output_dir(out, tables.output_bytes_needed(args.error_maps))
+    lock = utils.FolderLock(out, "output folder", remove_file=True)  # one evaluation per --out at a time
     try:
+        lock.acquire()
         if not public and not args.no_verify:  # a synthetic dataset: its checksums first, before any work
             verify_synthetic(args.dataset, args.split, own_train=not args.no_baselines,
                              progress=not args.no_progress)
@@ -98,8 +101,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
                                               error_maps=args.error_maps, progress=not args.no_progress,
                                               baselines=not args.no_baselines, flips=args.flips, **kw)
     except BaseException:
+        lock.release()
         utils.remove_empty_dirs(created)  # a failed run leaves no empty output folder behind
         raise
+    lock.release()
     t = tables.metrics_table(result)
     print(tables.markdown_table(t["columns"], t["rows"]))
     print(f"wrote {out / 'metrics.json'}, {out / 'frames.csv'}, {out / 'tables.md'}")

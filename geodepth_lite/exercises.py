@@ -148,38 +148,154 @@ def _nbgrader_env() -> dict:
     return env
 
 
-def release(out: Path, notebooks: list[Path] | None = None) -> list[Path]:
+NOTEBOOK_MAX_BYTES = 64 * 2**20  # a lesson notebook with its figures is a few MB
+
+
+def read_notebook(path: Path, solutions: bool = True) -> dict:
+    """A notebook's JSON, checked to be a notebook whose exercises can be collected; a ValueError
+    "cannot read <path>: <reason>" for a damaged, oversized or tampered file. ``solutions``: each
+    answer cell must hold matched solution markers (an instructor's notebook; not a released one)."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > NOTEBOOK_MAX_BYTES:
+            raise ValueError(f"cannot read {path}: {size / 2**20:.0f} MB, more than a notebook's "
+                             f"{NOTEBOOK_MAX_BYTES / 2**20:.0f} MB")
+        nb = json.loads(path.read_bytes())
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot read {path}: {utils.os_reason(exc)}", path) from exc
+    except (UnicodeDecodeError, RecursionError) as exc:
+        raise ValueError(f"cannot read {path}: not a notebook ({type(exc).__name__})") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"cannot read {path}: damaged notebook, not valid JSON ({exc})") from None
+    cells = nb.get("cells") if isinstance(nb, dict) else None
+    if not isinstance(cells, list) or not all(isinstance(c, dict) for c in cells):
+        raise ValueError(f"cannot read {path}: not a notebook (no list of cells)")
+    for i, c in enumerate(cells):
+        src = c.get("source", "")
+        meta = c.get("metadata", {})
+        if not isinstance(c.get("cell_type"), str) or not isinstance(meta, dict) or not (
+                isinstance(src, str) or (isinstance(src, list) and all(isinstance(x, str) for x in src))):
+            raise ValueError(f"cannot read {path}: cell {i} is damaged (cell_type, metadata or source)")
+        grading = meta.get("nbgrader", {})
+        if not isinstance(grading, dict) or not isinstance(grading.get("grade_id", ""), str):
+            raise ValueError(f"cannot read {path}: cell {i} has damaged nbgrader metadata")
+        if GRADE_ID.match(grading.get("grade_id", "")):
+            try:
+                float(grading.get("points", 0))
+            except (TypeError, ValueError):
+                raise ValueError(f"cannot read {path}: cell {i} ({grading['grade_id']}) has points "
+                                 f"{grading.get('points')!r}, not a number") from None
+            if solutions and grading["grade_id"].endswith("answer"):
+                regions = [ln.strip() for ln in _source(c).splitlines() if ln.strip() in SOLUTION_MARKERS]
+                if regions != list(SOLUTION_MARKERS) * (len(regions) // 2) or not regions:
+                    raise ValueError(f"cannot read {path}: exercise {grading['grade_id']} has unmatched "
+                                     f"solution markers ({' / '.join(SOLUTION_MARKERS)})")
+    return nb
+
+
+def _git_tracked(folder: Path) -> list[str] | None:
+    """The files git tracks in ``folder`` (or under it), where ``folder`` lies in a git work tree; None
+    where there is no git, or no work tree around it."""
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return None
+    try:
+        top = subprocess.run(["git", "-C", str(existing), "rev-parse", "--show-toplevel"],
+                             capture_output=True, text=True, timeout=30)
+        if top.returncode != 0 or not top.stdout.strip():
+            return None
+        listed = subprocess.run(["git", "-C", top.stdout.strip(), "ls-files", "-z", "--",
+                                 str(folder.resolve())], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if listed.returncode != 0:
+        return None
+    return [n for n in listed.stdout.split("\0") if n]
+
+
+def check_release_folder(out: Path, force: bool = False) -> None:
+    """Refuse a folder the release must not write into, before anything is made: the notebooks folder
+    (or one inside it, or one holding it), a folder holding files git tracks, and, without ``force``,
+    any folder that is not empty (the student may have edited a notebook there)."""
+    out = Path(out)
+    target = out.resolve()
+    notebooks = NOTEBOOK_DIR.resolve()
+    if target == notebooks or notebooks in target.parents or target in notebooks.parents:
+        raise utils.FileProblem(f"cannot write the student release into {out}: that is (or holds) the "
+                                f"notebooks folder {NOTEBOOK_DIR}, whose solutions it would replace; choose "
+                                "another --out", out)
+    if os.path.lexists(out) and not out.is_dir():
+        raise utils.FileProblem(f"cannot write the student release into {out}: a file of that name exists", out)
+    tracked = _git_tracked(out) if out.exists() else None
+    if tracked:
+        raise utils.FileProblem(f"cannot write the student release into {out}: it holds {len(tracked)} file(s) "
+                                f"of the checkout tracked by git (first {tracked[0]}); choose another --out "
+                                "(even --force never writes there)", out)
+    if not force and out.is_dir():
+        present = sorted(p.name for p in out.iterdir() if p.name != utils.LOCK_NAME)
+        if present:
+            raise utils.FileProblem(f"cannot write the student release into {out}: the folder is not empty "
+                                    f"(first {present[0]}); a student may have edited a notebook there: choose "
+                                    "an empty or new folder, or pass --force to replace the released notebooks",
+                                    out)
+
+
+def release(out: Path, notebooks: list[Path] | None = None, *, force: bool = False) -> list[Path]:
     """Write the student release of ``notebooks`` (default: 01-07) to ``out``; returns the files.
 
-    nbgrader's ``generate_assignment`` runs in a temporary course folder: solutions become
-    stubs, hidden tests go, outputs are cleared, graded cells are locked. Each released notebook
-    is then checked to hold no solution line and no hidden-test marker; ``out`` is written only
-    when every notebook passes.
+    ``out`` is checked first (:func:`check_release_folder`: never the notebooks folder nor a folder of
+    tracked files; a non-empty one only with ``force``) and locked for the run (``utils.FolderLock``).
+    Each notebook is read and checked (:func:`read_notebook`), then nbgrader's ``generate_assignment``
+    runs in a temporary course folder: solutions become stubs, hidden tests go, outputs are cleared,
+    graded cells are locked. Each released notebook is then checked to hold no solution line and no
+    hidden-test marker; ``out`` is written only when every notebook passes.
     """
     notebooks = notebook_paths() if notebooks is None else [Path(p) for p in notebooks]
     if not notebooks:
         raise FileNotFoundError(f"no notebook with exercises under {NOTEBOOK_DIR}")
+    out = Path(out)
+    check_release_folder(out, force)
+    sources = {nb: read_notebook(nb) for nb in notebooks}
+    created = utils.missing_dirs(out)
     utils.check_output_dir(out)
+    lock = utils.FolderLock(out, "output folder", remove_file=True)
+    try:
+        lock.acquire()
+        check_release_folder(out, force)  # again, under the lock: what another writer left meanwhile
+        written = _release_into(out, sources)
+    except BaseException:
+        lock.release()
+        utils.remove_empty_dirs(created)
+        raise
+    lock.release()
+    return written
+
+
+def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
+    """nbgrader's release of ``sources`` (notebook path -> its JSON), checked, then copied into ``out``."""
     with tempfile.TemporaryDirectory(prefix="geodepth-release-") as tmp:
         source = Path(tmp, "source", ASSIGNMENT)
         source.mkdir(parents=True)
-        for nb in notebooks:
+        for nb in sources:
             shutil.copy2(nb, source / nb.name)
         cmd = [sys.executable, "-m", "nbgrader", "generate_assignment", ASSIGNMENT, "--force",
                f"--CourseDirectory.root={tmp}", "--log-level=WARN"]
         proc = subprocess.run(cmd, capture_output=True, text=True, env=_nbgrader_env(), cwd=tmp)
         released = Path(tmp, "release", ASSIGNMENT)
         if proc.returncode != 0 or not released.is_dir():
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
-            raise RuntimeError("nbgrader generate_assignment failed: " + " | ".join(tail))
-        for nb in notebooks:
-            problems = leaks(json.loads(nb.read_text()), json.loads((released / nb.name).read_text()))
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+            names = ", ".join(nb.name for nb in sources)
+            raise ValueError(f"cannot release {names}: nbgrader generate_assignment failed: " + " | ".join(tail))
+        for nb, source_nb in sources.items():
+            problems = leaks(source_nb, read_notebook(released / nb.name, solutions=False))
             if problems:
-                raise RuntimeError(f"{nb.name}: the release still holds solution text: {problems[0]}")
-        out.mkdir(parents=True, exist_ok=True)
+                raise ValueError(f"cannot release {nb}: the release still holds solution text: {problems[0]}")
         written = []
-        for nb in notebooks:
-            shutil.copy2(released / nb.name, out / nb.name)
+        for nb in sources:
+            utils.write_bytes_atomic(out / nb.name, (released / nb.name).read_bytes())
             written.append(out / nb.name)
     return written
 
@@ -200,12 +316,15 @@ def leaks(source_nb: dict, released_nb: dict) -> list[str]:
 
 def add_arguments_exercises(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("student-release"),
-                   help="folder for the student notebooks (default: student-release)")
+                   help="folder for the student notebooks (default: student-release); never the notebooks "
+                   "folder or a folder of files git tracks; it must be new or empty unless --force")
+    p.add_argument("--force", action="store_true",
+                   help="write into a folder that is not empty, replacing the released notebooks there")
 
 
 def run_exercises(args) -> int:
-    written = release(args.out)
-    counts = {p.name: len(collect(json.loads(p.read_text()))) for p in notebook_paths()}
+    written = release(args.out, force=args.force)
+    counts = {p.name: len(collect(read_notebook(p))) for p in notebook_paths()}
     print(f"student release: {len(written)} notebooks, {sum(counts.values())} exercises, in {args.out}")
     print("grade them with nbgrader (its autograde puts the hidden tests back); solutions stay in notebooks/")
     return 0

@@ -718,12 +718,15 @@ def run_predict(args: argparse.Namespace) -> int:
     need = frame_output_bytes(width, height, args.ply, args.ply_stride, args.panel) + ROOM_MARGIN
     new_folders = utils.missing_dirs(args.out)
     out_dir = utils.check_output_dir(args.out, need)  # creates --out; removes it again if it refuses
+    lock = utils.FolderLock(out_dir, "output folder", remove_file=True)  # one writer per --out
     try:
-        stale = utils.remove_stale_temps(out_dir)
+        lock.acquire()
+        stale = utils.remove_stale_temps(out_dir, locked=True)
         if stale:
             print(f"removed {stale} half-written temporary file(s) of an interrupted run from {out_dir}")
         model, cfg = checkpoint.load_model(ckpt, device=pick_device(args.device))
         tally = predict_into(out_dir, files, kind, model, cfg, calib, args, given_mask)
     finally:  # a run that wrote nothing leaves no folder it made
+        lock.release()
         utils.remove_empty_dirs(new_folders)
     return report(tally, out_dir)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
 import hashlib
 import json
 import logging
@@ -394,12 +395,54 @@ def _study_notebook_declares(name: str) -> None:
                          "that --study2 writes")
 
 
+def reproduce_locks(profile: str, run_dir: str | os.PathLike | None = None) -> contextlib.ExitStack:
+    """The locks one ``reproduce`` holds while it trains and runs notebooks: the profile's folder
+    ``runs/<profile>/`` (where its models are trained) and the run folder, if another, taken in one
+    order (sorted paths), so two reproduces never hold one each and wait for the other. A busy one
+    is waited for (``utils.wait_for_lock``: one line "waiting for reproduce (PID n) holding ..."),
+    then this one goes on, finding the models the other trained."""
+    folders = {(utils.runs_dir() / profile).resolve(), resolve_run_dir(profile, run_dir or "").resolve()}
+    stack = contextlib.ExitStack()
+    try:
+        for folder in sorted(folders):
+            lock = utils.wait_for_lock(utils.FolderLock(folder), "reproduce")
+            stack.callback(lock.release)
+    except BaseException:
+        stack.close()
+        raise
+    return stack
+
+
 def run_reproduce(args: argparse.Namespace) -> int:
     params: dict[str, Any] = {}
     for name, value in args.parameter:
         if name in params:
             raise ValueError(f"-p {name} given twice")
         params[name] = parse_value(value)
+    if args.dry_run:
+        return _run_reproduce(args, params)
+    study_run = args.study or getattr(args, "study2", False)
+    if getattr(args, "study2", False):  # before the first study's runs too
+        _study_notebook_declares("study2_tables")
+    check_request(args.profile, ["05"] if study_run else args.notebooks, params)  # before any lock or folder
+    with reproduce_locks(args.profile, args.out):
+        return _run_reproduce(args, params)
+
+
+def check_request(profile: str, notebooks: list[str] | None, params: dict[str, Any]) -> None:
+    """What ``reproduce`` checks before it writes anything (profile, notebooks, parameters, the
+    models' cases and seeds), without making a folder: refused requests take no lock either."""
+    config.get_profile(profile)
+    selected = select_notebooks(notebooks, list_notebooks())
+    if not selected:
+        raise FileNotFoundError(f"no numbered notebooks (NN_*.ipynb) in {notebooks_dir()}")
+    per_nb = check_parameters(selected, dict(params))
+    plan = [(nb, {"profile": profile, "run_dir": "", **per_nb[nb]}) for nb in selected]
+    for c, s, o in training_runs(profile, plan)[0]:
+        config.make_config(profile, c, s, **o)
+
+
+def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
     t0 = time.perf_counter()
     if getattr(args, "study2", False):  # checked before the first study's runs too
         _study_notebook_declares("study2_tables")

@@ -275,7 +275,7 @@ def write_results(result: dict, out_dir: str | os.PathLike, examples: Iterable[d
     a power loss or kill -9 during the swap itself (a few renames) can leave part of either
     set, the rest being in a hidden ``.eval-previous-*`` folder; the next write_results into
     that folder deletes such leftovers. Two evaluations writing into one folder at the same time
-    are not supported.
+    are not supported here: the ``evaluate`` command holds the folder's lock (``utils.FolderLock``).
     """
     out = Path(out_dir)
     created = utils.missing_dirs(out)

@@ -183,7 +183,7 @@ class Trainer:
     def _train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
         cfg = self.cfg
         if self.is_main:  # half-written checkpoint/log files of a run killed while saving (under the lock only)
-            stale = utils.remove_stale_temps(self.run_dir)
+            stale = utils.remove_stale_temps(self.run_dir, locked=True)
             if stale:
                 print(f"removed {stale} half-written temporary file(s) of an interrupted save in {self.run_dir}")
         # 1. an existing checkpoint: continue it (same configuration) or refuse to overwrite it

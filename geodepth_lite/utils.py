@@ -6,8 +6,10 @@ import contextlib
 import json
 import os
 import random
+import re
 import shutil
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -97,16 +99,52 @@ def fsync_dir(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
-TEMP_GLOB = ".*.tmp"  # the names atomic_path's temporary files match (for removing stale ones)
+TEMP_PREFIX = ".geodepth-"  # every temporary file this project writes: .geodepth-<pid>-<name>.<random>.tmp
+TEMP_GLOB = TEMP_PREFIX + "*.tmp"  # the names atomic_path's temporary files match (for removing stale ones)
+_TEMP_NAME = re.compile(r"^\.geodepth-(\d+)-.*\.tmp$")
+NAME_PART_MAX = 120  # characters of the final name kept in a temporary file's name (file names hold 255 bytes)
 
 
-def remove_stale_temps(folder: str | os.PathLike, recursive: bool = False) -> int:
-    """Delete half-written temporary files (``TEMP_GLOB``) that an interrupted writer left in
-    ``folder``; they never carry a final name, so nothing complete is lost. Returns how many."""
+def temp_prefix(name: str = "") -> str:
+    """The start of a temporary file's name that only this project makes: ``.geodepth-<pid>-<name>.``."""
+    return f"{TEMP_PREFIX}{os.getpid()}-{name[:NAME_PART_MAX]}."
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (one of another user counts as alive)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # no such process; a number no process can have
+        return False
+    except OSError:  # PermissionError: it exists, under another user
+        return True
+    return True
+
+
+def stale_temp(path: Path, locked: bool = False) -> bool:
+    """Whether ``path`` is a temporary file of this project left by an interrupted writer: its name is
+    ``.geodepth-<pid>-...tmp`` and its writer is gone (or, with ``locked`` -- the caller holds the
+    folder's lock -- it is any process but this one). A file of any other name is never stale."""
+    m = _TEMP_NAME.match(path.name)
+    if not m:
+        return False
+    pid = int(m.group(1))
+    if pid == os.getpid():
+        return False
+    return locked or not pid_alive(pid)
+
+
+def remove_stale_temps(folder: str | os.PathLike, recursive: bool = False, locked: bool = False) -> int:
+    """Delete half-written temporary files of this project (``TEMP_GLOB``, :func:`stale_temp`) that an
+    interrupted writer left in ``folder``; they never carry a final name, so nothing complete is lost,
+    and a file the project did not make (``.notes.tmp``) is never touched. Returns how many."""
     folder = Path(folder)
     if not folder.is_dir():
         return 0
-    stale = [p for p in (folder.rglob(TEMP_GLOB) if recursive else folder.glob(TEMP_GLOB)) if p.is_file()]
+    found = folder.rglob(TEMP_GLOB) if recursive else folder.glob(TEMP_GLOB)
+    stale = [p for p in found if p.is_file() and not p.is_symlink() and stale_temp(p, locked)]
     for p in stale:
         p.unlink(missing_ok=True)
     return len(stale)
@@ -125,7 +163,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=".tmp", dir=path.parent)
         os.fchmod(fd, file_mode())  # mkstemp creates 0600 whatever the umask
         os.close(fd)
     except OSError as exc:
@@ -206,7 +244,7 @@ def _probe_write(folder: Path, named: Path) -> None:
     """Write and remove a small probe file in ``folder``; a :class:`FileProblem` naming ``named`` if
     that fails."""
     try:
-        fd, probe = tempfile.mkstemp(prefix=".write-probe.", suffix=".tmp", dir=folder)
+        fd, probe = tempfile.mkstemp(prefix=temp_prefix("write-probe"), suffix=".tmp", dir=folder)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
@@ -239,7 +277,10 @@ LOCK_NAME = ".lock"  # the lock file a writer holds in its run folder (see Folde
 
 
 class FolderBusy(FileProblem):
-    """Another process holds the folder's lock: one line naming the folder and the holder's PID."""
+    """Another process holds the folder's lock: one line naming the folder and the holder's PID
+    (``holder``: that PID as written in the lock file, or "unknown")."""
+
+    holder: str = "unknown"
 
 
 class FolderLock:
@@ -248,13 +289,16 @@ class FolderLock:
     The kernel frees the lock when its holder exits, however it exits (kill -9 included), so a
     crashed run never leaves the folder locked. A second writer is refused at once with
     :class:`FolderBusy`, naming the holder's PID (written into the lock file). The lock file
-    stays after release (removing it could let two writers lock two different files); where
-    ``fcntl`` is missing (Windows) the lock is a no-op.
+    stays after release, unless ``remove_file`` (a user's output folder): then it is unlinked while
+    still held, and a writer that opened it meanwhile finds the name gone and tries again on a new
+    file (the inode check in ``acquire``), so two writers never hold the same name's lock at once
+    while either writes. Where ``fcntl`` is missing (Windows) the lock is a no-op.
     """
 
-    def __init__(self, folder: str | os.PathLike, what: str = "run folder"):
+    def __init__(self, folder: str | os.PathLike, what: str = "run folder", *, remove_file: bool = False):
         self.folder, self.what = Path(folder), what
         self.path = self.folder / LOCK_NAME
+        self.remove_file = remove_file  # an output folder of the user's: take the lock file away on release
         self._fd: int | None = None
 
     def acquire(self) -> FolderLock:
@@ -273,8 +317,10 @@ class FolderLock:
             except BlockingIOError:
                 holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
                 os.close(fd)
-                raise FolderBusy(f"cannot write into {self.folder}: the {self.what} is in use by process "
-                                 f"{holder}; wait for it to finish, or choose another folder", self.folder) from None
+                busy = FolderBusy(f"cannot write into {self.folder}: the {self.what} is in use by process "
+                                  f"{holder}; wait for it to finish, or choose another folder", self.folder)
+                busy.holder = holder
+                raise busy from None
             try:  # the file we locked must still be the one under the name (not unlinked meanwhile)
                 if os.fstat(fd).st_ino == os.stat(self.path).st_ino:
                     break
@@ -288,6 +334,9 @@ class FolderLock:
 
     def release(self) -> None:
         if self._fd is not None:
+            if self.remove_file:  # while still held: a writer that opened the old file retries (inode check)
+                with contextlib.suppress(OSError):
+                    self.path.unlink()
             os.close(self._fd)  # closing the descriptor frees the flock
             self._fd = None
 
@@ -296,6 +345,38 @@ class FolderLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+LOCK_WAIT_ENV = "GEODEPTH_LOCK_WAIT"  # seconds a waiting command waits for a busy folder (wait_for_lock)
+LOCK_WAIT_DEFAULT = 24 * 3600.0
+LOCK_POLL_S = 2.0
+
+
+def wait_for_lock(lock: FolderLock, waiting_for: str, max_wait: float | None = None, poll: float = LOCK_POLL_S
+                  ) -> FolderLock:
+    """``lock`` acquired, waiting while another process holds it: one line "waiting for <waiting_for>
+    (PID n) holding <folder> ..." when it must wait, then a poll every ``poll`` seconds. After
+    ``max_wait`` seconds (default ``$GEODEPTH_LOCK_WAIT``, else a day) the :class:`FolderBusy` is raised."""
+    if max_wait is None:
+        try:
+            max_wait = float(os.environ.get(LOCK_WAIT_ENV, "") or LOCK_WAIT_DEFAULT)
+        except ValueError:
+            raise ValueError(f"{LOCK_WAIT_ENV} must be a number of seconds, got "
+                             f"{os.environ[LOCK_WAIT_ENV]!r}") from None
+    deadline = time.monotonic() + max_wait
+    told = None
+    while True:
+        try:
+            return lock.acquire()
+        except FolderBusy as exc:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise
+            if exc.holder != told:
+                print(f"waiting for {waiting_for} (PID {exc.holder}) holding {lock.folder} to finish ...",
+                      flush=True)
+                told = exc.holder
+            time.sleep(min(poll, left))
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

@@ -226,7 +226,7 @@ def test_stale_checkpoint_temp_files_are_removed_and_resume_names_its_epoch(smok
     cfg = config.make_config("smoke", 1, 0, dataset=str(smoke_root), image_size=32, epochs=2)
     run = tmp_path / "run"
     train.fit(cfg, run, progress=False, stop_after=1)
-    stale = run / ".checkpoint.pt.k1ll3d.tmp"
+    stale = run / ".geodepth-4194305-checkpoint.pt.k1ll3d.tmp"  # no process can have PID 2**22 + 1
     stale.write_bytes(b"\x00" * 4096)  # what a kill during torch.save leaves
     capsys.readouterr()
     train.fit(cfg, run, resume=True, progress=False)

@@ -319,7 +319,7 @@ def test_stale_temporary_files_in_out_are_removed_and_counted(tmp_path, ckpt, ca
     src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
     out = tmp_path / "out"
     out.mkdir()
-    for name in (".a_depth.npy.k1ll3d.tmp", ".a.ply.x7.tmp"):  # what a kill during a write leaves
+    for name in (".geodepth-4194305-a_depth.npy.k1ll3d.tmp", ".geodepth-4194305-a.ply.x7.tmp"):  # a killed write
         (out / name).write_bytes(b"\x00" * 1000)
     (out / "notes.tmp").write_text("not hidden: not ours")
     assert _run(ckpt, src, out, "--ply", "none") == 0

@@ -162,10 +162,10 @@ def test_a_second_writer_is_refused_and_a_killed_holder_frees_the_folder(smoke_r
     cfg = _smoke_cfg(smoke_root)
     run = tmp_path / "run"
     train.fit(cfg, run, progress=False, stop_after=1)
-    stale = run / ".checkpoint.pt.inflight.tmp"  # the holder's save in progress
-    stale.write_bytes(b"\x00" * 64)
     before = (run / "checkpoint.pt").read_bytes()
     holder = _hold_lock(run)
+    stale = run / f".geodepth-{holder.pid}-checkpoint.pt.inflight.tmp"  # the holder's save in progress
+    stale.write_bytes(b"\x00" * 64)
     try:
         assert cli.main(_train_argv(smoke_root, run, "--resume")) == 2
         one_line_error(capsys, str(run), f"in use by process {holder.pid}")
