@@ -8,6 +8,7 @@ import os
 import random
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -311,7 +312,12 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     """H x W x 3 uint8 from an image file; a :class:`FileProblem` naming the file if it cannot be decoded."""
     try:
         with Image.open(path) as im:
+            check_pixels(*im.size, path)  # from the header, before decoding
             return np.array(im.convert("RGB"))
+    except FileProblem:
+        raise
+    except Image.DecompressionBombError as exc:
+        raise FileProblem(f"cannot read {path}: {exc}", path) from exc
     except Image.UnidentifiedImageError as exc:
         raise FileProblem(f"cannot read {path}: not an image file, or a damaged one", path) from exc
     except OSError as exc:  # missing, unreadable, truncated ("image file is truncated")
@@ -373,3 +379,38 @@ def data_dir() -> Path:
 
 def runs_dir() -> Path:
     return workspace() / "runs"
+
+
+# --------------------------------------------------------------------------- bounds on files from elsewhere
+MAX_PIXELS = 50_000_000  # an image (frame, mask, depth map) is refused above this many pixels, before decoding
+# PIL warns on opening an image over 89 megapixels; every reader here refuses it first, in one line
+warnings.filterwarnings("ignore", category=Image.DecompressionBombWarning)
+
+
+def check_pixels(width: int, height: int, path: str | os.PathLike, what: str = "image",
+                 max_pixels: int | None = None) -> None:
+    """A :class:`FileProblem` naming ``path`` when ``width`` x ``height`` is over ``max_pixels``
+    (default ``MAX_PIXELS``): decoding it would take more memory than an image should."""
+    cap = MAX_PIXELS if max_pixels is None else int(max_pixels)
+    if width * height > cap:
+        raise FileProblem(f"cannot read {what} {path}: {width} x {height} pixels is over the limit of {cap} "
+                          f"pixels ({cap / 1e6:g} megapixels), refused before decoding", path)
+
+
+def image_header_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(width, height) from an image file's header, without decoding its pixels; None when PIL cannot
+    identify it (its reader then says what is wrong). Images past PIL's own bomb limit are refused."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except Image.DecompressionBombError as exc:
+        raise FileProblem(f"cannot read {path}: {exc}", path) from exc
+    except (OSError, ValueError, SyntaxError):  # not an image PIL knows, or a damaged header
+        return None
+
+
+def check_image_file(path: str | os.PathLike, what: str = "image", max_pixels: int | None = None) -> None:
+    """:func:`check_pixels` from the file's header, before anything decodes it."""
+    size = image_header_size(path)
+    if size is not None:
+        check_pixels(*size, path, what, max_pixels)
