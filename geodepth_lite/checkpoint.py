@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
-from geodepth_lite.model import DepthNet
+from geodepth_lite.model import PADDINGS, DepthNet
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_CSV = "log.csv"
@@ -421,6 +421,7 @@ def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False) -> dic
         raise ValueError(f"checkpoint {path} lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
     if not isinstance(ckpt["model"], dict) or not isinstance(ckpt["cfg"], dict):
         raise ValueError(f"checkpoint {path}: 'model' and 'cfg' must be dicts: not a geodepth-lite checkpoint")
+    check_checkpoint_cfg(ckpt["cfg"], path)
     if for_resume:
         missing = [k for k in RESUME_KEYS if k not in ckpt]
         if missing:
@@ -432,6 +433,39 @@ def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False) -> dic
         raise ValueError(f"checkpoint {path} holds non-finite weights (NaN or inf) in {len(bad)} tensor(s), "
                          f"first {bad[0]}: the model is unusable (retrain it, or resume from an earlier copy)")
     return ckpt
+
+
+# What a checkpoint's config may ask of the network: an input side of at most MAX_INPUT_SIDE pixels
+# (image_size plus twice input_pad), so one frame's forward pass stays within a few GiB.
+MAX_INPUT_SIDE = 2048
+FORWARD_BYTES_PER_PIXEL = 1200  # about what DepthNet's forward pass holds per input pixel (float32, no grad)
+
+
+def check_checkpoint_cfg(cfg: dict, path: str | os.PathLike) -> None:
+    """A ValueError naming ``path`` and the field when a checkpoint's config holds a number the network
+    cannot serve: ``image_size`` a positive multiple of 32, ``input_pad`` a non-negative multiple of 16,
+    the input side (``image_size + 2 input_pad``) at most ``MAX_INPUT_SIDE``, ``padding`` one of
+    ``model.PADDINGS``, and every number finite."""
+    def bad(field: str, want: str, value) -> ValueError:
+        return ValueError(f"checkpoint {path}: its config field '{field}' must be {want}, got {str(value)[:60]}")
+
+    for key, value in cfg.items():
+        if isinstance(value, float) and not np.isfinite(value):
+            raise bad(key, "a finite number", value)
+    size = cfg.get("image_size")
+    if isinstance(size, bool) or not isinstance(size, int) or size <= 0 or size % 32:
+        raise bad("image_size", "a positive multiple of 32 (pixels)", size)
+    pad = cfg.get("input_pad", 0)
+    if isinstance(pad, bool) or not isinstance(pad, int) or pad < 0 or pad % 16:
+        raise bad("input_pad", "a non-negative multiple of 16 (pixels)", pad)
+    side = size + 2 * pad
+    if side > MAX_INPUT_SIDE:
+        need = side * side * FORWARD_BYTES_PER_PIXEL
+        raise ValueError(f"checkpoint {path}: its config field 'image_size' ({size}, with input_pad {pad}) asks for "
+                         f"a {side} x {side} network input, about {need / 2**30:.3g} GiB for one frame; the limit "
+                         f"is {MAX_INPUT_SIDE} pixels a side")
+    if cfg.get("padding", "zeros") not in PADDINGS:
+        raise bad("padding", f"one of {', '.join(PADDINGS)}", cfg.get("padding"))
 
 
 @contextlib.contextmanager
