@@ -13,6 +13,7 @@ import contextlib
 import csv
 import io
 import json
+import multiprocessing
 import os
 import random
 import re
@@ -24,6 +25,11 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
+
+try:
+    import resource  # POSIX only: bounds the memory of the process that reads a first-format checkpoint
+except ImportError:  # Windows
+    resource = None
 from geodepth_lite.model import PADDINGS, DepthNet
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -306,10 +312,10 @@ def _address_space() -> int:
 
 def _old_child(path: Path, conn) -> None:
     try:
-        import resource
         limit = _address_space() + OLD_READ_MEMORY_BYTES
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    except (ImportError, ValueError, OSError):
+        if resource is not None:
+            resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    except (ValueError, OSError):
         pass
     try:
         conn.send(("ok", _read_old_in_child(path)))
@@ -328,9 +334,13 @@ def read_old_checkpoint(path: str | os.PathLike) -> bytes:
     """A first-format checkpoint in the current format (the bytes to write), or ValueError naming
     the file and what is wrong. Read in a child process with bounded memory, so a hostile file can
     neither crash nor exhaust the caller."""
-    import multiprocessing as mp
     path = Path(path)
-    ctx = mp.get_context("fork")
+    if "fork" not in multiprocessing.get_all_start_methods():  # Windows: in this process (stand-ins only)
+        try:
+            return _read_old_in_child(path)
+        except Exception as exc:  # noqa: BLE001 - every failure is reported as one line
+            raise ValueError(f"checkpoint {path} cannot be converted: {' '.join(str(exc).split())[:300]}") from None
+    ctx = multiprocessing.get_context("fork")
     recv, send = ctx.Pipe(duplex=False)
     child = ctx.Process(target=_old_child, args=(path, send), daemon=True)
     child.start()
