@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import importlib
 import io
 import json
+import multiprocessing
 import os
 import random
+import re
 import warnings
 from pathlib import Path
 from typing import Any, Iterator
@@ -24,7 +25,12 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
-from geodepth_lite.model import DepthNet
+
+try:
+    import resource  # POSIX only: bounds the memory of the process that reads a first-format checkpoint
+except ImportError:  # Windows
+    resource = None
+from geodepth_lite.model import PADDINGS, DepthNet
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_CSV = "log.csv"
@@ -91,6 +97,9 @@ def _load_safely(path: Path) -> Any:
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad or unsafe file
         text = str(exc)
         if "numpy" in text and "weights_only" in text and _only_numpy_arrays(path):
+            problem = _old_format_problem(path)
+            if problem:
+                raise ValueError(f"checkpoint {path} is refused: {problem}; nothing in it was run") from None
             raise OldCheckpoint(
                 f"checkpoint {path} has the first checkpoint format (numpy objects inside), which this "
                 f"version does not unpickle; if you trust where it came from, convert it once with "
@@ -101,25 +110,13 @@ def _load_safely(path: Path) -> Any:
             raise ValueError(f"checkpoint {path} is refused: it holds more than tensors and plain values, "
                              f"which could run code when loaded ({what or 'an unsupported object'}); "
                              f"nothing in it was run") from None
-        raise ValueError(f"checkpoint {path} is unreadable: {text.splitlines()[0] if text else type(exc).__name__}"
-                         ) from None
+        raise ValueError(f"checkpoint {path} is unreadable: {_unreadable_reason(exc)}") from None
 
 
-# what the first checkpoint format pickled besides tensors: numpy's RNG keys (an ndarray)
+# what the first checkpoint format pickled besides tensors: numpy's RNG keys (an ndarray); read
+# only through the stand-ins of read_old_checkpoint, never numpy's own reconstruction
 NUMPY_ARRAY_GLOBALS = ("numpy._core.multiarray._reconstruct", "numpy.core.multiarray._reconstruct",
-                       "numpy.ndarray", "numpy.dtype", "numpy.dtypes.UInt32DType")
-
-
-def _numpy_array_globals() -> list:
-    """The objects behind ``NUMPY_ARRAY_GLOBALS`` that this numpy has: they rebuild an array, nothing else."""
-    found = []
-    for name in NUMPY_ARRAY_GLOBALS:
-        module, _, attr = name.rpartition(".")
-        try:
-            found.append((getattr(importlib.import_module(module), attr), name))
-        except (ImportError, AttributeError):
-            continue
-    return found
+                       "numpy.ndarray", "numpy.dtype")
 
 
 def _only_numpy_arrays(path: Path) -> bool:
@@ -134,43 +131,274 @@ def _only_numpy_arrays(path: Path) -> bool:
 def convert_checkpoint(path: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
     """Rewrite a first-format checkpoint (numpy RNG state as numpy objects) in the current format.
 
-    Still never unpickles code: besides tensors and plain values, only numpy's array
-    reconstruction is allowed (``NUMPY_ARRAY_GLOBALS``), and a file naming anything else is
-    refused. Writes ``out`` (default: in place, atomically) and returns its path.
+    Still never unpickles code, and never lets numpy rebuild an array from the file: the file is
+    read by :func:`read_old_checkpoint` (a child process with bounded memory; numpy arrays only as
+    plain numbers, checked against the bytes present). The result is checked to load with
+    ``weights_only=True`` before anything is written. ``out``: a new file (never the input, never
+    an existing file). Without ``out`` the input is kept whole as ``<name>.first-format``
+    (``OLD_SUFFIX``; refused if that name exists) and the converted checkpoint takes its name.
+    Returns the path written.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    allowed = _numpy_array_globals()
+    if out is not None:
+        target = Path(out)
+        if target.resolve() == path.resolve():
+            raise utils.FileProblem(f"cannot convert {path}: the output is the input itself; a conversion "
+                                    "never rewrites its input (name another file)", path)
+        if target.exists():
+            raise utils.FileProblem(f"cannot convert {path}: {target} exists already and is left as it is "
+                                    "(name a new file)", target)
+    data = read_old_checkpoint(path)
+    keep = path.with_name(path.name + OLD_SUFFIX)
+    if out is None:
+        if keep.exists():
+            raise utils.FileProblem(f"cannot convert {path}: {keep}, where the original would be kept, exists "
+                                    "already and is left as it is (move it away, or pass --out)", keep)
+        try:
+            os.link(path, keep)  # the original, kept whole under its new name before anything is written
+        except FileExistsError as exc:
+            raise utils.FileProblem(f"cannot convert {path}: {keep} exists already", keep) from exc
+        except OSError:
+            utils.write_bytes_atomic(keep, path.read_bytes())
+        target = path
+    utils.write_bytes_atomic(target, data)
+    return target
+
+
+OLD_SUFFIX = ".first-format"  # the original of a checkpoint converted without --out, kept beside it
+# Bounds of the first-format reader: the numpy arrays that format held are the RNG keys (624 uint32).
+OLD_ARRAY_MAX_BYTES = 16 * 2**20  # one numpy array in a first-format checkpoint, at most
+OLD_ARRAYS_MAX_BYTES = 64 * 2**20  # all its numpy arrays together
+OLD_ARRAY_MAX_DIMS = 32  # numpy's own limit on dimensions
+OLD_READ_MEMORY_BYTES = 4 * 2**30  # address space the reading child may add to its parent's
+OLD_DTYPES = re.compile(r"[biufc][0-9]{1,2}")  # bool, signed, unsigned, float, complex: plain numbers
+
+
+class _OldDtype:
+    """Stands in for ``numpy.dtype`` while a first-format checkpoint is read: records its arguments and
+    state, builds nothing."""
+
+    def __init__(self, *args):
+        self.args = args
+        self.state = None
+
+    def __setstate__(self, state):
+        self.state = state
+
+
+class _OldArray:
+    """Stands in for ``numpy.ndarray``: records (shape, dtype, raw bytes) from ``__setstate__``; the
+    array is built by :func:`_old_array` only after every check."""
+
+    def __init__(self, *args):
+        self.state = None
+
+    def __setstate__(self, state):
+        self.state = state
+
+
+def _old_reconstruct(*args):
+    """Stands in for numpy's ``_reconstruct``: an empty record, filled by ``__setstate__``."""
+    return _OldArray()
+
+
+_OLD_STAND_INS = [(_old_reconstruct, "numpy.core.multiarray._reconstruct"),
+                  (_old_reconstruct, "numpy._core.multiarray._reconstruct"),
+                  (_OldArray, "numpy.ndarray"), (_OldDtype, "numpy.dtype")]
+
+
+def _old_dtype(d) -> np.dtype:
+    """The plain numeric dtype a stand-in records, or ValueError saying why it is refused."""
+    if not isinstance(d, _OldDtype) or not d.args or not isinstance(d.args[0], str):
+        raise ValueError("a numpy array without a readable dtype")
+    name, st = d.args[0], d.state
+    if not OLD_DTYPES.fullmatch(name):
+        raise ValueError(f"a numpy array of dtype {name[:20]!r}; only plain numbers (bool, int, uint, float, "
+                         "complex) are read, never objects, raw bytes or records")
+    order = "="
+    if st is not None:
+        if not isinstance(st, tuple) or len(st) < 5 or any(x is not None for x in st[2:5]):
+            raise ValueError(f"a numpy array of a structured or sub-array dtype ({name})")
+        order = st[1] if st[1] in ("<", ">", "|", "=") else None
+        if order is None:
+            raise ValueError(f"a numpy dtype {name} with an unknown byte order")
     try:
-        named = set(torch.serialization.get_unsafe_globals_in_checkpoint(path))
-    except Exception as exc:  # noqa: BLE001 - not a zip file written by torch.save
-        raise ValueError(f"checkpoint {path} cannot be converted: not a file written by torch.save ({exc})") from None
-    unsafe = named - {n for _, n in allowed}
-    if unsafe:
-        raise ValueError(f"checkpoint {path} is refused: it names {', '.join(sorted(unsafe))}, which a "
-                         "geodepth-lite checkpoint never holds (it could run code when loaded)")
-    with torch.serialization.safe_globals(allowed):
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        dt = np.dtype(order + name if order != "|" else name)
+    except TypeError:
+        raise ValueError(f"an unknown numpy dtype {name[:20]!r}") from None
+    if dt.kind not in "biufc" or dt.fields is not None or dt.subdtype is not None:
+        raise ValueError(f"a numpy array of dtype {name!r}, not plain numbers")
+    return dt
+
+
+def _old_array(a: _OldArray, budget: list) -> np.ndarray:
+    """The array a stand-in records, after checking its dtype, shape and byte count against the data."""
+    st = a.state
+    if not isinstance(st, tuple) or len(st) != 5:
+        raise ValueError("a numpy array without its data")
+    _, shape, dtype, fortran, raw = st
+    dt = _old_dtype(dtype)
+    if (not isinstance(shape, tuple) or len(shape) > OLD_ARRAY_MAX_DIMS
+            or not all(type(n) is int and n >= 0 for n in shape)):
+        raise ValueError(f"a numpy array of an impossible shape {str(shape)[:60]}")
+    if not isinstance(raw, (bytes, bytearray)):
+        raise ValueError("a numpy array whose data is not raw numbers (a list of Python objects)")
+    count = 1
+    for n in shape:
+        count *= n
+    need = count * dt.itemsize
+    if need != len(raw):
+        raise ValueError(f"a numpy array of shape {shape} and dtype {dt.str} ({need} bytes) whose data holds "
+                         f"{len(raw)} bytes")
+    if need > OLD_ARRAY_MAX_BYTES:
+        raise ValueError(f"a numpy array of {need} bytes, over the {OLD_ARRAY_MAX_BYTES} bytes a first-format "
+                         "checkpoint's arrays ever held")
+    budget[0] -= need
+    if budget[0] < 0:
+        raise ValueError(f"numpy arrays of over {OLD_ARRAYS_MAX_BYTES} bytes together")
+    return np.frombuffer(bytes(raw), dtype=dt).reshape(shape, order="F" if fortran is True else "C").copy()
+
+
+def _old_plain(obj: Any, budget: list, depth: int = 0) -> Any:
+    """``obj`` with every stand-in replaced by its checked array, and numpy values turned into tensors."""
+    if depth > 100:
+        raise ValueError("entries nested over 100 deep")
+    if isinstance(obj, _OldArray):
+        return torch.from_numpy(_old_array(obj, budget))
+    if isinstance(obj, _OldDtype):
+        raise ValueError("a bare numpy dtype where a value belongs")
+    if isinstance(obj, dict):
+        return {k: _old_plain(v, budget, depth + 1) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_old_plain(v, budget, depth + 1) for v in obj)
+    return obj
+
+
+def _read_old_in_child(path: Path) -> bytes:
+    """Read a first-format checkpoint, check it, and return it in the current format (bytes of torch.save)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        with torch.serialization.safe_globals(_OLD_STAND_INS):
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
-        raise ValueError(f"checkpoint {path} lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
+        raise ValueError("it lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
+    ckpt = _old_plain(ckpt, [OLD_ARRAYS_MAX_BYTES])
     rng = ckpt.get("rng")
     if isinstance(rng, dict):
-        if isinstance(rng.get("numpy"), tuple):
+        if isinstance(rng.get("numpy"), tuple) and len(rng["numpy"]) == 5:
             kind, keys, pos, has_gauss, cached = rng["numpy"]
-            rng["numpy"] = {"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)),
-                            "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
-        if isinstance(rng.get("python"), tuple):
+            if not isinstance(keys, torch.Tensor):
+                raise ValueError("its numpy random state has no key array")
+            rng["numpy"] = {"kind": str(kind), "keys": keys.to(torch.int64), "pos": int(pos),
+                            "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
+        if isinstance(rng.get("python"), tuple) and len(rng["python"]) == 3:
             version, internal, gauss_next = rng["python"]
             rng["python"] = {"version": int(version), "internal": list(internal), "gauss_next": gauss_next}
-    ckpt = _plain(ckpt)
     ckpt["format"] = FORMAT
     buf = io.BytesIO()
     torch.save(ckpt, buf)
-    target = Path(out) if out is not None else path
-    utils.write_bytes_atomic(target, buf.getvalue())
-    _load_safely(target)  # the result loads with weights_only=True, or this raises
-    return target
+    return buf.getvalue()
+
+
+def _address_space() -> int:
+    """This process's virtual memory size in bytes (0 where /proc is not there)."""
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def _old_child(path: Path, conn) -> None:
+    try:
+        limit = _address_space() + OLD_READ_MEMORY_BYTES
+        if resource is not None:
+            resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    except (ValueError, OSError):
+        pass
+    try:
+        conn.send(("ok", _read_old_in_child(path)))
+    except MemoryError:
+        conn.send(("error", f"reading it needs more than {OLD_READ_MEMORY_BYTES // 2**30} GiB of memory"))
+    except BaseException as exc:  # noqa: BLE001 - every failure is reported as one line
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        if "Weights only load failed" in text:
+            text = _weights_only_reason(text)
+        conn.send(("error", text[:300]))
+    finally:
+        conn.close()
+
+
+def read_old_checkpoint(path: str | os.PathLike) -> bytes:
+    """A first-format checkpoint in the current format (the bytes to write), or ValueError naming
+    the file and what is wrong. Read in a child process with bounded memory, so a hostile file can
+    neither crash nor exhaust the caller."""
+    path = Path(path)
+    if "fork" not in multiprocessing.get_all_start_methods():  # Windows: in this process (stand-ins only)
+        try:
+            return _read_old_in_child(path)
+        except Exception as exc:  # noqa: BLE001 - every failure is reported as one line
+            raise ValueError(f"checkpoint {path} cannot be converted: {' '.join(str(exc).split())[:300]}") from None
+    ctx = multiprocessing.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_old_child, args=(path, send), daemon=True)
+    child.start()
+    send.close()
+    try:
+        status, value = recv.recv()
+    except (EOFError, OSError):
+        status, value = "error", None
+    finally:
+        recv.close()
+        child.join()
+    if status == "ok":
+        try:
+            _check_bytes_load(value)
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(f"checkpoint {path} cannot be converted: its conversion does not load ({exc})") from None
+        return value
+    if value is None:
+        code = child.exitcode
+        value = (f"reading it stopped the reader (signal {-code})" if code is not None and code < 0
+                 else f"reading it stopped the reader (exit status {code})")
+    raise ValueError(f"checkpoint {path} cannot be converted: {value}")
+
+
+def _check_bytes_load(data: bytes) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        ckpt = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
+        raise ValueError("no 'model'/'cfg' entries")
+
+
+def _old_format_problem(path: Path) -> str | None:
+    """None when :func:`read_old_checkpoint` would convert ``path``; else what is wrong with it."""
+    try:
+        read_old_checkpoint(path)
+    except ValueError as exc:
+        return str(exc).partition(": ")[2] or str(exc)
+    return None
+
+
+def _weights_only_reason(text: str) -> str:
+    """The one useful line of torch's long weights-only refusal."""
+    for ln in text.replace(". ", ".\n").splitlines():
+        if "Unsupported" in ln or "unsupported" in ln or "Trying to" in ln:
+            return ln.strip().rstrip(".")
+    return "it holds more than tensors, plain values and numpy arrays of numbers"
+
+
+def _unreadable_reason(exc: BaseException) -> str:
+    """Why torch.load could not read a file, in words a user can act on."""
+    text = str(exc)
+    if "central directory" in text or "zip archive" in text:
+        return "a damaged checkpoint (its zip archive is broken or cut short)"
+    if "magic number" in text.lower() or isinstance(exc, (KeyError, EOFError)) or "pickle" in text.lower():
+        return "not a checkpoint written by torch.save (a damaged file or another kind of file)"
+    first = text.splitlines()[0] if text else ""
+    return f"not a checkpoint written by torch.save ({type(exc).__name__}{': ' + first[:120] if first else ''})"
 
 
 def _plain(obj: Any) -> Any:
@@ -203,6 +431,7 @@ def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False) -> dic
         raise ValueError(f"checkpoint {path} lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
     if not isinstance(ckpt["model"], dict) or not isinstance(ckpt["cfg"], dict):
         raise ValueError(f"checkpoint {path}: 'model' and 'cfg' must be dicts: not a geodepth-lite checkpoint")
+    check_checkpoint_cfg(ckpt["cfg"], path)
     if for_resume:
         missing = [k for k in RESUME_KEYS if k not in ckpt]
         if missing:
@@ -214,6 +443,39 @@ def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False) -> dic
         raise ValueError(f"checkpoint {path} holds non-finite weights (NaN or inf) in {len(bad)} tensor(s), "
                          f"first {bad[0]}: the model is unusable (retrain it, or resume from an earlier copy)")
     return ckpt
+
+
+# What a checkpoint's config may ask of the network: an input side of at most MAX_INPUT_SIDE pixels
+# (image_size plus twice input_pad), so one frame's forward pass stays within a few GiB.
+MAX_INPUT_SIDE = 2048
+FORWARD_BYTES_PER_PIXEL = 1200  # about what DepthNet's forward pass holds per input pixel (float32, no grad)
+
+
+def check_checkpoint_cfg(cfg: dict, path: str | os.PathLike) -> None:
+    """A ValueError naming ``path`` and the field when a checkpoint's config holds a number the network
+    cannot serve: ``image_size`` a positive multiple of 32, ``input_pad`` a non-negative multiple of 16,
+    the input side (``image_size + 2 input_pad``) at most ``MAX_INPUT_SIDE``, ``padding`` one of
+    ``model.PADDINGS``, and every number finite."""
+    def bad(field: str, want: str, value) -> ValueError:
+        return ValueError(f"checkpoint {path}: its config field '{field}' must be {want}, got {str(value)[:60]}")
+
+    for key, value in cfg.items():
+        if isinstance(value, float) and not np.isfinite(value):
+            raise bad(key, "a finite number", value)
+    size = cfg.get("image_size")
+    if isinstance(size, bool) or not isinstance(size, int) or size <= 0 or size % 32:
+        raise bad("image_size", "a positive multiple of 32 (pixels)", size)
+    pad = cfg.get("input_pad", 0)
+    if isinstance(pad, bool) or not isinstance(pad, int) or pad < 0 or pad % 16:
+        raise bad("input_pad", "a non-negative multiple of 16 (pixels)", pad)
+    side = size + 2 * pad
+    if side > MAX_INPUT_SIDE:
+        need = side * side * FORWARD_BYTES_PER_PIXEL
+        raise ValueError(f"checkpoint {path}: its config field 'image_size' ({size}, with input_pad {pad}) asks for "
+                         f"a {side} x {side} network input, about {need / 2**30:.3g} GiB for one frame; the limit "
+                         f"is {MAX_INPUT_SIDE} pixels a side")
+    if cfg.get("padding", "zeros") not in PADDINGS:
+        raise bad("padding", f"one of {', '.join(PADDINGS)}", cfg.get("padding"))
 
 
 @contextlib.contextmanager
@@ -303,9 +565,14 @@ def load_weights(model: torch.nn.Module, state: dict, path: str | os.PathLike) -
 def add_arguments_convert_checkpoint(parser) -> None:
     parser.description = (
         "Rewrite checkpoints written before the safe format (their numpy random state pickled as numpy "
-        "objects) so that they load with torch.load(weights_only=True). Only numpy's array reconstruction "
-        "is allowed while reading them; a file that names anything else is refused and left as it is.")
+        "objects) so that they load with torch.load(weights_only=True). Their numpy arrays are read as plain "
+        "numbers only (checked against the bytes present, in a child process with bounded memory); a file "
+        "that holds anything else is refused and left as it is. The original is never rewritten.")
     parser.add_argument("paths", nargs="+", help="checkpoint files, or folders searched for checkpoint.pt")
+    parser.add_argument("--out", default=None,
+                        help="write the converted checkpoint to this new file (one input file only); without it "
+                             f"the original is kept beside it as <name>{OLD_SUFFIX} and the converted file takes "
+                             "its name")
 
 
 def run_convert_checkpoint(args) -> int:
@@ -319,6 +586,9 @@ def run_convert_checkpoint(args) -> int:
             raise FileNotFoundError(f"checkpoint not found: {p}")
     if not files:
         raise FileNotFoundError(f"no {CHECKPOINT_NAME} under {', '.join(args.paths)}")
+    out = getattr(args, "out", None)
+    if out is not None and len(files) != 1:
+        raise ValueError(f"--out names one file, but {len(files)} checkpoints were found: convert them one at a time")
     for f in files:
         try:
             _load_safely(f)
@@ -328,8 +598,9 @@ def run_convert_checkpoint(args) -> int:
             pass
         if (f.parent / LOG_JSON).is_file():  # a training run's folder: not while a run writes there
             with utils.FolderLock(f.parent):
-                convert_checkpoint(f)
+                written = convert_checkpoint(f, out)
         else:
-            convert_checkpoint(f)
-        print(f"converted: {f}")
+            written = convert_checkpoint(f, out)
+        kept = f if out is not None else f.with_name(f.name + OLD_SUFFIX)
+        print(f"converted: {f} -> {written} (the original kept as {kept})")
     return 0

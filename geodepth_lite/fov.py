@@ -27,7 +27,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
-from .utils import FileProblem, os_reason
+from .utils import FileProblem, check_pixels, os_reason
 
 # --------------------------------------------------------------------------- detection thresholds
 DARK_MAX = 32  # 0-255: a pixel whose brightest channel is at most this is black (sensor black + JPEG noise < ~20)
@@ -220,7 +220,8 @@ def inset_boxes(rgb) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- user masks
-def read_mask(path, shape: tuple[int, int] | None = None, what: str = "mask") -> np.ndarray:
+def read_mask(path, shape: tuple[int, int] | None = None, what: str = "mask",
+              max_pixels: int | None = None) -> np.ndarray:
     """H x W bool of a mask image (any format PIL reads; nonzero = inside the field of view).
 
     ``shape`` (H, W): the frames' size it must have. Errors name the file (``what`` is how the
@@ -232,11 +233,16 @@ def read_mask(path, shape: tuple[int, int] | None = None, what: str = "mask") ->
         raise FileNotFoundError(f"{what} not found: {path}")
     try:
         with Image.open(path) as im:
+            check_pixels(*im.size, path, what, max_pixels)  # from the header, before decoding
             im.load()
             if im.mode in ("I", "I;16", "I;16B", "I;16L", "F"):
                 mask = np.asarray(im) != 0
             else:  # palette, grey, colour (alpha ignored): any channel above zero
                 mask = np.asarray(im.convert("RGB")).any(axis=-1)
+    except FileProblem:
+        raise
+    except Image.DecompressionBombError as exc:
+        raise FileProblem(f"cannot read {what} {path}: {exc}", path) from exc
     except (UnidentifiedImageError, OSError, ValueError) as exc:
         reason = "not an image file, or a damaged one" if isinstance(exc, UnidentifiedImageError) else os_reason(exc)
         raise FileProblem(f"cannot read {what} {path}: {reason}", path) from exc

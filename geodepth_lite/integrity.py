@@ -16,7 +16,11 @@ import hashlib
 import json
 from pathlib import Path
 
-from .utils import FileProblem, os_reason, write_bytes_atomic
+from .utils import MAX_DATASET_FILE_BYTES, FileProblem, inside_folder, os_reason, write_bytes_atomic
+
+MAX_MANIFEST_BYTES = 4 * 2**20  # a dataset's manifest.json, at most (as manifest.MAX_MANIFEST_BYTES)
+MAX_SPLIT_FRAMES = 10_000_000  # frames of one split, at most (as manifest's check of 'splits')
+MAX_CHECKSUMS_BYTES = 2**30  # checksums.sha256, at most
 
 
 def dataset_files(m: dict) -> list[str]:
@@ -57,14 +61,14 @@ def frame_counts(root: str | Path, m: dict) -> dict[str, tuple[int, int]]:
     root = Path(root)
     out = {}
     for split, n in m["splits"].items():
-        names = {}
-        for kind in ("rgb", "depth"):
-            try:
-                names[kind] = set(p.name for p in (root / split / kind).iterdir())
+        numbers = {}
+        for kind, ext in (("rgb", ".png"), ("depth", ".npy")):
+            try:  # the files there, not every number up to n: a manifest may claim far more frames
+                numbers[kind] = {int(p.name[:6]) for p in (root / split / kind).iterdir()
+                                 if len(p.name) == 10 and p.name.endswith(ext) and p.name[:6].isdigit()}
             except OSError:  # not there yet (or unreadable: counted as absent)
-                names[kind] = set()
-        out[split] = (sum(1 for i in range(n) if f"{i:06d}.png" in names["rgb"] and f"{i:06d}.npy" in names["depth"]),
-                      n)
+                numbers[kind] = set()
+        out[split] = (sum(1 for i in numbers["rgb"] & numbers["depth"] if i < n), n)
     return out
 
 
@@ -75,18 +79,24 @@ def _dataset_manifest(root: Path) -> tuple[dict | None, str | None]:
         return None, ("missing: manifest.json and checksums.sha256 (not a dataset written by synth, or synth "
                       "stopped before it began: run synth again)")
     try:
+        if mpath.stat().st_size > MAX_MANIFEST_BYTES:
+            raise ValueError(f"over the limit of {MAX_MANIFEST_BYTES} bytes for a manifest")
         m = json.loads(mpath.read_text())
     except OSError as exc:
         reason = os_reason(exc)
+    except RecursionError:
+        reason = "its JSON is nested too deep"
     except ValueError as exc:  # json.JSONDecodeError, UnicodeDecodeError
-        reason = f"not valid JSON: {exc}"
+        reason = f"not valid JSON: {exc}" if isinstance(exc, json.JSONDecodeError) else str(exc)
     else:
         splits = m.get("splits") if isinstance(m, dict) else None
         ok = (isinstance(splits, dict) and splits
               and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in splits.values()))
-        if ok:
+        too_many = ok and max(splits.values()) > MAX_SPLIT_FRAMES
+        if ok and not too_many:
             return m, None
-        reason = "no 'splits' object of frame counts"
+        reason = (f"'splits' claims {max(splits.values())} frames in one split, over the limit of "
+                  f"{MAX_SPLIT_FRAMES}" if too_many else "no 'splits' object of frame counts")
     return None, (f"unreadable: manifest.json ({reason}); checksums.sha256 is missing too, so the frames cannot "
                   "be counted: run synth again with --overwrite")
 
@@ -118,6 +128,8 @@ def verify(root: str | Path) -> list[str]:
     if not sums.is_file():
         return _incomplete(root)
     try:
+        if sums.stat().st_size > MAX_CHECKSUMS_BYTES:
+            return [f"unreadable: checksums.sha256 (over the limit of {MAX_CHECKSUMS_BYTES} bytes)"]
         text = sums.read_text()
     except (OSError, UnicodeDecodeError) as exc:
         return [f"unreadable: checksums.sha256 ({os_reason(exc) if isinstance(exc, OSError) else 'not a text file'})"]
@@ -130,8 +142,23 @@ def verify(root: str | Path) -> list[str]:
             problems.append(f"unreadable: checksums.sha256 line {line_no}")
             continue
         path = root / rel
-        if not path.exists():
+        if Path(rel).is_absolute() or ".." in Path(rel).parts:
+            problems.append(f"outside: {rel} (checksums.sha256 line {line_no} names a file outside the dataset "
+                            "folder; never read)")
+            continue
+        if not path.exists() and not path.is_symlink():
             problems.append(f"missing: {rel}")
+            continue
+        if inside_folder(root, rel) is None:
+            problems.append(f"outside: {rel} (checksums.sha256 line {line_no} names a link leading outside the "
+                            "dataset folder, or something other than a regular file; never read)"
+                            if path.is_symlink() or not path.resolve().is_relative_to(root.resolve())
+                            else f"unreadable: {rel} (not a regular file; never read)")
+            continue
+        size = path.stat().st_size
+        if size > MAX_DATASET_FILE_BYTES:
+            problems.append(f"unreadable: {rel} ({size} bytes, over the limit of {MAX_DATASET_FILE_BYTES} bytes "
+                            "for one file of a dataset)")
             continue
         try:
             actual = file_sha256(path)

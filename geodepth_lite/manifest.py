@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from . import appearance as ap
 from . import camera as cam
 from . import render as rd
 from . import tube as tb
-from .utils import FileProblem, manifests_dir, os_reason
+from .utils import MAX_PIXELS, FileProblem, manifests_dir, os_reason
 
 GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files (synth.py)
 SPLITS = ("train", "val", "test")
@@ -117,6 +118,8 @@ def _merge(field: str, base: dict, update: dict) -> dict:
 
 
 def _range(field: str, value, lo=None, hi=None, lo_open=False, hi_open=False) -> None:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"manifest field '{field}' must be a finite number, got {value!r}")
     bad = ((lo is not None and (value <= lo if lo_open else value < lo))
            or (hi is not None and (value >= hi if hi_open else value > hi)))
     if bad:
@@ -305,7 +308,53 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
     m["texture_sets"] = _library_entries("texture_sets", m["textures"], m["texture_sets"], rd.TEXTURES, _check_texture)
     m["lighting_sets"] = _library_entries("lighting_sets", m["lightings"], m["lighting_sets"], rd.LIGHTINGS,
                                           _check_lighting)
+    _check_finite("", m)
+    check_memory(m)
     return m
+
+
+def _check_finite(field: str, value, depth: int = 0) -> None:
+    """Every number anywhere in the manifest finite (JSON readers accept NaN and Infinity)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"manifest field '{field}' must be a finite number, got {value!r}")
+    if depth > MAX_JSON_DEPTH:
+        raise ValueError(f"manifest field '{field}' is nested over {MAX_JSON_DEPTH} deep")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_finite(f"{field}.{k}" if field else str(k), v, depth + 1)
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _check_finite(f"{field}[{i}]", v, depth + 1)
+
+
+# What one render may take: a tube mesh of at most MAX_MESH_VERTICES points (about
+# MESH_BYTES_PER_VERTEX each while it is built and traced), frames of at most utils.MAX_PIXELS.
+MAX_MESH_VERTICES = 4_000_000  # the shipped manifests' tubes have 20 000 to 60 000
+MESH_BYTES_PER_VERTEX = 400
+MAX_JSON_DEPTH = 64  # nesting of a manifest or a frames.jsonl record (the schema needs 4)
+MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file, at most
+
+
+def mesh_vertices(m: dict, organ: str) -> int:
+    """Points of the tube mesh ``tube.make_tube`` builds for ``organ`` under manifest ``m``."""
+    p, res = m["organ_presets"][organ], m["resolution"]
+    rings = max(math.ceil(float(p["length"]) / (float(res["ring_step"]) * float(p["radius"]))) + 1, 2)
+    return rings * (int(res["n_theta"]) + 1)
+
+
+def check_memory(m: dict) -> None:
+    """A ValueError naming the field when rendering ``m`` would need more than the bounds above."""
+    c = m["camera"]
+    if c["width"] * c["height"] > MAX_PIXELS:
+        raise ValueError(f"manifest fields 'camera.width' x 'camera.height' give {c['width']} x {c['height']} "
+                         f"pixels, over the limit of {MAX_PIXELS} pixels a frame")
+    for organ in m["organs"]:
+        n = mesh_vertices(m, organ)
+        if n > MAX_MESH_VERTICES:
+            raise ValueError(f"manifest field 'resolution.ring_step' ({m['resolution']['ring_step']!r}) with "
+                             f"'organ_presets.{organ}.length' / 'radius' asks for a tube mesh of {n} points "
+                             f"(about {n * MESH_BYTES_PER_VERTEX / 2**30:.3g} GiB), over the limit of "
+                             f"{MAX_MESH_VERTICES} points: use a larger ring_step or a shorter tube")
 
 
 # ----------------------------------------------------------------------------- loading
@@ -328,13 +377,27 @@ def load_manifest(name_or_path: str | Path, overrides: dict | None = None) -> di
     """Read, validate and resolve a manifest file (see ``resolve_manifest``)."""
     path = manifest_path(name_or_path)
     try:
+        if path.stat().st_size > MAX_MANIFEST_BYTES:
+            raise FileProblem(f"cannot read manifest {path}: {path.stat().st_size} bytes, over the limit of "
+                              f"{MAX_MANIFEST_BYTES} bytes for a manifest", path)
         raw = json.loads(path.read_text())
+    except FileProblem:
+        raise
     except json.JSONDecodeError as exc:
         raise ValueError(f"manifest {path.name} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"manifest {path} is not a usable manifest: its JSON is nested too deep "
+                         f"(a manifest nests at most {MAX_JSON_DEPTH} levels)") from None
     except (OSError, UnicodeDecodeError) as exc:
         reason = os_reason(exc) if isinstance(exc, OSError) else "not a text file"
         raise FileProblem(f"cannot read {path}: {reason}", path) from exc
-    return resolve_manifest(raw, overrides)
+    try:
+        return resolve_manifest(raw, overrides)
+    except RecursionError:
+        raise ValueError(f"manifest {path}: nested too deep (a manifest nests at most {MAX_JSON_DEPTH} levels)"
+                         ) from None
+    except ValueError as exc:
+        raise ValueError(f"manifest {path}: {exc}") from None
 
 
 def intrinsics_of(m: dict) -> np.ndarray:

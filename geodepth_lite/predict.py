@@ -254,12 +254,14 @@ def check_frame_size(width: int, height: int, what: str, path: Path) -> None:
                           f"(predict needs at least {MIN_SIDE} x {MIN_SIDE})", path)
 
 
-def read_frame(path: Path) -> np.ndarray:
+def read_frame(path: Path, max_pixels: int | None = None) -> np.ndarray:
     """H x W x 3 uint8 of an image file (``to_rgb8``); a FileProblem naming the file if it cannot
-    be decoded or is too small (``check_frame_size``)."""
+    be decoded, is too small (``check_frame_size``) or too large (over ``max_pixels``, default
+    ``utils.MAX_PIXELS``, checked from its header before decoding)."""
     try:
         with Image.open(path) as im:
             check_frame_size(*im.size, "image", path)
+            utils.check_pixels(*im.size, path, "image", max_pixels)
             im.load()
             return to_rgb8(im)
     except FileProblem:
@@ -321,7 +323,7 @@ def read_video(path: Path) -> Iterator[np.ndarray]:
             yield np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3).copy()
 
 
-def video_size(path: Path) -> tuple[int, int]:
+def video_size(path: Path, max_pixels: int | None = None) -> tuple[int, int]:
     """(width, height) of a video's frames; a FileProblem naming it if ffmpeg cannot read it or
     its frames are too small."""
     import imageio_ffmpeg  # optional ffmpeg binary, needed only for video input
@@ -332,14 +334,15 @@ def video_size(path: Path) -> tuple[int, int]:
     except Exception as exc:  # noqa: BLE001 - ffmpeg's errors come in many types; the message says why
         raise FileProblem(video_error(path, 0, exc), path) from exc
     check_frame_size(width, height, "video", path)
+    utils.check_pixels(width, height, path, "video", max_pixels)
     return width, height
 
 
-def first_frame_size(files: list[Path], kind: str) -> tuple[int, int]:
+def first_frame_size(files: list[Path], kind: str, max_pixels: int | None = None) -> tuple[int, int]:
     """(width, height) of the first frame that can be sized, (0, 0) if none; a video that cannot
-    be read is refused here, before any output is made."""
+    be read, or whose frames are over ``max_pixels``, is refused here, before any output is made."""
     if kind == "video":
-        return video_size(files[0])
+        return video_size(files[0], max_pixels)
     return next((s for s in map(_image_size, files) if s is not None), (0, 0))
 
 
@@ -360,7 +363,8 @@ def frame_output_bytes(width: int, height: int, ply: str = "points", stride: int
     return 4 * width * height + 128 + png_bytes(width, height) + panel_bytes + ply_bytes + 2048
 
 
-def iter_frames(files: list[Path], kind: str, failures: list[str]) -> Iterator[tuple[str, np.ndarray]]:
+def iter_frames(files: list[Path], kind: str, failures: list[str],
+                max_pixels: int | None = None) -> Iterator[tuple[str, np.ndarray]]:
     """(output name, H x W x 3 uint8) per frame; a file that cannot be used adds one message
     naming it to ``failures`` and the others are still read."""
     if kind == "video":
@@ -369,7 +373,7 @@ def iter_frames(files: list[Path], kind: str, failures: list[str]) -> Iterator[t
     names = _output_stems(files)
     for f in files:
         try:
-            rgb = read_frame(f)
+            rgb = read_frame(f, max_pixels)
         except FileProblem as exc:
             failures.append(str(exc))
             continue
@@ -629,7 +633,7 @@ def predict_into(out_dir: Path, files: list[Path], kind: str, model, cfg: dict, 
     filled from the inside (``fov.fill_outside``); its depth is NaN outside the field of view."""
     tally = Tally()
     total = len(files) if kind == "images" else None
-    frames = iter_frames(files, kind, tally.failures)
+    frames = iter_frames(files, kind, tally.failures, getattr(args, "max_pixels", None))
     with contextlib.closing(frames), tqdm(total=total, unit="frame", desc="predict", disable=args.no_progress,
                                           file=sys.stderr) as bar:
         for batch in _batches(masked_frames(frames, args.mask, given_mask, tally.failures), args.batch_size):
@@ -686,6 +690,9 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--panel", choices=tuple(PANELS), default="depth",
                         help="a side-by-side <name>_panel.png per frame: depth (default: frame | depth with its "
                         "colour bar), prior (and the shading prior 1/sqrt(brightness) beside them) or none")
+    parser.add_argument("--max-pixels", type=int, default=utils.MAX_PIXELS,
+                        help="refuse an image, mask or video frame of more pixels than this, read from its "
+                             f"header before decoding (default {utils.MAX_PIXELS})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -695,6 +702,8 @@ def _check_options(args: argparse.Namespace) -> None:
         raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.ply_stride < 1:
         raise ValueError(f"--ply-stride must be at least 1, got {args.ply_stride}")
+    if getattr(args, "max_pixels", 1) < 1:
+        raise ValueError(f"--max-pixels must be at least 1, got {args.max_pixels}")
     if args.fov is not None and not 0.0 < args.fov < 180.0:
         raise ValueError(f"--fov must be between 0 and 180 degrees, got {args.fov}")
     if args.intrinsics is not None and args.fov is not None:
@@ -711,10 +720,12 @@ def run_predict(args: argparse.Namespace) -> int:
     ckpt = Path(args.checkpoint)
     if not ckpt.is_file():
         raise FileNotFoundError(f"--checkpoint not found: {ckpt}")
-    width, height = first_frame_size(files, kind)
+    max_pixels = getattr(args, "max_pixels", None)
+    width, height = first_frame_size(files, kind, max_pixels)
     given_mask = None
     if args.mask not in MASK_CHOICES:  # one mask image for the run: read and sized before any work
-        given_mask = fov.read_mask(args.mask, (height, width) if width else None, what="--mask")
+        given_mask = fov.read_mask(args.mask, (height, width) if width else None, what="--mask",
+                                   max_pixels=max_pixels)
     need = frame_output_bytes(width, height, args.ply, args.ply_stride, args.panel) + ROOM_MARGIN
     new_folders = utils.missing_dirs(args.out)
     out_dir = utils.check_output_dir(args.out, need)  # creates --out; removes it again if it refuses

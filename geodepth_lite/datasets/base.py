@@ -25,6 +25,7 @@ from .synthetic import resize_frame
 # =========================================================================== reading pixels
 def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
     """A PNG's values divided by its dtype's maximum (8- or 16-bit), as float64 H x W."""
+    utils.check_image_file(path, "depth map")  # over utils.MAX_PIXELS: refused from the header
     arr = np.asarray(iio.imread(path))
     if arr.ndim == 3:
         arr = arr[..., channel if channel is not None else 0]
@@ -37,6 +38,7 @@ def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
 
 def read_png_raw(path: Path) -> np.ndarray:
     """A PNG's stored values (channel 0 of a multi-channel image), in its own dtype."""
+    utils.check_image_file(path, "depth map")  # over utils.MAX_PIXELS: refused from the header
     arr = np.asarray(iio.imread(path))
     if arr.ndim == 3:
         arr = arr[..., 0]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from .. import camera
+from .. import camera, utils
 from .base import PublicDepthDataset, numbered, pair_images_with_depths
 
 # Bobrow et al. 2023: <sequence>/<n>_color.png, <sequence>/<nnnn>_depth.tiff (16-bit,
@@ -74,6 +74,10 @@ class C3VDDataset(PublicDepthDataset):
     @staticmethod
     def decode_depth(path) -> tuple[np.ndarray, np.ndarray]:
         """C3VD ``*_depth.tiff``: 16-bit, 0..65535 -> 0..100 mm z-depth; raw 0 and 65535 are invalid."""
+        with tifffile.TiffFile(str(path)) as tif:  # its size from the header, before decoding
+            shape = tif.pages[0].shape if tif.pages else ()
+        if len(shape) >= 2:
+            utils.check_pixels(int(shape[1]), int(shape[0]), path, "depth map")
         raw = np.asarray(tifffile.imread(str(path)))
         if raw.ndim == 3:
             raw = raw[..., 0]

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from .. import camera as cam
 from .. import synth
-from ..utils import read_npy, read_rgb
+from ..utils import MAX_DATASET_FILE_BYTES, FileProblem, dataset_file, os_reason, read_npy, read_rgb
 
 
 def resize_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -68,7 +68,73 @@ def read_frames(root: str | Path, split: str) -> list[dict]:
         have = sorted(p.name for p in root.iterdir() if (p / "frames.jsonl").is_file())
         raise FileNotFoundError(f"dataset {root} has no split {split!r} (splits present: {', '.join(have) or 'none'}); "
                                 "an unfinished dataset is completed by running synth again")
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    size = path.stat().st_size
+    if size > MAX_DATASET_FILE_BYTES:
+        raise FileProblem(f"cannot read {path}: {size} bytes, over the limit of {MAX_DATASET_FILE_BYTES} bytes "
+                          "for one file of a dataset", path)
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
+        raise FileProblem(f"cannot read {path}: not a text file", path) from exc
+    covered = _checksummed(root)
+    records = []
+    for line_no, line in enumerate(text.splitlines(), 1):
+        if line.strip():
+            records.append(_frame_record(root, path, line_no, line, covered))
+    return records
+
+
+RECORD_TEXT_KEYS = ("rgb", "depth", "organ", "group")  # what every frames.jsonl record holds, with "K" and "index"
+
+
+def _checksummed(root: Path) -> set[str] | None:
+    """The file names checksums.sha256 lists (None when the dataset has none: synth did not finish,
+    and ``integrity.check_dataset`` decides whether it may be used)."""
+    sums = root / "checksums.sha256"
+    if not sums.is_file():
+        return None
+    try:
+        if sums.stat().st_size > MAX_DATASET_FILE_BYTES:
+            raise FileProblem(f"cannot read {sums}: over the limit of {MAX_DATASET_FILE_BYTES} bytes", sums)
+        return {line.partition("  ")[2] for line in sums.read_text().splitlines() if "  " in line}
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileProblem(f"cannot read {sums}: {os_reason(exc) if isinstance(exc, OSError) else 'not a text file'}",
+                          sums) from exc
+
+
+def _frame_record(root: Path, path: Path, line_no: int, line: str, covered: set[str] | None) -> dict:
+    """One frames.jsonl record, checked: its keys and types, K a finite 3x3, and its files regular
+    files inside the dataset folder, listed in checksums.sha256. A FileProblem naming the file and line."""
+    where = f"{path} line {line_no}"
+    try:
+        rec = json.loads(line)
+    except RecursionError:
+        raise FileProblem(f"cannot read {where}: its JSON is nested too deep", path) from None
+    except ValueError as exc:
+        raise FileProblem(f"cannot read {where}: not valid JSON ({exc})", path) from None
+    if not isinstance(rec, dict):
+        raise FileProblem(f"cannot read {where}: a frame record must be a JSON object", path)
+    missing = [k for k in (*RECORD_TEXT_KEYS, "K", "index") if k not in rec]
+    if missing:
+        raise FileProblem(f"cannot read {where}: the frame record lacks {', '.join(repr(k) for k in missing)}", path)
+    bad = [k for k in RECORD_TEXT_KEYS if not isinstance(rec[k], str)]
+    if bad:
+        raise FileProblem(f"cannot read {where}: {bad[0]!r} must be a string, got {str(rec[bad[0]])[:60]}", path)
+    if not isinstance(rec["index"], int) or isinstance(rec["index"], bool):
+        raise FileProblem(f"cannot read {where}: 'index' must be an integer, got {str(rec['index'])[:60]}", path)
+    try:
+        K = np.asarray(rec["K"], dtype=np.float64)
+    except (TypeError, ValueError):
+        K = None
+    if K is None or K.shape != (3, 3) or not np.isfinite(K).all():
+        raise FileProblem(f"cannot read {where}: 'K' must be a 3x3 matrix of finite numbers, got "
+                          f"{str(rec['K'])[:60]}", path)
+    for key in ("rgb", "depth"):
+        dataset_file(root, rec[key], key, where)  # confined, regular, bounded
+        if covered is not None and str(Path(rec[key])) not in covered and rec[key] not in covered:
+            raise FileProblem(f"cannot use {where}: its {key} file {rec[key]} is not listed in "
+                              f"{root / 'checksums.sha256'}, so it cannot be verified", path)
+    return rec
 
 
 def _size(image_size) -> tuple[int, int] | None:
@@ -98,7 +164,12 @@ class SyntheticDepthDataset(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> dict:
         rec = self.frames[i]
         rgb = read_rgb(self.root / rec["rgb"])  # a damaged file is named (utils.FileProblem)
-        depth = read_npy(self.root / rec["depth"])
+        depth_path = self.root / rec["depth"]
+        depth = read_npy(depth_path)
+        if depth.ndim != 2 or depth.shape != rgb.shape[:2]:
+            raise FileProblem(f"cannot use {depth_path}: a depth map of shape {depth.shape} for an image of "
+                              f"{rgb.shape[1]} x {rgb.shape[0]} pixels (it must be H x W, the image's size)",
+                              depth_path)
         image = torch.from_numpy(rgb.copy()).permute(2, 0, 1).float() / 255.0
         depth_t = torch.from_numpy(depth.astype(np.float32, copy=False))[None]
         K = np.asarray(rec["K"], dtype=np.float64)
