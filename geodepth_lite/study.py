@@ -131,14 +131,14 @@ def read_tables(folder: str | Path | None = None, frames: bool = False) -> dict:
     """The study's tables from ``folder`` (default: the committed ``notebooks/study/``), numbers as
     floats: {"runs": [...], "baselines": [...], "frames": [...] (only with ``frames``)}."""
     folder = Path(folder) if folder else committed_dir()
-    tables = {"runs": [_typed(r) for r in _read(folder / "runs.csv")],
-              "baselines": [_typed(r) for r in _read(folder / "baselines.csv")]}
+    tables = {"runs": [typed_row(r) for r in _read(folder / "runs.csv")],
+              "baselines": [typed_row(r) for r in _read(folder / "baselines.csv")]}
     if frames:
-        tables["frames"] = [_typed(r) for r in _read(folder / "frames.csv.gz")]
+        tables["frames"] = [typed_row(r) for r in _read(folder / "frames.csv.gz")]
     return tables
 
 
-def _typed(row: dict) -> dict:
+def typed_row(row: dict) -> dict:
     """A table row with its numbers as int or float (as a CSV round trip gives them)."""
     out = {}
     for k, v in row.items():
@@ -197,7 +197,7 @@ def retrain_subset(profile: str = "teach", seeds=DEFAULT_SEEDS, *, workers: int 
     checkpoints = {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
     sets = evaluation_sets(profile, progress=progress)
     rows, _ = score(checkpoints, sets, progress=progress)
-    return {"runs": [_typed(r) for r in rows], "baselines": [_typed(r) for r in score_baselines(profile, sets)],
+    return {"runs": [typed_row(r) for r in rows], "baselines": [typed_row(r) for r in score_baselines(profile, sets)],
             "checkpoints": checkpoints}
 
 

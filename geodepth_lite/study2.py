@@ -100,10 +100,10 @@ def read_tables(folder: str | Path | None = None, frames: bool = False) -> dict:
         raise FileNotFoundError(f"the second study's tables not found: no folder {folder} "
                                 "(`python -m geodepth_lite reproduce --study2` writes them)")
     hint = " (`python -m geodepth_lite reproduce --study2` writes it)"
-    out = {"runs": [study._typed(r) for r in tbl.read_csv(folder / "runs.csv", hint)],
-           "baselines": [study._typed(r) for r in tbl.read_csv(folder / "baselines.csv", hint)]}
+    out = {"runs": [study.typed_row(r) for r in tbl.read_csv(folder / "runs.csv", hint)],
+           "baselines": [study.typed_row(r) for r in tbl.read_csv(folder / "baselines.csv", hint)]}
     if frames:
-        out["frames"] = [study._typed(r) for r in tbl.read_csv(folder / "frames.csv.gz", hint)]
+        out["frames"] = [study.typed_row(r) for r in tbl.read_csv(folder / "frames.csv.gz", hint)]
     return out
 
 
