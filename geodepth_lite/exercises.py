@@ -148,6 +148,18 @@ def _nbgrader_env() -> dict:
     return env
 
 
+def run_nbgrader(args: list[str], root: Path, what: str) -> subprocess.CompletedProcess:
+    """``python -m nbgrader <args>`` in the course folder ``root`` (its ``nbgrader_config.py`` applies);
+    a ValueError "cannot <what>: nbgrader <command> failed: <its last error lines>" when it fails."""
+    cmd = [sys.executable, "-m", "nbgrader", *args, f"--CourseDirectory.root={root}", "--log-level=WARN"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_nbgrader_env(), cwd=root)
+    if proc.returncode != 0:
+        lines = (proc.stderr or proc.stdout).strip().splitlines()
+        errors = [ln for ln in lines if "[ERROR]" in ln or "Error" in ln] or lines
+        raise ValueError(f"cannot {what}: nbgrader {args[0]} failed: " + " | ".join(errors[-3:]))
+    return proc
+
+
 NOTEBOOK_MAX_BYTES = 64 * 2**20  # a lesson notebook with its figures is a few MB
 
 
@@ -281,14 +293,11 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
         source.mkdir(parents=True)
         for nb in sources:
             shutil.copy2(nb, source / nb.name)
-        cmd = [sys.executable, "-m", "nbgrader", "generate_assignment", ASSIGNMENT, "--force",
-               f"--CourseDirectory.root={tmp}", "--log-level=WARN"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=_nbgrader_env(), cwd=tmp)
+        names = ", ".join(nb.name for nb in sources)
+        run_nbgrader(["generate_assignment", ASSIGNMENT, "--force"], Path(tmp), f"release {names}")
         released = Path(tmp, "release", ASSIGNMENT)
-        if proc.returncode != 0 or not released.is_dir():
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-            names = ", ".join(nb.name for nb in sources)
-            raise ValueError(f"cannot release {names}: nbgrader generate_assignment failed: " + " | ".join(tail))
+        if not released.is_dir():
+            raise ValueError(f"cannot release {names}: nbgrader generate_assignment wrote no release folder")
         for nb, source_nb in sources.items():
             problems = leaks(source_nb, read_notebook(released / nb.name, solutions=False))
             if problems:
