@@ -193,6 +193,71 @@ def release(course: Path) -> list[Path]:
     return written
 
 
+# ----------------------------------------------------------------------------------------- the student edition
+def holds_solutions(path: Path) -> bool:
+    """Whether a notebook has a solution region (a line that is a solution marker) in any cell."""
+    nb = exercises.read_notebook(path, solutions=False)
+    return any(ln.strip() in exercises.SOLUTION_MARKERS for c in nb["cells"] for ln in
+               "".join(c.get("source", "")).splitlines())
+
+
+def edition_files(root: Path) -> tuple[list[str], list[str]]:
+    """(files of the checkout ``root`` that the student edition copies, notebooks it leaves out): every
+    file git tracks but the notebooks that hold solutions."""
+    tracked = exercises.git_tracked(root)
+    if not tracked:
+        raise FileNotFoundError(f"cannot list the files of {root}: the student edition is made from a git "
+                                "checkout of geodepth-lite (git ls-files)")
+    keep, dropped = [], []
+    for rel in tracked:
+        is_solution = rel.endswith(".ipynb") and (root / rel).is_file() and holds_solutions(root / rel)
+        (dropped if is_solution else keep).append(rel)
+    return keep, dropped
+
+
+def edition(course: Path, out: Path) -> dict:
+    """Write the student edition to the new folder ``out``: the checkout this package runs from (the
+    files git tracks, as they are in the work tree) without any notebook that holds solutions, and
+    the course's released notebooks in ``notebooks/`` in their place. Returns a summary."""
+    course, out = Path(course), Path(out)
+    names = open_course(course)
+    released = sorted(p for name in names for p in (course / "release" / name).glob("*.ipynb"))
+    if not released:
+        raise utils.FileProblem(f"cannot write the student edition from {course}: nothing is released yet; run "
+                                "`course release` first", course)
+    root = utils.project_root()
+    if root is None:
+        raise FileNotFoundError("cannot write the student edition: this package does not run from a checkout")
+    if out.resolve() == root or root in out.resolve().parents:
+        raise utils.FileProblem(f"cannot write the student edition into {out}: it lies inside the checkout {root}; "
+                                "choose a folder outside it", out)
+    check_new_folder(out, "student edition")
+    keep, dropped = edition_files(root)
+    for nb in released:
+        if holds_solutions(nb):
+            raise ValueError(f"cannot hand out {nb}: it holds a solution region")
+    created = utils.missing_dirs(out)
+    utils.check_output_dir(out)
+    try:
+        with utils.FolderLock(out, "output folder", remove_file=True), course_lock(course):
+            check_new_folder(out, "student edition")  # again, under the lock: empty, so all in it is ours
+            try:
+                for rel in keep:
+                    if (root / rel).is_file() and not (root / rel).is_symlink():
+                        utils.write_bytes_atomic(out / rel, (root / rel).read_bytes())
+                for nb in released:
+                    utils.write_bytes_atomic(out / "notebooks" / nb.name, nb.read_bytes())
+            except BaseException:
+                for child in out.iterdir():
+                    if child.name != utils.LOCK_NAME:
+                        shutil.rmtree(child) if child.is_dir() else child.unlink()
+                raise
+    except BaseException:
+        utils.remove_empty_dirs(created)
+        raise
+    return {"copied": len(keep), "left_out": dropped, "released": [nb.name for nb in released]}
+
+
 # ----------------------------------------------------------------------------------------- collect
 def _returned_notebooks(subs: Path, course: Path, names: list[str]) -> tuple[list[tuple[Path, Path]], list[Path]]:
     """(source file, target in submitted/) for each returned notebook, all checked; and the files skipped
@@ -327,9 +392,6 @@ def write_grades(course: Path, out: Path) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------------------- command line
-ACTIONS = ("init", "release", "collect", "autograde", "feedback", "grades")
-
-
 def add_arguments_course(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="action", metavar="<action>", required=True)
     a = sub.add_parser("init", help="make a course folder (nbgrader's layout) from notebooks 01-07")
@@ -338,6 +400,7 @@ def add_arguments_course(p: argparse.ArgumentParser) -> None:
     a.add_argument("--notebooks", nargs="+", type=Path, default=None,
                    help="the notebooks that become assignments (default: 01-07 of notebooks/)")
     helps = {"release": "write the student release (release/<assignment>/) and enter it into the gradebook",
+             "edition": "write the student edition: the checkout without solution notebooks, the release in its place",
              "collect": "copy returned notebooks SUBMISSIONS/<student>/... into submitted/<student>/<assignment>/",
              "autograde": "autograde every collected submission (hidden tests put back)",
              "feedback": "write an HTML feedback page per graded notebook (feedback/)",
@@ -349,6 +412,9 @@ def add_arguments_course(p: argparse.ArgumentParser) -> None:
             a.add_argument("submissions", type=Path, help="a folder holding one folder per student")
         if action == "grades":
             a.add_argument("--out", type=Path, default=Path("grades.csv"), help="the CSV (default: grades.csv)")
+        if action == "edition":
+            a.add_argument("--out", type=Path, default=Path("student-edition"),
+                           help="the new folder for the student edition (default: student-edition)")
 
 
 def _report(args) -> str:
@@ -359,6 +425,11 @@ def _report(args) -> str:
                 f"{manual} open-ended exercises graded by hand; cell timeout {info['timeout']} s")
     if args.action == "release":
         return f"released {len(release(args.course))} notebooks into {args.course / 'release'}"
+    if args.action == "edition":
+        info = edition(args.course, args.out)
+        return (f"student edition {args.out}: {info['copied']} files of the checkout, without "
+                f"{', '.join(info['left_out']) or 'no notebook'}; {len(info['released'])} released notebooks in "
+                f"{args.out / 'notebooks'}")
     if args.action == "collect":
         info = collect(args.course, args.submissions)
         note = f"; skipped {len(info['skipped'])} other files (first {info['skipped'][0]})" if info["skipped"] else ""

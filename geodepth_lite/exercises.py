@@ -206,7 +206,7 @@ def read_notebook(path: Path, solutions: bool = True) -> dict:
     return nb
 
 
-def _git_tracked(folder: Path) -> list[str] | None:
+def git_tracked(folder: Path) -> list[str] | None:
     """The files git tracks in ``folder`` (or under it), where ``folder`` lies in a git work tree; None
     where there is no git, or no work tree around it."""
     existing = folder.absolute()
@@ -241,7 +241,7 @@ def check_release_folder(out: Path, force: bool = False) -> None:
                                 "another --out", out)
     if os.path.lexists(out) and not out.is_dir():
         raise utils.FileProblem(f"cannot write the student release into {out}: a file of that name exists", out)
-    tracked = _git_tracked(out) if out.exists() else None
+    tracked = git_tracked(out) if out.exists() else None
     if tracked:
         raise utils.FileProblem(f"cannot write the student release into {out}: it holds {len(tracked)} file(s) "
                                 f"of the checkout tracked by git (first {tracked[0]}); choose another --out "

@@ -8,8 +8,13 @@ notebooks 01-07 would take many minutes): an answer cell with a solution region 
 cell with hidden tests per exercise, the last one open-ended."""
 
 import csv
+import hashlib
 import json
 import os
+import shutil
+import subprocess
+import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -230,3 +235,135 @@ def test_autograde_without_a_release_is_one_line(tiny_course, capsys):
     assert cli.main(["course", "autograde", "--course", str(tiny_course)]) == 2
     one_line_error(capsys, str(tiny_course), "course release")
     assert sorted(os.listdir(tiny_course)) == ["nbgrader_config.py", "source"]  # no gradebook made, no lock left
+
+
+# ----------------------------------------------------------------------------------------- what students get
+# Lines of the notebooks' solutions that the package (or a test) holds as its own code: the library the
+# lessons use implements what some exercises ask for (02-2 and 02-4 in model.py, 05-2's Holm rule in
+# ablation.py, 06-1's bands in border.py; 01-3/01-4's pixel grid in a test). Pinned by the SHA-256 of
+# the line (this file ships to students too, so it must not hold the lines themselves): any other
+# solution line in what students get fails the tests below.
+SHARED_WITH_THE_PROJECT = {
+    "320c96563e2be11a": {"tests/test_render.py"},
+    "603da3fc218796a7": {"geodepth_lite/model.py"},
+    "03d402e8058d6f40": {"geodepth_lite/model.py"},
+    "ac6de9fa23fc3050": {"geodepth_lite/ablation.py"},
+    "b332d63d46722f4b": {"geodepth_lite/border.py"},
+    "693a347d777327f5": {"geodepth_lite/border.py"},
+}
+
+
+def _digest(line: str) -> str:
+    return hashlib.sha256(line.encode()).hexdigest()[:16]
+
+
+def solution_texts() -> dict[str, str]:
+    """Each non-trivial line of every solution region of notebooks 01-07 (not a comment, 12 characters or
+    more, not given away by the lessons' own text outside the solutions) -> its exercise."""
+    books = {p: json.loads(p.read_text()) for p in exercises.notebook_paths()}
+    public = "\n".join(ln for nb in books.values() for c in nb["cells"] for ln in "".join(c["source"]).splitlines()
+                       if ln.strip() not in exercises.SOLUTION_MARKERS and not _in_solution(c, ln))
+    out = {}
+    for p, nb in books.items():
+        for ex in exercises.collect(nb).values():
+            for ln in exercises.solution_lines(ex.answer):
+                if not ln.startswith("#") and len(ln) >= 12 and ln not in public:
+                    out[ln] = f"{p.name} exercise {ex.ident}"
+    return out
+
+
+def _in_solution(cell, line) -> bool:
+    return line.strip() in {ln.strip() for ln in exercises._split_solutions("".join(cell["source"]))[0]}
+
+
+def solution_leaks(files: dict[str, str]) -> list[str]:
+    """What of the solutions ``files`` (name -> text) hold: marker lines, and solution lines (whole
+    lines, or inside a line for those of 20 characters or more) beyond SHARED_WITH_THE_PROJECT."""
+    found = []
+    texts = solution_texts()
+    for name, text in files.items():
+        lines = {ln.strip() for ln in text.splitlines()}
+        found += [f"{name}: {m}" for m in (*exercises.SOLUTION_MARKERS, *exercises.HIDDEN_MARKERS) if m in lines]
+        for ln, where in texts.items():
+            if (ln in lines or (len(ln) >= 20 and ln in text)) and name not in SHARED_WITH_THE_PROJECT.get(
+                    _digest(ln), ()):
+                found.append(f"{name}: {where}: {ln!r}")
+    return found
+
+
+def notebook_strings(obj) -> list[str]:
+    """Every string in a notebook's JSON (sources, outputs, metadata)."""
+    if isinstance(obj, str):
+        return [obj]
+    if isinstance(obj, dict):
+        return [s for v in obj.values() for s in notebook_strings(v)]
+    if isinstance(obj, list):
+        return [s for v in obj for s in notebook_strings(v)]
+    return []
+
+
+def _text_files(folder: Path) -> dict[str, str]:
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        if p.is_file() and p.name != ".lock":
+            raw = p.read_bytes()
+            if p.suffix == ".ipynb":
+                out[str(p.relative_to(folder))] = "\n".join(notebook_strings(json.loads(raw)))
+            elif b"\0" not in raw[:4096]:
+                out[str(p.relative_to(folder))] = raw.decode("utf-8", errors="replace")
+    return out
+
+
+def test_the_leak_scan_finds_a_solution_line_and_a_marker():
+    texts = solution_texts()
+    assert len(texts) > 100  # 26 exercises' solutions
+    line = next(iter(texts))
+    assert solution_leaks({"notes.md": f"x\n    {line}\n"}) and solution_leaks({"a.py": "### BEGIN SOLUTION\n"})
+    shared = next(ln for ln in texts if _digest(ln) in SHARED_WITH_THE_PROJECT)
+    assert solution_leaks({"geodepth_lite/new.py": shared})  # shared only where pinned
+    assert solution_leaks({name: shared for name in SHARED_WITH_THE_PROJECT[_digest(shared)]}) == []
+    assert {_digest(ln) for ln in texts} >= set(SHARED_WITH_THE_PROJECT)  # each pin is still a solution line
+
+
+def test_the_package_pip_installs_holds_no_notebook_and_no_solution(tmp_path):
+    """Build the wheel `python -m pip install .` would install (offline, from a copy of the sources)."""
+    pytest.importorskip("setuptools")
+    root = exercises.NOTEBOOK_DIR.parent
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        (src / name).write_bytes((root / name).read_bytes())
+    shutil.copytree(root / "geodepth_lite", src / "geodepth_lite", ignore=shutil.ignore_patterns("__pycache__"))
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
+                           "-q", ".", "-w", str(tmp_path / "wheel")], cwd=src, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    (wheel,) = (tmp_path / "wheel").glob("*.whl")
+    with zipfile.ZipFile(wheel) as zf:
+        names = zf.namelist()
+        files = {n: zf.read(n).decode("utf-8", errors="replace") for n in names}
+    assert not [n for n in names if n.endswith(".ipynb")]
+    assert all(n.startswith(("geodepth_lite/", "geodepth_lite-")) for n in names), names
+    assert "geodepth_lite/course.py" in names and "geodepth_lite/exercises.py" in names
+    assert solution_leaks(files) == []
+
+
+@pytest.mark.slow
+def test_the_student_edition_holds_no_solution(tiny_course, tmp_path, capsys):
+    """course edition: the checkout without the notebooks that hold solutions, the release in their place."""
+    course.release(tiny_course)
+    out = tmp_path / "edition"
+    assert cli.main(["course", "edition", "--course", str(tiny_course), "--out", str(out)]) == 0
+    assert "without notebooks/01_synthetic_dataset.ipynb" in capsys.readouterr().out
+    notebooks = sorted(p.name for p in (out / "notebooks").glob("*.ipynb"))
+    assert notebooks == ["00_overview.ipynb", f"{TINY}.ipynb"]  # 01-07 left out: they hold the solutions
+    assert (out / "data_manifests").is_dir() and (out / "geodepth_lite" / "course.py").is_file()
+    assert not any(course.holds_solutions(p) for p in out.rglob("*.ipynb"))
+    assert solution_leaks(_text_files(out)) == []
+    assert not (out / ".lock").exists()
+    assert cli.main(["course", "edition", "--course", str(tiny_course), "--out", str(out)]) == 2  # never again
+    one_line_error(capsys, str(out), "not an empty folder")
+    inside = exercises.NOTEBOOK_DIR.parent / "student-edition-test"
+    assert cli.main(["course", "edition", "--course", str(tiny_course), "--out", str(inside)]) == 2
+    one_line_error(capsys, str(inside), "inside the checkout")
+    assert not inside.exists()
