@@ -46,7 +46,8 @@ def _exercise(n, title, level, points, answer, check):
 
 
 ANSWERS = {  # exercise -> (the source's answer cell, a plausible wrong answer a student returns)
-    1: ("my_sum = None\n### BEGIN SOLUTION\nmy_sum = 2 + 3\n### END SOLUTION", "my_sum = 2 * 3"),
+    1: ("my_sum = None\n### BEGIN SOLUTION\nmy_sum = 2 + 3\n### END SOLUTION",
+        "import time\n\ntime.sleep(40)  # a loop that takes too long: the cell timeout stops it\nmy_sum = 2 + 3"),
     2: ("def square(x):\n    ### BEGIN SOLUTION\n    return x * x\n    ### END SOLUTION",
         "def square(x):\n    return 3 * x  # right for 3 only: the hidden test catches it"),
     3: ("why = None\n### BEGIN SOLUTION\nwhy = 'a square multiplies a number by itself, so it outgrows a sum'\n"
@@ -190,6 +191,9 @@ def test_collect_refuses_with_one_line_naming_the_file(tiny_course, tmp_path, ca
 def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path, capsys):
     """release -> collect -> autograde -> feedback -> grades, with nbgrader itself (about 30 s)."""
     run = ["--course", str(tiny_course)]
+    config = tiny_course / course.CONFIG
+    assert f"c.Execute.timeout = {course.TIMEOUT_MIN_S}\n" in config.read_text()
+    config.write_text(config.read_text().replace(f"timeout = {course.TIMEOUT_MIN_S}", "timeout = 8"))
     assert cli.main(["course", "release", *run]) == 0
     released = tiny_course / "release" / TINY / f"{TINY}.ipynb"
     text = released.read_text()
@@ -203,11 +207,13 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert cli.main(["course", "feedback", *run]) == 0
     for who in ("right", "wrong", "untouched"):
         assert (tiny_course / "feedback" / who / TINY / f"{TINY}.html").is_file()
+    assert "CellTimeoutError" in (tiny_course / "autograded" / "wrong" / TINY / f"{TINY}.ipynb").read_text()
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
     rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
     # all right: 2 + 3 automatically, the open answer (4) waits for a hand grade; all wrong: 0 (the
-    # hidden test catches 3 * x), its eight-word "why" earns nothing automatically; untouched: 0, and
-    # its unchanged open answer is a 0 nobody needs to grade
+    # course's 8 s timeout stops the 40 s answer, which nbgrader's default 30 s would have let finish
+    # right; the hidden test catches 3 * x), its eight-word "why" earns nothing automatically;
+    # untouched: 0, and its unchanged open answer is a 0 nobody needs to grade
     assert {who: (float(r["points"]), float(r["max_points"]), int(r["needs_manual_grading"]),
                   float(r["pending_max_points"])) for who, r in rows.items()} == {
         "right": (5.0, 9.0, 1, 4.0), "wrong": (0.0, 9.0, 1, 4.0), "untouched": (0.0, 9.0, 0, 0.0)}
