@@ -25,6 +25,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import shutil
 from datetime import datetime, timezone
@@ -259,6 +260,17 @@ def edition(course: Path, out: Path) -> dict:
 
 
 # ----------------------------------------------------------------------------------------- collect
+def _files_under(folder: Path) -> list[Path]:
+    """The files under ``folder`` (hidden names skipped), never following a link to a folder: such a
+    link comes back as an entry, for the caller to refuse."""
+    found = []
+    for top, dirs, files in os.walk(folder, followlinks=False):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        found += [Path(top, d) for d in dirs if Path(top, d).is_symlink()]
+        found += [Path(top, f) for f in sorted(files) if not f.startswith(".")]
+    return found
+
+
 def _returned_notebooks(subs: Path, course: Path, names: list[str]) -> tuple[list[tuple[Path, Path]], list[Path]]:
     """(source file, target in submitted/) for each returned notebook, all checked; and the files skipped
     (not a notebook of the course). A ValueError or FileProblem names the first file refused."""
@@ -274,9 +286,7 @@ def _returned_notebooks(subs: Path, course: Path, names: list[str]) -> tuple[lis
         if not STUDENT_ID.match(student_dir.name):
             raise utils.FileProblem(f"cannot collect {student_dir}: a student folder is named by 1-64 letters, "
                                     "digits, '_' or '-'", student_dir)
-        for path in sorted(student_dir.rglob("*")):
-            if any(part.startswith(".") for part in path.relative_to(student_dir).parts) or path.is_dir():
-                continue
+        for path in _files_under(student_dir):
             if path.is_symlink() or root not in path.resolve().parents:
                 raise utils.FileProblem(f"cannot collect {path}: a link, or a file outside {subs}", path)
             if path.name not in expected:

@@ -162,7 +162,7 @@ def test_collect_copies_into_submitted_and_never_replaces(tiny_course, tmp_path,
     assert (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes() == nb
 
 
-@pytest.mark.parametrize("case", ["link", "outside", "damaged", "student name", "no course"])
+@pytest.mark.parametrize("case", ["link", "outside", "linked folder", "damaged", "student name", "no course"])
 def test_collect_refuses_with_one_line_naming_the_file(tiny_course, tmp_path, capsys, case):
     secret = tmp_path / "secret.ipynb"
     secret.write_text("{}")
@@ -174,6 +174,9 @@ def test_collect_refuses_with_one_line_naming_the_file(tiny_course, tmp_path, ca
     elif case == "outside":
         named = subs / "cy"
         named.symlink_to(tmp_path, target_is_directory=True)
+    elif case == "linked folder":  # a folder inside a student's folder that links back up: never walked
+        named = subs / "bo" / TINY
+        named.symlink_to(subs, target_is_directory=True)
     elif case == "damaged":
         named.write_bytes(b'{"cells": [1, 2')
     elif case == "student name":
