@@ -335,5 +335,6 @@ def run_exercises(args) -> int:
     written = release(args.out, force=args.force)
     counts = {p.name: len(collect(read_notebook(p))) for p in notebook_paths()}
     print(f"student release: {len(written)} notebooks, {sum(counts.values())} exercises, in {args.out}")
-    print("grade them with nbgrader (its autograde puts the hidden tests back); solutions stay in notebooks/")
+    print("solutions stay in notebooks/: do not hand that folder out; a whole course (student edition, collect, "
+          "autograde, grades): python -m geodepth_lite course --help, docs/teaching.md")
     return 0
