@@ -122,6 +122,18 @@ def check_new_folder(out: Path, what: str) -> None:
                                 "choose a new folder (nothing there is ever replaced)", out)
 
 
+def _write_source(out: Path, nb: Path, content: dict) -> list[str]:
+    """``source/<assignment>/<notebook>`` of the course: open-ended exercises graded by hand, outputs
+    cleared (nothing of a run goes to students). Returns the hand-graded exercises."""
+    manual = grade_by_hand(content)
+    for cell in content["cells"]:
+        if cell["cell_type"] == "code":
+            cell["outputs"], cell["execution_count"] = [], None
+    target = out / "source" / assignment_name(nb) / nb.name
+    utils.write_bytes_atomic(target, (json.dumps(content, indent=1, ensure_ascii=False) + "\n").encode())
+    return manual
+
+
 def init(out: Path, notebooks: list[Path] | None = None, course_id: str = COURSE_ID) -> dict:
     """Write a new course folder ``out``: ``nbgrader_config.py`` and ``source/<assignment>/<notebook>``
     for each notebook (default 01-07), open-ended exercises marked for hand grading. Returns a summary."""
@@ -130,6 +142,10 @@ def init(out: Path, notebooks: list[Path] | None = None, course_id: str = COURSE
         raise FileNotFoundError(f"no notebook with exercises under {exercises.NOTEBOOK_DIR}")
     if not re.match(r"^[A-Za-z0-9_-]{1,64}$", course_id):
         raise ValueError(f"course id must be 1-64 letters, digits, '_' or '-', got {course_id!r}")
+    names = [assignment_name(nb) for nb in notebooks]
+    if len(set(names)) != len(names):
+        twice = next(nb for nb in notebooks if names.count(assignment_name(nb)) > 1)
+        raise ValueError(f"cannot make a course of {twice}: two notebooks named {twice.name} would be one assignment")
     out = Path(out)
     check_new_folder(out, "course")
     sources = {nb: exercises.read_notebook(nb) for nb in notebooks}
@@ -139,19 +155,15 @@ def init(out: Path, notebooks: list[Path] | None = None, course_id: str = COURSE
     utils.check_output_dir(out)
     try:
         with utils.FolderLock(out, "course folder", remove_file=True):
-            check_new_folder(out, "course")
-            manual = {}
-            for nb, content in sources.items():
-                manual[nb.name] = grade_by_hand(content)
-                for cell in content["cells"]:  # the source holds no outputs: nothing of a run goes to students
-                    if cell["cell_type"] == "code":
-                        cell["outputs"], cell["execution_count"] = [], None
-                target = out / "source" / assignment_name(nb) / nb.name
-                utils.write_bytes_atomic(target, (json.dumps(content, indent=1, ensure_ascii=False) + "\n").encode())
-            utils.write_bytes_atomic(out / CONFIG, _config_text(course_id, timeout, slowest).encode())
+            check_new_folder(out, "course")  # again, under the lock: empty, so all in it is ours
+            try:
+                manual = {nb.name: _write_source(out, nb, content) for nb, content in sources.items()}
+                utils.write_bytes_atomic(out / CONFIG, _config_text(course_id, timeout, slowest).encode())
+            except BaseException:
+                shutil.rmtree(out / "source", ignore_errors=True)
+                (out / CONFIG).unlink(missing_ok=True)
+                raise
     except BaseException:
-        if created or not (out / CONFIG).exists():  # only what this call wrote into the (new or empty) folder
-            shutil.rmtree(out / "source", ignore_errors=True)
         utils.remove_empty_dirs(created)
         raise
     return {"assignments": [assignment_name(nb) for nb in notebooks], "timeout": timeout, "slowest": slowest,

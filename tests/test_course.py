@@ -240,6 +240,16 @@ def _grade_by_hand(root: Path, student: str, grade_id: str, score: float) -> Non
         gb.db.commit()
 
 
+def test_a_busy_course_folder_is_refused_before_any_work(tiny_course, tmp_path, capsys):
+    from geodepth_lite import utils
+
+    subs = _submissions(tmp_path, {f"ana/{TINY}.ipynb": (tmp_path / f"{TINY}.ipynb").read_bytes()})
+    with utils.FolderLock(tiny_course, "course folder"):
+        assert cli.main(["course", "collect", str(subs), "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, str(tiny_course), "in use by process")
+    assert not (tiny_course / "submitted").exists()
+
+
 def test_autograde_without_a_release_is_one_line(tiny_course, capsys):
     assert cli.main(["course", "autograde", "--course", str(tiny_course)]) == 2
     one_line_error(capsys, str(tiny_course), "course release")
