@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bundle": ("geodepth_lite.bundle", "pack a profile's trained models into one file to hand out (a class bundle)"),
     "unbundle": ("geodepth_lite.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
     "exercises": ("geodepth_lite.exercises", "write the student release of the notebooks' graded exercises (nbgrader)"),
+    "course": ("geodepth_lite.course", "run a course with nbgrader: release, collect, autograde, feedback, grades"),
 }
 
 

@@ -148,6 +148,18 @@ def _nbgrader_env() -> dict:
     return env
 
 
+def run_nbgrader(args: list[str], root: Path, what: str) -> subprocess.CompletedProcess:
+    """``python -m nbgrader <args>`` in the course folder ``root`` (its ``nbgrader_config.py`` applies);
+    a ValueError "cannot <what>: nbgrader <command> failed: <its last error lines>" when it fails."""
+    cmd = [sys.executable, "-m", "nbgrader", *args, f"--CourseDirectory.root={root}", "--log-level=WARN"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_nbgrader_env(), cwd=root)
+    if proc.returncode != 0:
+        lines = (proc.stderr or proc.stdout).strip().splitlines()
+        errors = [ln for ln in lines if "[ERROR]" in ln or "Error" in ln] or lines
+        raise ValueError(f"cannot {what}: nbgrader {args[0]} failed: " + " | ".join(errors[-3:]))
+    return proc
+
+
 NOTEBOOK_MAX_BYTES = 64 * 2**20  # a lesson notebook with its figures is a few MB
 
 
@@ -194,7 +206,7 @@ def read_notebook(path: Path, solutions: bool = True) -> dict:
     return nb
 
 
-def _git_tracked(folder: Path) -> list[str] | None:
+def git_tracked(folder: Path) -> list[str] | None:
     """The files git tracks in ``folder`` (or under it), where ``folder`` lies in a git work tree; None
     where there is no git, or no work tree around it."""
     existing = folder.absolute()
@@ -229,7 +241,7 @@ def check_release_folder(out: Path, force: bool = False) -> None:
                                 "another --out", out)
     if os.path.lexists(out) and not out.is_dir():
         raise utils.FileProblem(f"cannot write the student release into {out}: a file of that name exists", out)
-    tracked = _git_tracked(out) if out.exists() else None
+    tracked = git_tracked(out) if out.exists() else None
     if tracked:
         raise utils.FileProblem(f"cannot write the student release into {out}: it holds {len(tracked)} file(s) "
                                 f"of the checkout tracked by git (first {tracked[0]}); choose another --out "
@@ -281,14 +293,11 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
         source.mkdir(parents=True)
         for nb in sources:
             shutil.copy2(nb, source / nb.name)
-        cmd = [sys.executable, "-m", "nbgrader", "generate_assignment", ASSIGNMENT, "--force",
-               f"--CourseDirectory.root={tmp}", "--log-level=WARN"]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=_nbgrader_env(), cwd=tmp)
+        names = ", ".join(nb.name for nb in sources)
+        run_nbgrader(["generate_assignment", ASSIGNMENT, "--force"], Path(tmp), f"release {names}")
         released = Path(tmp, "release", ASSIGNMENT)
-        if proc.returncode != 0 or not released.is_dir():
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-            names = ", ".join(nb.name for nb in sources)
-            raise ValueError(f"cannot release {names}: nbgrader generate_assignment failed: " + " | ".join(tail))
+        if not released.is_dir():
+            raise ValueError(f"cannot release {names}: nbgrader generate_assignment wrote no release folder")
         for nb, source_nb in sources.items():
             problems = leaks(source_nb, read_notebook(released / nb.name, solutions=False))
             if problems:
@@ -326,5 +335,6 @@ def run_exercises(args) -> int:
     written = release(args.out, force=args.force)
     counts = {p.name: len(collect(read_notebook(p))) for p in notebook_paths()}
     print(f"student release: {len(written)} notebooks, {sum(counts.values())} exercises, in {args.out}")
-    print("grade them with nbgrader (its autograde puts the hidden tests back); solutions stay in notebooks/")
+    print("solutions stay in notebooks/: do not hand that folder out; a whole course (student edition, collect, "
+          "autograde, grades): python -m geodepth_lite course --help, docs/teaching.md")
     return 0

@@ -4,6 +4,7 @@ and the student release (nbgrader's generate_assignment) holds no solution text.
 import json
 
 import pytest
+from test_course import notebook_strings, solution_leaks
 
 from geodepth_lite import exercises as E
 
@@ -58,6 +59,13 @@ def test_release_holds_no_solution_text_and_no_outputs(released):
         assert E.leaks(source, student) == []
         assert not any(c.get("outputs") for c in student["cells"] if c["cell_type"] == "code")
         assert len(E.collect(student)) == len(E.collect(source))
+
+
+def test_release_holds_no_solution_line_and_no_marker_anywhere(released):
+    """Every string of every released notebook (sources, metadata, outputs) against every solution line
+    of notebooks 01-07 and the markers (the scan itself is shown to fail in test_course.py)."""
+    texts = {name: "\n".join(notebook_strings(nb)) for name, nb in released.items()}
+    assert len(texts) == len(NOTEBOOKS) and solution_leaks(texts) == []
 
 
 def test_leak_check_and_stub_check_can_fail():

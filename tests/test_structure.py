@@ -118,9 +118,10 @@ def test_train_py_is_the_loop_alone():
 
 # The only imports that may sit inside a function: heavy ones (VTK, matplotlib, papermill) that
 # would slow every `import geodepth_lite...` and `--help`, or optional / platform-specific ones.
-# pyplot at module level could also pick a GUI backend on import.
+# pyplot at module level could also pick a GUI backend on import. nbgrader's gradebook (SQLAlchemy) is read
+# by `course grades` alone.
 LATE_IMPORTS = {"pyvista", "vtk", "vtkmodules", "matplotlib", "papermill", "nbformat", "IPython", "ipywidgets",
-                "imageio_ffmpeg", "fcntl", "scipy"}
+                "imageio_ffmpeg", "fcntl", "scipy", "nbgrader"}
 _PRAGMA = re.compile(r"\b(noqa(:[\s\w,]*)?|type:\s*ignore\S*|pragma:[^#]*)", re.IGNORECASE)  # not reasons
 
 

@@ -1,0 +1,471 @@
+"""A course a lecturer runs with nbgrader: set it up, release, collect, autograde, feedback, grades.
+
+``python -m geodepth_lite course <action>``, each action in a course folder of nbgrader's layout::
+
+    COURSE/nbgrader_config.py          course id and the cell timeout (init)
+    COURSE/source/<assignment>/        the notebooks with their solutions (init)
+    COURSE/release/<assignment>/       what students get (release)
+    COURSE/submitted/<student>/<assignment>/   what they returned (collect)
+    COURSE/autograded/, feedback/, gradebook.db   (autograde, feedback)
+
+One assignment per notebook, named after it (``04_training``). ``init`` copies the notebooks and
+marks each open-ended exercise ("(open, N points)" in its prompt) as a manually graded answer: its
+answer cell carries the points and is graded by hand (nbgrader's formgrader); its check cell stays
+a graded cell worth 0 points, so it still runs, hidden tests included, and shows the lecturer
+whether the answer meets the stated conditions. The cell timeout is the slowest code cell that the
+committed notebooks record (papermill's ``duration``, else the kernel's execution timestamps) times
+``TIMEOUT_FACTOR``, rounded up to a minute. Every action locks the course folder; ``collect`` checks
+every returned notebook before copying any and never replaces a collected one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import os
+import re
+import shutil
+from datetime import datetime, timezone
+from pathlib import Path
+
+from geodepth_lite import exercises, utils
+
+COURSE_ID = "geodepth"
+TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the machine that executed notebooks/
+TIMEOUT_MIN_S = 120  # a notebook without execution records (or only fast cells) still gets two minutes a cell
+OPEN_LEVEL = re.compile(r"\(open,")  # the prompt's level marker of an open-ended exercise
+STUDENT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+CONFIG = "nbgrader_config.py"
+GRADE_COLUMNS = ["student", "assignment", "points", "max_points", "needs_manual_grading", "pending_max_points"]
+
+
+# ----------------------------------------------------------------------------------------- the timeout
+def _stamp(text) -> datetime | None:
+    try:
+        return datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+    except ValueError:
+        return None
+
+
+def cell_seconds(cell: dict) -> float | None:
+    """How long a committed code cell took to run: papermill's ``duration``, else the kernel's
+    ``execution`` timestamps (``shell.execute_reply`` - ``iopub.execute_input``); None if unrecorded."""
+    meta = cell.get("metadata", {})
+    duration = meta.get("papermill", {}).get("duration") if isinstance(meta.get("papermill"), dict) else None
+    if isinstance(duration, (int, float)) and not isinstance(duration, bool) and math.isfinite(duration):
+        return float(duration)
+    stamps = meta.get("execution", {}) if isinstance(meta.get("execution"), dict) else {}
+    start, end = _stamp(stamps.get("iopub.execute_input")), _stamp(stamps.get("shell.execute_reply"))
+    if start is None or end is None or (start.tzinfo is None) != (end.tzinfo is None):
+        return None
+    return (end - start).total_seconds()
+
+
+def slowest_cell(notebooks: dict[Path, dict]) -> tuple[float, str]:
+    """(seconds, notebook name) of the slowest recorded code cell; (0, "") when none is recorded."""
+    best = (0.0, "")
+    for path, nb in notebooks.items():
+        for cell in nb["cells"]:
+            s = cell_seconds(cell) if cell["cell_type"] == "code" else None
+            if s is not None and s > best[0]:
+                best = (s, path.name)
+    return best
+
+
+def cell_timeout(slowest_s: float) -> int:
+    """Seconds nbgrader allows a cell: the slowest recorded cell times TIMEOUT_FACTOR, up to a minute."""
+    return max(TIMEOUT_MIN_S, int(math.ceil(slowest_s * TIMEOUT_FACTOR / 60.0)) * 60)
+
+
+# ----------------------------------------------------------------------------------------- init
+def assignment_name(notebook: Path) -> str:
+    return Path(notebook).stem
+
+
+def grade_by_hand(nb: dict) -> list[str]:
+    """Mark each open-ended exercise of ``nb`` (in place) as manually graded: the answer cell becomes a
+    graded solution cell with the exercise's points, the check cell a graded cell worth 0. Returns the ids."""
+    marked = []
+    for ex in exercises.collect(nb).values():
+        if not OPEN_LEVEL.search(ex.prompt) or set(ex.cells) != {"answer", "check"}:
+            continue
+        answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
+        answer.update(grade=True, solution=True, locked=False, points=float(check.get("points", 0)))
+        check.update(grade=True, solution=False, locked=True, points=0.0)
+        marked.append(ex.ident)
+    return marked
+
+
+def _config_text(course_id: str, timeout: int, slowest: tuple[float, str]) -> str:
+    seconds, name = slowest
+    why = (f"the slowest recorded cell ({seconds:.0f} s, {name}) x {TIMEOUT_FACTOR:g}, rounded up to a minute"
+           if name else f"no cell recorded its run time: the minimum, {TIMEOUT_MIN_S} s")
+    return (f"# nbgrader's settings for this course (python -m geodepth_lite course init)\n"
+            f"c = get_config()  # noqa: F821 - nbgrader provides it\n"
+            f"c.CourseDirectory.course_id = {course_id!r}\n"
+            f"# seconds a cell may run when autograding: {why}\n"
+            f"c.Execute.timeout = {timeout}\n")
+
+
+def check_new_folder(out: Path, what: str) -> None:
+    """Refuse an ``out`` that exists and is not an empty folder, or that lies in the notebooks folder."""
+    notebooks = exercises.NOTEBOOK_DIR.resolve()
+    target = out.resolve()
+    if target == notebooks or notebooks in target.parents or target in notebooks.parents:
+        raise utils.FileProblem(f"cannot write the {what} into {out}: that is (or holds) the notebooks folder "
+                                f"{exercises.NOTEBOOK_DIR}; choose another folder", out)
+    if out.exists() and (not out.is_dir() or any(p.name != utils.LOCK_NAME for p in out.iterdir())):
+        raise utils.FileProblem(f"cannot write the {what} into {out}: it exists and is not an empty folder; "
+                                "choose a new folder (nothing there is ever replaced)", out)
+
+
+def _write_source(out: Path, nb: Path, content: dict) -> list[str]:
+    """``source/<assignment>/<notebook>`` of the course: open-ended exercises graded by hand, outputs
+    cleared (nothing of a run goes to students). Returns the hand-graded exercises."""
+    manual = grade_by_hand(content)
+    for cell in content["cells"]:
+        if cell["cell_type"] == "code":
+            cell["outputs"], cell["execution_count"] = [], None
+    target = out / "source" / assignment_name(nb) / nb.name
+    utils.write_bytes_atomic(target, (json.dumps(content, indent=1, ensure_ascii=False) + "\n").encode())
+    return manual
+
+
+def init(out: Path, notebooks: list[Path] | None = None, course_id: str = COURSE_ID) -> dict:
+    """Write a new course folder ``out``: ``nbgrader_config.py`` and ``source/<assignment>/<notebook>``
+    for each notebook (default 01-07), open-ended exercises marked for hand grading. Returns a summary."""
+    notebooks = exercises.notebook_paths() if notebooks is None else [Path(p) for p in notebooks]
+    if not notebooks:
+        raise FileNotFoundError(f"no notebook with exercises under {exercises.NOTEBOOK_DIR}")
+    if not re.match(r"^[A-Za-z0-9_-]{1,64}$", course_id):
+        raise ValueError(f"course id must be 1-64 letters, digits, '_' or '-', got {course_id!r}")
+    names = [assignment_name(nb) for nb in notebooks]
+    if len(set(names)) != len(names):
+        twice = next(nb for nb in notebooks if names.count(assignment_name(nb)) > 1)
+        raise ValueError(f"cannot make a course of {twice}: two notebooks named {twice.name} would be one assignment")
+    out = Path(out)
+    check_new_folder(out, "course")
+    sources = {nb: exercises.read_notebook(nb) for nb in notebooks}
+    slowest = slowest_cell(sources)
+    timeout = cell_timeout(slowest[0])
+    created = utils.missing_dirs(out)
+    utils.check_output_dir(out)
+    try:
+        with utils.FolderLock(out, "course folder", remove_file=True):
+            check_new_folder(out, "course")  # again, under the lock: empty, so all in it is ours
+            try:
+                manual = {nb.name: _write_source(out, nb, content) for nb, content in sources.items()}
+                utils.write_bytes_atomic(out / CONFIG, _config_text(course_id, timeout, slowest).encode())
+            except BaseException:
+                shutil.rmtree(out / "source", ignore_errors=True)
+                (out / CONFIG).unlink(missing_ok=True)
+                raise
+    except BaseException:
+        utils.remove_empty_dirs(created)
+        raise
+    return {"assignments": [assignment_name(nb) for nb in notebooks], "timeout": timeout, "slowest": slowest,
+            "manual": manual}
+
+
+# ----------------------------------------------------------------------------------------- the course folder
+def open_course(course: Path) -> list[str]:
+    """The assignments of a course folder made by ``init`` (each ``source/<assignment>/``); a FileProblem
+    naming the folder when it is not one."""
+    course = Path(course)
+    if not (course / CONFIG).is_file() or not (course / "source").is_dir():
+        raise utils.FileProblem(f"cannot use {course} as a course folder: no {CONFIG} or source/ in it; "
+                                "make one with `course init --out FOLDER`", course)
+    names = sorted(p.name for p in (course / "source").iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not names:
+        raise utils.FileProblem(f"cannot use {course} as a course folder: source/ holds no assignment", course)
+    return names
+
+
+def course_lock(course: Path) -> utils.FolderLock:
+    return utils.FolderLock(course, "course folder", remove_file=True)
+
+
+def release(course: Path) -> list[Path]:
+    """nbgrader's ``generate_assignment`` for every assignment of the course (it also enters them into
+    the gradebook); each released notebook is checked to hold no solution text. Returns the notebooks."""
+    course = Path(course)
+    names = open_course(course)
+    written = []
+    with course_lock(course):
+        for name in names:
+            exercises.run_nbgrader(["generate_assignment", name, "--force"], course, f"release {name}")
+            for src in sorted((course / "source" / name).glob("*.ipynb")):
+                out = course / "release" / name / src.name
+                problems = exercises.leaks(exercises.read_notebook(src), exercises.read_notebook(out, solutions=False))
+                if problems:
+                    raise ValueError(f"cannot release {out}: it still holds solution text: {problems[0]}")
+                written.append(out)
+    return written
+
+
+# ----------------------------------------------------------------------------------------- the student edition
+def holds_solutions(path: Path) -> bool:
+    """Whether a notebook has a solution region (a line that is a solution marker) in any cell."""
+    nb = exercises.read_notebook(path, solutions=False)
+    return any(ln.strip() in exercises.SOLUTION_MARKERS for c in nb["cells"] for ln in
+               "".join(c.get("source", "")).splitlines())
+
+
+def edition_files(root: Path) -> tuple[list[str], list[str]]:
+    """(files of the checkout ``root`` that the student edition copies, notebooks it leaves out): every
+    file git tracks but the notebooks that hold solutions."""
+    tracked = exercises.git_tracked(root)
+    if not tracked:
+        raise FileNotFoundError(f"cannot list the files of {root}: the student edition is made from a git "
+                                "checkout of geodepth-lite (git ls-files)")
+    keep, dropped = [], []
+    for rel in tracked:
+        is_solution = rel.endswith(".ipynb") and (root / rel).is_file() and holds_solutions(root / rel)
+        (dropped if is_solution else keep).append(rel)
+    return keep, dropped
+
+
+def edition(course: Path, out: Path) -> dict:
+    """Write the student edition to the new folder ``out``: the checkout this package runs from (the
+    files git tracks, as they are in the work tree) without any notebook that holds solutions, and
+    the course's released notebooks in ``notebooks/`` in their place. Returns a summary."""
+    course, out = Path(course), Path(out)
+    names = open_course(course)
+    released = sorted(p for name in names for p in (course / "release" / name).glob("*.ipynb"))
+    if not released:
+        raise utils.FileProblem(f"cannot write the student edition from {course}: nothing is released yet; run "
+                                "`course release` first", course)
+    root = utils.project_root()
+    if root is None:
+        raise FileNotFoundError("cannot write the student edition: this package does not run from a checkout")
+    if out.resolve() == root or root in out.resolve().parents:
+        raise utils.FileProblem(f"cannot write the student edition into {out}: it lies inside the checkout {root}; "
+                                "choose a folder outside it", out)
+    check_new_folder(out, "student edition")
+    keep, dropped = edition_files(root)
+    for nb in released:
+        if holds_solutions(nb):
+            raise ValueError(f"cannot hand out {nb}: it holds a solution region")
+    created = utils.missing_dirs(out)
+    utils.check_output_dir(out)
+    try:
+        with utils.FolderLock(out, "output folder", remove_file=True), course_lock(course):
+            check_new_folder(out, "student edition")  # again, under the lock: empty, so all in it is ours
+            try:
+                for rel in keep:
+                    if (root / rel).is_file() and not (root / rel).is_symlink():
+                        utils.write_bytes_atomic(out / rel, (root / rel).read_bytes())
+                for nb in released:
+                    utils.write_bytes_atomic(out / "notebooks" / nb.name, nb.read_bytes())
+            except BaseException:
+                for child in out.iterdir():
+                    if child.name != utils.LOCK_NAME:
+                        shutil.rmtree(child) if child.is_dir() else child.unlink()
+                raise
+    except BaseException:
+        utils.remove_empty_dirs(created)
+        raise
+    return {"copied": len(keep), "left_out": dropped, "released": [nb.name for nb in released]}
+
+
+# ----------------------------------------------------------------------------------------- collect
+def _files_under(folder: Path) -> list[Path]:
+    """The files under ``folder`` (hidden names skipped), never following a link to a folder: such a
+    link comes back as an entry, for the caller to refuse."""
+    found = []
+    for top, dirs, files in os.walk(folder, followlinks=False):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        found += [Path(top, d) for d in dirs if Path(top, d).is_symlink()]
+        found += [Path(top, f) for f in sorted(files) if not f.startswith(".")]
+    return found
+
+
+def _returned_notebooks(subs: Path, course: Path, names: list[str]) -> tuple[list[tuple[Path, Path]], list[Path]]:
+    """(source file, target in submitted/) for each returned notebook, all checked; and the files skipped
+    (not a notebook of the course). A ValueError or FileProblem names the first file refused."""
+    expected = {p.name: name for name in names for p in (course / "source" / name).glob("*.ipynb")}
+    root = subs.resolve()
+    pairs, skipped = [], []
+    for student_dir in sorted(subs.iterdir()):
+        if student_dir.name.startswith("."):
+            continue
+        if student_dir.is_symlink() or not student_dir.is_dir():
+            raise utils.FileProblem(f"cannot collect {student_dir}: expected a folder named after a student "
+                                    "(a link or a file is refused)", student_dir)
+        if not STUDENT_ID.match(student_dir.name):
+            raise utils.FileProblem(f"cannot collect {student_dir}: a student folder is named by 1-64 letters, "
+                                    "digits, '_' or '-'", student_dir)
+        for path in _files_under(student_dir):
+            if path.is_symlink() or root not in path.resolve().parents:
+                raise utils.FileProblem(f"cannot collect {path}: a link, or a file outside {subs}", path)
+            if path.name not in expected:
+                skipped.append(path)
+                continue
+            exercises.read_notebook(path, solutions=False)  # bounded, JSON, cells intact
+            target = course / "submitted" / student_dir.name / expected[path.name] / path.name
+            if any(t == target for _, t in pairs):
+                raise utils.FileProblem(f"cannot collect {path}: {student_dir.name} returned {path.name} twice", path)
+            pairs.append((path, target))
+    return pairs, skipped
+
+
+def collect(course: Path, submissions: Path) -> dict:
+    """Copy the students' returned notebooks (``submissions/<student>/**/<notebook>.ipynb``) into
+    ``submitted/<student>/<assignment>/``. Every file is checked before the first copy; a notebook
+    already collected is skipped when identical and refused when different (never replaced)."""
+    course, submissions = Path(course), Path(submissions)
+    names = open_course(course)
+    if not submissions.is_dir():
+        raise utils.FileProblem(f"cannot collect {submissions}: not a folder", submissions)
+    with course_lock(course):
+        pairs, skipped = _returned_notebooks(submissions, course, names)
+        new = []
+        for src, target in pairs:
+            if target.exists():
+                if target.read_bytes() != src.read_bytes():
+                    raise utils.FileProblem(f"cannot collect {src}: {target} already holds a different copy "
+                                            "(nothing was collected; remove that copy by hand to replace it)", src)
+                continue
+            new.append((src, target))
+        stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f UTC")
+        for src, target in new:
+            utils.write_bytes_atomic(target, src.read_bytes())
+            if not (target.parent / "timestamp.txt").exists():
+                utils.write_bytes_atomic(target.parent / "timestamp.txt", (stamp + "\n").encode())
+    return {"collected": [t for _, t in new], "already": len(pairs) - len(new), "skipped": skipped}
+
+
+# ----------------------------------------------------------------------------------------- grade
+def _submitted(course: Path, names: list[str]) -> list[str]:
+    folder = course / "submitted"
+    found = {p.name for p in folder.glob("*/*") if p.is_dir()} if folder.is_dir() else set()
+    return [n for n in names if n in found]
+
+
+def autograde(course: Path) -> list[str]:
+    """nbgrader's ``autograde`` of every assignment with collected submissions (hidden tests put back,
+    each notebook executed with the course's cell timeout); a submission graded before is left as it is."""
+    course = Path(course)
+    names = open_course(course)
+    if not (course / "gradebook.db").is_file():
+        raise utils.FileProblem(f"cannot autograde {course}: no gradebook yet; run `course release` first", course)
+    with course_lock(course):
+        done = _submitted(course, names)
+        for name in done:
+            exercises.run_nbgrader(["autograde", name], course, f"autograde {name} in {course}")
+    return done
+
+
+def feedback(course: Path) -> list[Path]:
+    """nbgrader's ``generate_feedback``: one HTML page per graded notebook in ``feedback/<student>/<assignment>/``."""
+    course = Path(course)
+    names = open_course(course)
+    with course_lock(course):
+        graded = [n for n in names if any((course / "autograded").glob(f"*/{n}"))]
+        for name in graded:
+            exercises.run_nbgrader(["generate_feedback", name], course, f"write the feedback of {name}")
+    return sorted((course / "feedback").glob("*/*/*.html"))
+
+
+def grade_rows(course: Path) -> list[dict]:
+    """One row per student and assignment from the gradebook: points (auto and hand grades so far), max
+    points, how many answers still need a hand grade and the points they are worth."""
+    # nbgrader's gradebook (SQLAlchemy): heavy, needed by this command only
+    from nbgrader.api import Gradebook, MissingEntry
+
+    course = Path(course)
+    db = course / "gradebook.db"
+    if not db.is_file():
+        raise utils.FileProblem(f"cannot read the grades of {course}: no gradebook.db; run `course release` and "
+                                "`course autograde` first", course)
+    rows = []
+    with Gradebook(f"sqlite:///{db.resolve()}") as gb:
+        for assignment in sorted(gb.assignments, key=lambda a: a.name):
+            for student in sorted(gb.students, key=lambda s: s.id):
+                try:
+                    sub = gb.find_submission(assignment.name, student.id)
+                except MissingEntry:
+                    continue
+                pending = [g for nb in sub.notebooks for g in nb.grades if g.needs_manual_grade]
+                rows.append({"student": student.id, "assignment": assignment.name, "points": round(sub.score, 4),
+                             "max_points": round(sub.max_score, 4), "needs_manual_grading": len(pending),
+                             "pending_max_points": round(sum(g.max_score for g in pending), 4)})
+    return rows
+
+
+def write_grades(course: Path, out: Path) -> list[dict]:
+    """The grade table as CSV (``GRADE_COLUMNS``); ``out`` must not exist (never replaced)."""
+    out = Path(out)
+    if out.exists() or out.is_symlink():
+        raise utils.FileProblem(f"cannot write {out}: it exists; choose another name (a grade table is never "
+                                "replaced)", out)
+    with course_lock(Path(course)):
+        rows = grade_rows(course)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=GRADE_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    utils.check_output_dir(out.parent if str(out.parent) else Path("."))
+    utils.write_bytes_atomic(out, buf.getvalue().encode())
+    return rows
+
+
+# ----------------------------------------------------------------------------------------- command line
+def add_arguments_course(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="action", metavar="<action>", required=True)
+    a = sub.add_parser("init", help="make a course folder (nbgrader's layout) from notebooks 01-07")
+    a.add_argument("--out", type=Path, default=Path("course"), help="the new course folder (default: course)")
+    a.add_argument("--course-id", default=COURSE_ID, help=f"nbgrader's course id (default: {COURSE_ID})")
+    a.add_argument("--notebooks", nargs="+", type=Path, default=None,
+                   help="the notebooks that become assignments (default: 01-07 of notebooks/)")
+    helps = {"release": "write the student release (release/<assignment>/) and enter it into the gradebook",
+             "edition": "write the student edition: the checkout without solution notebooks, the release in its place",
+             "collect": "copy returned notebooks SUBMISSIONS/<student>/... into submitted/<student>/<assignment>/",
+             "autograde": "autograde every collected submission (hidden tests put back)",
+             "feedback": "write an HTML feedback page per graded notebook (feedback/)",
+             "grades": "write the grade table: points and max points per student and assignment"}
+    for action, text in helps.items():
+        a = sub.add_parser(action, help=text, description=text)
+        a.add_argument("--course", type=Path, default=Path("course"), help="the course folder (default: course)")
+        if action == "collect":
+            a.add_argument("submissions", type=Path, help="a folder holding one folder per student")
+        if action == "grades":
+            a.add_argument("--out", type=Path, default=Path("grades.csv"), help="the CSV (default: grades.csv)")
+        if action == "edition":
+            a.add_argument("--out", type=Path, default=Path("student-edition"),
+                           help="the new folder for the student edition (default: student-edition)")
+
+
+def _report(args) -> str:
+    if args.action == "init":
+        info = init(args.out, args.notebooks, args.course_id)
+        manual = sum(len(v) for v in info["manual"].values())
+        return (f"course {args.out}: {len(info['assignments'])} assignments ({', '.join(info['assignments'])}); "
+                f"{manual} open-ended exercises graded by hand; cell timeout {info['timeout']} s")
+    if args.action == "release":
+        return f"released {len(release(args.course))} notebooks into {args.course / 'release'}"
+    if args.action == "edition":
+        info = edition(args.course, args.out)
+        return (f"student edition {args.out}: {info['copied']} files of the checkout, without "
+                f"{', '.join(info['left_out']) or 'no notebook'}; {len(info['released'])} released notebooks in "
+                f"{args.out / 'notebooks'}")
+    if args.action == "collect":
+        info = collect(args.course, args.submissions)
+        note = f"; skipped {len(info['skipped'])} other files (first {info['skipped'][0]})" if info["skipped"] else ""
+        return f"collected {len(info['collected'])} notebooks ({info['already']} already there){note}"
+    if args.action == "autograde":
+        done = autograde(args.course)
+        return f"autograded {', '.join(done)}" if done else "nothing to autograde: no submission collected"
+    if args.action == "feedback":
+        return f"{len(feedback(args.course))} feedback pages under {args.course / 'feedback'}"
+    rows = write_grades(args.course, args.out)
+    pending = sum(r["needs_manual_grading"] > 0 for r in rows)
+    return f"{len(rows)} grades in {args.out}; {pending} still need a hand grade (formgrader)"
+
+
+def run_course(args) -> int:
+    print(_report(args))
+    return 0
