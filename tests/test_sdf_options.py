@@ -305,7 +305,7 @@ def test_default_options_give_bit_identical_losses_and_gradients(seed):
 @pytest.mark.parametrize("sampling, sign", [("frustum", "view"), ("bbox", "masked"), ("frustum", "masked")])
 def test_options_match_the_reference_on_random_maps(sampling, sign):
     pred, gt, _, K = random_maps(3)
-    for method in ("kdtree", "chunked"):
+    for method in ("kdtree", "chunked", "device"):
         got = float(L.sdf_loss(pred, gt, K, (4, 5, 3), method=method, cache=None, sign_rule=sign, sampling=sampling))
         assert math.isclose(got, reference_sdf_loss(pred, gt, K, (4, 5, 3), sampling, sign, gt > 0), rel_tol=1e-9)
 
