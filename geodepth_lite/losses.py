@@ -381,7 +381,7 @@ def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID
     p = pred.detach().float().clone().requires_grad_(True)
     inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
     out = {}
-    for name in terms or term_names():
+    for name in term_names() if terms is None else terms:
         (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)
         out[name] = 0.0 if g is None else float(g.norm())
     return out
