@@ -97,3 +97,44 @@ def shaded_image(depth: np.ndarray, K: np.ndarray, seed: int = 0) -> np.ndarray:
     colour = np.array([0.85, 0.45, 0.35]) * rng.uniform(0.9, 1.1, 3)
     img = np.clip(intensity[..., None] * colour * 1.2, 0, 1)
     return (img * 255 + 0.5).astype(np.uint8)
+
+
+def write_dataset(root, splits: dict, size: int = 320, seed: int = 0) -> "Path":  # noqa: F821 (pathlib imported inside)
+    """A dataset folder of analytic frames in the synthetic dataset's layout (``synth.py``), without VTK.
+
+    ``splits``: frames per split, e.g. {"train": 40, "val": 8, "test": 8}; views cycle through
+    :data:`KINDS`, each frame its own seed. Writes manifest.json, ``<split>/frames.jsonl``,
+    ``<split>/rgb/NNNNNN.png``, ``<split>/depth/NNNNNN.npy`` and checksums.sha256 last, so ``train``
+    and ``evaluate`` check it as they check a generated dataset. ``root`` must not exist or be empty.
+    Returns the folder.
+    """
+    import json
+    from pathlib import Path
+
+    from PIL import Image
+
+    from geodepth_lite import integrity, utils
+
+    root = Path(root)
+    if root.exists() and any(root.iterdir()):
+        raise utils.FileProblem(f"cannot write the analytic dataset into {root}: the folder is not empty", root)
+    K = intrinsics(size)
+    m = {"name": "analytic", "generator": "geodepth_lite.analytic", "size": size, "seed": seed,
+         "splits": {k: int(v) for k, v in splits.items()}}
+    frame = 0
+    for split, n in m["splits"].items():
+        (root / split / "rgb").mkdir(parents=True, exist_ok=True)
+        (root / split / "depth").mkdir(parents=True, exist_ok=True)
+        records = []
+        for i in range(n):
+            kind = KINDS[frame % len(KINDS)]
+            depth = depth_map(kind, size, seed=seed * 100003 + frame, K=K)
+            Image.fromarray(shaded_image(depth, K, seed=frame)).save(root / split / "rgb" / f"{i:06d}.png")
+            np.save(root / split / "depth" / f"{i:06d}.npy", depth)
+            records.append({"index": i, "rgb": f"{split}/rgb/{i:06d}.png", "depth": f"{split}/depth/{i:06d}.npy",
+                            "K": K.tolist(), "organ": kind, "group": "analytic"})
+            frame += 1
+        (root / split / "frames.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    utils.write_json_atomic(root / "manifest.json", m)
+    integrity.write_checksums(root, m)
+    return root

@@ -8,7 +8,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-import tifffile
 
 from .. import camera
 from .base import PublicDepthDataset, numbered, pair_images_with_depths
@@ -74,6 +73,8 @@ class C3VDDataset(PublicDepthDataset):
     @staticmethod
     def decode_depth(path) -> tuple[np.ndarray, np.ndarray]:
         """C3VD ``*_depth.tiff``: 16-bit, 0..65535 -> 0..100 mm z-depth; raw 0 and 65535 are invalid."""
+        import tifffile  # C3VD's files only: training and gpu-check need no tifffile
+
         raw = np.asarray(tifffile.imread(str(path)))
         if raw.ndim == 3:
             raw = raw[..., 0]
