@@ -16,7 +16,8 @@ shared/paper/):
 This module holds what that term is built from, in three layers:
 
 - search: the exact nearest neighbour of each grid point (:func:`nearest_indices`: scipy's
-  cKDTree on the CPU, a chunked exact ``torch.cdist`` on CUDA; the paper uses PyTorch3D's KNN).
+  cKDTree for CPU tensors, the batched torch search of :mod:`geodepth_lite.nnsearch` on other
+  devices, every image of a batch in one call; the paper uses PyTorch3D's KNN).
   Indices are searched without gradient; distances are then recomputed in torch from the
   nearest points, so gradients reach the prediction through them;
 - fields: phi of one point set at given queries (:func:`signed_distance`), and the fields of a
