@@ -40,7 +40,10 @@ import torch
 
 TILE = 32  # queries per tile (consecutive in Morton order)
 LEVELS = (1024, 128, 16, 4)  # points per block at each level (each divides the one before)
-PAIR_BUDGET = 2**24  # most (query, block) or (query, point) pairs held at once; beyond it the tiles are split
+# most (query, block) or (query, point) pairs held at once, beyond which the tiles are searched in smaller
+# groups; None: 2**19 for CPU tensors (working sets that stay in the caches: 2.5x faster than 2**24 on
+# 320x320 maps), 2**24 on a GPU
+PAIR_BUDGET: int | None = None
 _BITS = 10  # bits per axis of the Morton code (30 bits in all)
 # The pruning bounds are computed in float32 when points and queries are float32 or narrower (then
 # every coordinate is exact in float32), else in float64; the final distances always in float64. A
@@ -169,62 +172,81 @@ def nearest_indices_batched(points: torch.Tensor, point_img: torch.Tensor, queri
     tile_img = qslot_img[::TILE]  # (T,)
     best = torch.empty(QX.shape[0], dtype=torch.int64, device=dev)  # sorted slot of each padded query's nearest
 
-    def search(tile_ids: torch.Tensor) -> None:
-        # level 0, tiles x blocks of the same image
-        nb = plen[tile_img[tile_ids]] // S0  # (t,) top blocks per tile
-        pt = torch.repeat_interleave(tile_ids, nb)  # (pairs,) tile
-        pb = pstart[tile_img[pt]] // S0 + _ragged_arange(nb)  # (pairs,) block
-        blk = levels[0].index_select(1, pb)  # (9, pairs)
-        tb = t_box.index_select(1, pt)  # (6, pairs)
-        lb = _gap2(blk[0:3] - tb[3:6], tb[0:3] - blk[3:6])  # box-box gap
-        rep = blk[6:9]
-        far = torch.maximum((rep - tb[0:3]).abs(), (rep - tb[3:6]).abs())
-        ub = _segment_min((far * far).sum(0), pt, tiles.shape[0]) * _UP + _ABS  # (T,) bound for a tile's queries
-        k = lb * _DOWN <= ub[pt]
-        pt, pb = pt[k], pb[k]
-        # queries x blocks
-        if pt.numel() * TILE > PAIR_BUDGET and tile_ids.numel() > 1:
-            h = tile_ids.numel() // 2
-            search(tile_ids[:h])
-            search(tile_ids[h:])
-            return
-        pq = (pt[:, None] * TILE + torch.arange(TILE, device=dev)).reshape(-1)  # (pairs,) query slot
-        pb = pb.repeat_interleave(TILE)
-        ubq = ub.repeat_interleave(TILE)  # (Lq,) the tile's bound to start with
+    budget = PAIR_BUDGET if PAIR_BUDGET is not None else (2**19 if dev.type == "cpu" else 2**24)
+
+    # level 0, once: tiles x top-level blocks of the same image, kept where the boxes' gap is within
+    # the tile's bound (pairs ordered by tile)
+    T = tiles.shape[0]
+    nb = plen[tile_img] // S0  # (T,) top blocks per tile
+    pt = torch.repeat_interleave(torch.arange(T, device=dev), nb)  # (pairs,) tile
+    pb = pstart[tile_img[pt]] // S0 + _ragged_arange(nb)  # (pairs,) block
+    blk = levels[0].index_select(1, pb)  # (9, pairs)
+    tb = t_box.index_select(1, pt)  # (6, pairs)
+    lb = _gap2(blk[0:3] - tb[3:6], tb[0:3] - blk[3:6])  # box-box gap
+    rep = blk[6:9]
+    far = torch.maximum((rep - tb[0:3]).abs(), (rep - tb[3:6]).abs())
+    ub_tile = _segment_min((far * far).sum(0), pt, T) * _UP + _ABS  # (T,) bound for every query of a tile
+    k = lb * _DOWN <= ub_tile.index_select(0, pt)
+    pt, pb = pt[k], pb[k]
+    del blk, tb, lb, rep, far, k
+
+    def descend(t0: int, t1: int, pt: torch.Tensor, pb0: torch.Tensor) -> None:
+        """Tiles t0..t1-1 (their level-0 pairs pt, pb) down to their queries' nearest points, in halves
+        while the pairs held at once would pass the budget."""
+        n = (t1 - t0) * TILE  # local query slots
+        if t1 - t0 > 1 and pt.numel() * TILE > budget:
+            return split(t0, t1, pt, pb0)
+        QTc = QT[:, t0 * TILE:t1 * TILE]
+        pq = ((pt - t0)[:, None] * TILE + torch.arange(TILE, device=dev)).reshape(-1)  # (pairs,) local slot
+        pb = pb0.repeat_interleave(TILE)
+        ubq = ub_tile[t0:t1].repeat_interleave(TILE)  # (n,) the tile's bound to start with
         for li, S in enumerate(LEVELS):
             if li > 0:  # children of the surviving blocks
                 r = LEVELS[li - 1] // S
-                if pq.numel() * r > PAIR_BUDGET and tile_ids.numel() > 1:
-                    h = tile_ids.numel() // 2
-                    search(tile_ids[:h])
-                    search(tile_ids[h:])
-                    return
+                if t1 - t0 > 1 and pq.numel() * r > budget:
+                    return split(t0, t1, pt, pb0)
                 pq = pq.repeat_interleave(r)
                 pb = (pb[:, None] * r + torch.arange(r, device=dev)).reshape(-1)
-            q = QT.index_select(1, pq)  # (3, pairs)
+            q = QTc.index_select(1, pq)  # (3, pairs)
             blk = levels[li].index_select(1, pb)  # (9, pairs)
             r3 = blk[6:9] - q
-            ubq = torch.minimum(ubq, _segment_min((r3 * r3).sum(0), pq, QX.shape[0]) * _UP + _ABS)
-            k = _gap2(blk[0:3] - q, q - blk[3:6]) * _DOWN <= ubq.index_select(0, pq)
+            ubq = torch.minimum(ubq, _segment_min((r3 * r3).sum(0), pq, n) * _UP + _ABS)
+            lb = _gap2(blk[0:3] - q, q - blk[3:6])
+            k = lb * _DOWN <= ubq.index_select(0, pq)
             pq, pb = pq[k], pb[k]
         # the surviving blocks' points: a float32 (or float64) pass keeps those within the rounding margin
         # of each query's least distance, then the exact float64 choice among them
         S = LEVELS[-1]
         pq = pq.repeat_interleave(S)
         ps = (pb[:, None] * S + torch.arange(S, device=dev)).reshape(-1)  # sorted point slots
-        d = _d2(PX32T.index_select(1, ps), QT.index_select(1, pq), 0)
-        k = d * _DOWN <= _segment_min(d, pq, QX.shape[0]).index_select(0, pq) * _UP + _ABS
+        d = _d2(PX32T.index_select(1, ps), QTc.index_select(1, pq), 0)
+        k = d * _DOWN <= _segment_min(d, pq, n).index_select(0, pq) * _UP + _ABS
         pq, ps = pq[k], ps[k]
-        d = _d2(PX.index_select(0, ps), QX.index_select(0, pq))
-        dmin = _segment_min(d, pq, QX.shape[0])
+        d = _d2(PX.index_select(0, ps), QX.index_select(0, pq + t0 * TILE))
+        dmin = _segment_min(d, pq, n)
         orig = pslot[ps]  # original point index (padding slots repeat a real point)
         cand = torch.where(d == dmin[pq], orig, torch.full_like(orig, torch.iinfo(torch.int64).max))
-        res = torch.full((QX.shape[0],), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
-        res = res.scatter_reduce(0, pq, cand, "amin")
-        sl = (tile_ids[:, None] * TILE + torch.arange(TILE, device=dev)).reshape(-1)
-        best[sl] = res[sl]
+        res = torch.full((n,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+        best[t0 * TILE:t1 * TILE] = res.scatter_reduce(0, pq, cand, "amin")
 
-    search(torch.arange(tiles.shape[0], device=dev))
+    def split(t0, t1, pt, pb):
+        h = (t0 + t1) // 2
+        c = int(torch.searchsorted(pt, torch.tensor([h], device=dev, dtype=pt.dtype)))
+        descend(t0, h, pt[:c], pb[:c])
+        descend(h, t1, pt[c:], pb[c:])
+
+    # chunks of whole tiles whose level-0 query pairs fit the budget
+    per_tile = torch.bincount(pt, minlength=T) * TILE  # (T,)
+    bounds = [0]
+    cum = torch.cumsum(per_tile, 0)
+    while bounds[-1] < T:
+        base = int(cum[bounds[-1] - 1]) if bounds[-1] > 0 else 0
+        nxt = int(torch.searchsorted(cum, torch.tensor([base + budget], device=dev, dtype=cum.dtype), right=True))
+        bounds.append(min(T, max(nxt, bounds[-1] + 1)))
+    starts = torch.searchsorted(pt, torch.tensor(bounds, device=dev, dtype=pt.dtype))
+    for i in range(len(bounds) - 1):
+        s0, s1 = int(starts[i]), int(starts[i + 1])
+        descend(bounds[i], bounds[i + 1], pt[s0:s1], pb[s0:s1])
     # padded query slots repeat a real query: writing all slots gives each real query its answer
     out[qslot] = best
     return out
