@@ -52,6 +52,7 @@ _BITS = 10  # bits per axis of the Morton code (30 bits in all)
 # bounds are widened and lower bounds narrowed by far more than that, plus an absolute slack for
 # subnormals, so the block holding the nearest point is never pruned.
 _UP, _DOWN, _ABS = 1.0 + 2.0**-16, 1.0 - 2.0**-16, 1e-30
+_WIDE = _UP / _DOWN * (1.0 + 2.0**-20)  # an upper bound widened for a comparison with an unnarrowed lower bound
 
 
 def _spread(v: torch.Tensor) -> torch.Tensor:
@@ -199,7 +200,7 @@ def nearest_indices_batched(points: torch.Tensor, point_img: torch.Tensor, queri
         QTc = QT[:, t0 * TILE:t1 * TILE]
         pq = ((pt - t0)[:, None] * TILE + torch.arange(TILE, device=dev)).reshape(-1)  # (pairs,) local slot
         pb = pb0.repeat_interleave(TILE)
-        ubq = ub_tile[t0:t1].repeat_interleave(TILE)  # (n,) the tile's bound to start with
+        ubq = ub_tile[t0:t1].repeat_interleave(TILE) / _DOWN  # (n,) the tile's bound to start with
         for li, S in enumerate(LEVELS):
             if li > 0:  # children of the surviving blocks
                 r = LEVELS[li - 1] // S
@@ -210,10 +211,10 @@ def nearest_indices_batched(points: torch.Tensor, point_img: torch.Tensor, queri
             q = QTc.index_select(1, pq)  # (3, pairs)
             blk = levels[li].index_select(1, pb)  # (9, pairs)
             r3 = blk[6:9] - q
-            ubq = torch.minimum(ubq, _segment_min((r3 * r3).sum(0), pq, n) * _UP + _ABS)
-            lb = _gap2(blk[0:3] - q, q - blk[3:6])
-            k = lb * _DOWN <= ubq.index_select(0, pq)
-            pq, pb = pq[k], pb[k]
+            # ubq holds the bound already widened by _UP / _DOWN: lb <= ubq is lb * _DOWN <= ub * _UP
+            ubq = torch.minimum(ubq, _segment_min((r3 * r3).sum(0), pq, n) * _WIDE + _ABS)
+            keep = (_gap2(blk[0:3] - q, q - blk[3:6]) <= ubq.index_select(0, pq)).nonzero().squeeze(1)
+            pq, pb = pq.index_select(0, keep), pb.index_select(0, keep)
         # the surviving blocks' points: a float32 (or float64) pass keeps those within the rounding margin
         # of each query's least distance, then the exact float64 choice among them
         S = LEVELS[-1]
