@@ -27,11 +27,15 @@ The shape (docs/network_and_losses.md, "The nearest-point search on the device")
    the block holding the nearest point always survives (lb <= d <= ub). The final choice is the
    least squared distance, then the least point index among equal distances.
 
+5. **Groups.** The tile stage runs once for the whole batch (tiles x top-level blocks of their
+   own image: M/32 x N/1024 pairs per image); the rest runs over groups of whole tiles whose pairs
+   fit :data:`PAIR_BUDGET`, a group split in halves wherever a level would pass it.
+
 The work per query grows with the points near its nearest distance, not with the cloud: on the
-paper's 320x320 depth maps and 32^3 grids a few hundred point comparisons per query.
+paper's 320x320 depth maps and 32^3 grids about a hundred point comparisons per query (the
+lumen's grid points near the axis, nearly equidistant from a ring of wall points, most of them).
 Pathological inputs (every point at the same distance from a query) degrade towards brute
-force; the query tiles are then searched in smaller groups (:data:`PAIR_BUDGET`), so memory stays
-bounded.
+force, in groups of the budget's size, so memory stays bounded.
 """
 
 from __future__ import annotations
