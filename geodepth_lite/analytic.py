@@ -16,9 +16,14 @@ endoscopy. Used by the nearest-point search's tests and benchmark and by ``gpu-c
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
+from PIL import Image
+
+from geodepth_lite import integrity, utils
 
 KINDS = ("lumen", "wall", "closeup")
 
@@ -99,7 +104,7 @@ def shaded_image(depth: np.ndarray, K: np.ndarray, seed: int = 0) -> np.ndarray:
     return (img * 255 + 0.5).astype(np.uint8)
 
 
-def write_dataset(root, splits: dict, size: int = 320, seed: int = 0) -> "Path":  # noqa: F821 (pathlib imported inside)
+def write_dataset(root, splits: dict, size: int = 320, seed: int = 0) -> Path:
     """A dataset folder of analytic frames in the synthetic dataset's layout (``synth.py``), without VTK.
 
     ``splits``: frames per split, e.g. {"train": 40, "val": 8, "test": 8}; views cycle through
@@ -108,13 +113,6 @@ def write_dataset(root, splits: dict, size: int = 320, seed: int = 0) -> "Path":
     and ``evaluate`` check it as they check a generated dataset. ``root`` must not exist or be empty.
     Returns the folder.
     """
-    import json
-    from pathlib import Path
-
-    from PIL import Image
-
-    from geodepth_lite import integrity, utils
-
     root = Path(root)
     if root.exists() and any(root.iterdir()):
         raise utils.FileProblem(f"cannot write the analytic dataset into {root}: the folder is not empty", root)

@@ -34,6 +34,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy
+import torch
+
+from geodepth_lite import analytic, camera, inference, losses, sdf, utils
+from geodepth_lite.model import DepthNet
+
 MARKER = ".gpu-check"
 PAPER_TRAIN, PAPER_VAL, PAPER_EPOCHS = 3600, 900, 18  # the paper split and epochs (config "paper")
 
@@ -50,8 +56,6 @@ def add_arguments_gpu_check(parser: argparse.ArgumentParser) -> None:
 
 
 def _sync(dev) -> None:
-    import torch
-
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
 
@@ -69,9 +73,7 @@ def _median_time(fn, dev, repeats: int) -> float:
 
 
 def check_environment(dev) -> dict:
-    import numpy
-    import scipy
-    import torch
+    import scipy  # heavy; only its version is read here
 
     env = {"python": platform.python_version(), "torch": torch.__version__, "numpy": numpy.__version__,
            "scipy": scipy.__version__, "cuda_available": torch.cuda.is_available(), "device": str(dev),
@@ -86,7 +88,7 @@ def check_environment(dev) -> dict:
 def run_cuda_tests(timeout: int) -> dict:
     tests = Path(__file__).resolve().parents[1] / "tests" / "test_cuda.py"
     try:
-        import pytest  # noqa: F401
+        import pytest  # noqa: F401 (optional: a GPU image may not have it)
     except ImportError:
         return {"status": "not run: pytest is not installed"}
     if not tests.is_file():
@@ -107,11 +109,6 @@ def run_cuda_tests(timeout: int) -> dict:
 
 def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
     """The SDF search and loss at one batch, beside DepthNet's forward and backward."""
-    import torch
-
-    from geodepth_lite import analytic, camera, inference, losses, sdf
-    from geodepth_lite.model import DepthNet
-
     K = torch.from_numpy(analytic.intrinsics(size)).float()
     depth = torch.stack([torch.from_numpy(analytic.depth_map(analytic.KINDS[i % 3], size, seed=i))[None]
                          for i in range(batch)]).to(dev)
@@ -143,8 +140,6 @@ def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
 
 
 def time_training(dev, work: Path, frames: int, epochs: int, size: int, tiny: bool, timeout: int) -> dict:
-    from geodepth_lite import analytic
-
     n_val = max(2, frames // 5)
     data = analytic.write_dataset(work / "data", {"train": frames, "val": n_val, "test": 2}, size=size)
     run = work / "run"
@@ -222,8 +217,6 @@ def markdown(report: dict) -> str:
 
 def _claim_out(out: Path) -> None:
     """The output folder: new, empty, or one this command wrote before (its marker)."""
-    from geodepth_lite import utils
-
     if out.exists() and not out.is_dir():
         raise utils.FileProblem(f"cannot write into {out}: it is a file, not a folder", out)
     if out.is_dir():
@@ -236,10 +229,6 @@ def _claim_out(out: Path) -> None:
 
 
 def run_gpu_check(args: argparse.Namespace) -> int:
-    import torch
-
-    from geodepth_lite import utils
-
     for name in ("epochs", "frames", "repeats", "step_timeout"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")

@@ -139,122 +139,135 @@ def nearest_indices_batched(points: torch.Tensor, point_img: torch.Tensor, queri
     if n_img is None:
         n_img = int(max(int(point_img.max()) if point_img.numel() else -1,
                         int(query_img.max()) if query_img.numel() else -1)) + 1
-    M = queries.shape[0]
-    out = torch.full((M,), -1, dtype=torch.int64, device=dev)
-    if M == 0 or points.shape[0] == 0:
+    out = torch.full((queries.shape[0],), -1, dtype=torch.int64, device=dev)
+    if queries.shape[0] == 0 or points.shape[0] == 0:
         return out
-    narrow = (torch.float32, torch.float16, torch.bfloat16)
-    bdt = torch.float32 if points.dtype in narrow and queries.dtype in narrow else torch.float64
-    P = points.detach().to(device=dev, dtype=torch.float64)
-    Q = queries.detach().to(dtype=torch.float64)
     pimg, qimg = point_img.to(dev).long(), query_img.to(dev).long()
-    has = torch.bincount(pimg, minlength=n_img) > 0
-    keep_q = has[qimg]
+    keep_q = (torch.bincount(pimg, minlength=n_img) > 0)[qimg]
     if not bool(keep_q.all()):  # queries of images without points: -1
         sel = keep_q.nonzero().squeeze(1)
         if sel.numel():
-            out[sel] = nearest_indices_batched(P, pimg, Q[sel], qimg[sel], n_img)
+            out[sel] = nearest_indices_batched(points, pimg, queries[sel], qimg[sel], n_img)
         return out
+    return _Search(points, pimg, queries, qimg, n_img).run()
 
-    # points: sorted, padded, blocked
-    S0 = LEVELS[0]
-    pslot, _, pstart, plen = _layout(P, pimg, n_img, S0)
-    PX = P[pslot]  # (L, 3) sorted points
-    PX32 = PX.to(bdt)
-    PX32T = PX32.T.contiguous()  # (3, L)
-    levels = []
-    for S in LEVELS:
-        blocks = PX32.view(-1, S, 3)
-        # coordinate-major (9, nb): lo, hi, representative; gathered by column, every row stays contiguous
-        levels.append(torch.cat([blocks.amin(1), blocks.amax(1), blocks[:, S // 2]], 1).T.contiguous())
-    # queries: sorted, padded to tiles
-    qslot, qslot_img, _, _ = _layout(Q, qimg, n_img, TILE)
-    QX = Q[qslot]  # (Lq, 3)
-    QX32 = QX.to(bdt)
-    tiles = QX32.view(-1, TILE, 3)
-    t_box = torch.cat([tiles.amin(1), tiles.amax(1)], 1).T.contiguous()  # (6, T): lo, hi
-    QT = QX32.T.contiguous()  # (3, Lq)
-    tile_img = qslot_img[::TILE]  # (T,)
-    best = torch.empty(QX.shape[0], dtype=torch.int64, device=dev)  # sorted slot of each padded query's nearest
 
-    budget = PAIR_BUDGET if PAIR_BUDGET is not None else (2**19 if dev.type == "cpu" else 2**24)
+class _Search:
+    """One batched search (:func:`nearest_indices_batched`): the sorted, blocked points, the tiled
+    queries, and the descent over groups of tiles."""
 
-    # level 0, once: tiles x top-level blocks of the same image, kept where the boxes' gap is within
-    # the tile's bound (pairs ordered by tile)
-    T = tiles.shape[0]
-    nb = plen[tile_img] // S0  # (T,) top blocks per tile
-    pt = torch.repeat_interleave(torch.arange(T, device=dev), nb)  # (pairs,) tile
-    pb = pstart[tile_img[pt]] // S0 + _ragged_arange(nb)  # (pairs,) block
-    blk = levels[0].index_select(1, pb)  # (9, pairs)
-    tb = t_box.index_select(1, pt)  # (6, pairs)
-    lb = _gap2(blk[0:3] - tb[3:6], tb[0:3] - blk[3:6])  # box-box gap
-    rep = blk[6:9]
-    far = torch.maximum((rep - tb[0:3]).abs(), (rep - tb[3:6]).abs())
-    ub_tile = _segment_min((far * far).sum(0), pt, T) * _UP + _ABS  # (T,) bound for every query of a tile
-    k = lb * _DOWN <= ub_tile.index_select(0, pt)
-    pt, pb = pt[k], pb[k]
-    del blk, tb, lb, rep, far, k
+    def __init__(self, points, pimg, queries, qimg, n_img: int):
+        dev = self.dev = queries.device
+        narrow = (torch.float32, torch.float16, torch.bfloat16)
+        bdt = self.bdt = torch.float32 if points.dtype in narrow and queries.dtype in narrow else torch.float64
+        P = points.detach().to(device=dev, dtype=torch.float64)
+        Q = queries.detach().to(dtype=torch.float64)
+        self.budget = PAIR_BUDGET if PAIR_BUDGET is not None else (2**19 if dev.type == "cpu" else 2**24)
+        # points: sorted, padded, blocked
+        self.pslot, _, self.pstart, self.plen = _layout(P, pimg, n_img, LEVELS[0])
+        self.PX = P[self.pslot]  # (L, 3) sorted points
+        PX32 = self.PX.to(bdt)
+        self.PX32T = PX32.T.contiguous()  # (3, L)
+        self.levels = []
+        for S in LEVELS:
+            blocks = PX32.view(-1, S, 3)
+            # coordinate-major (9, nb): lo, hi, representative; gathered by column, every row stays contiguous
+            self.levels.append(torch.cat([blocks.amin(1), blocks.amax(1), blocks[:, S // 2]], 1).T.contiguous())
+        # queries: sorted, padded to tiles
+        self.qslot, qslot_img, _, _ = _layout(Q, qimg, n_img, TILE)
+        self.QX = Q[self.qslot]  # (Lq, 3)
+        QX32 = self.QX.to(bdt)
+        tiles = QX32.view(-1, TILE, 3)
+        self.t_box = torch.cat([tiles.amin(1), tiles.amax(1)], 1).T.contiguous()  # (6, T): lo, hi
+        self.QT = QX32.T.contiguous()  # (3, Lq)
+        self.tile_img = qslot_img[::TILE]  # (T,)
+        self.best = torch.empty(self.QX.shape[0], dtype=torch.int64, device=dev)  # nearest per padded query
 
-    def descend(t0: int, t1: int, pt: torch.Tensor, pb0: torch.Tensor) -> None:
-        """Tiles t0..t1-1 (their level-0 pairs pt, pb) down to their queries' nearest points, in halves
+    def tile_stage(self):
+        """Tiles x top-level blocks of the same image, kept where the boxes' gap is within the tile's
+        bound: (pt, pb) ordered by tile, and each tile's bound (T,)."""
+        dev, S0 = self.dev, LEVELS[0]
+        T = self.t_box.shape[1]
+        nb = self.plen[self.tile_img] // S0  # (T,) top blocks per tile
+        pt = torch.repeat_interleave(torch.arange(T, device=dev), nb)  # (pairs,) tile
+        pb = self.pstart[self.tile_img[pt]] // S0 + _ragged_arange(nb)  # (pairs,) block
+        blk = self.levels[0].index_select(1, pb)  # (9, pairs)
+        tb = self.t_box.index_select(1, pt)  # (6, pairs)
+        lb = _gap2(blk[0:3] - tb[3:6], tb[0:3] - blk[3:6])  # box-box gap
+        rep = blk[6:9]
+        far = torch.maximum((rep - tb[0:3]).abs(), (rep - tb[3:6]).abs())
+        ub_tile = _segment_min((far * far).sum(0), pt, T) * _UP + _ABS  # (T,) bound for every query of a tile
+        keep = (lb * _DOWN <= ub_tile.index_select(0, pt)).nonzero().squeeze(1)
+        return pt.index_select(0, keep), pb.index_select(0, keep), ub_tile
+
+    def run(self) -> torch.Tensor:
+        pt, pb, self.ub_tile = self.tile_stage()
+        T, dev = self.ub_tile.shape[0], self.dev
+        # groups of whole tiles whose level-0 query pairs fit the budget
+        cum = torch.cumsum(torch.bincount(pt, minlength=T) * TILE, 0)  # (T,)
+        bounds = [0]
+        while bounds[-1] < T:
+            base = int(cum[bounds[-1] - 1]) if bounds[-1] > 0 else 0
+            nxt = int(torch.searchsorted(cum, torch.tensor([base + self.budget], device=dev, dtype=cum.dtype),
+                                         right=True))
+            bounds.append(min(T, max(nxt, bounds[-1] + 1)))
+        starts = torch.searchsorted(pt, torch.tensor(bounds, device=dev, dtype=pt.dtype))
+        for i in range(len(bounds) - 1):
+            s0, s1 = int(starts[i]), int(starts[i + 1])
+            self.descend(bounds[i], bounds[i + 1], pt[s0:s1], pb[s0:s1])
+        out = torch.empty(self.best.shape[0], dtype=torch.int64, device=dev)
+        # padded query slots repeat a real query: writing all slots gives each real query its answer
+        out[self.qslot] = self.best
+        return out[:int(self.qslot.max()) + 1]
+
+    def split(self, t0: int, t1: int, pt: torch.Tensor, pb: torch.Tensor) -> None:
+        h = (t0 + t1) // 2
+        c = int(torch.searchsorted(pt, torch.tensor([h], device=self.dev, dtype=pt.dtype)))
+        self.descend(t0, h, pt[:c], pb[:c])
+        self.descend(h, t1, pt[c:], pb[c:])
+
+    def descend(self, t0: int, t1: int, pt: torch.Tensor, pb0: torch.Tensor) -> None:
+        """Tiles t0..t1-1 (their level-0 pairs pt, pb0) down to their queries' nearest points, in halves
         while the pairs held at once would pass the budget."""
-        n = (t1 - t0) * TILE  # local query slots
-        if t1 - t0 > 1 and pt.numel() * TILE > budget:
-            return split(t0, t1, pt, pb0)
-        QTc = QT[:, t0 * TILE:t1 * TILE]
+        dev, n = self.dev, (t1 - t0) * TILE  # local query slots
+        if t1 - t0 > 1 and pt.numel() * TILE > self.budget:
+            return self.split(t0, t1, pt, pb0)
+        QTc = self.QT[:, t0 * TILE:t1 * TILE]
         pq = ((pt - t0)[:, None] * TILE + torch.arange(TILE, device=dev)).reshape(-1)  # (pairs,) local slot
         pb = pb0.repeat_interleave(TILE)
-        ubq = ub_tile[t0:t1].repeat_interleave(TILE) / _DOWN  # (n,) the tile's bound to start with
+        ubq = self.ub_tile[t0:t1].repeat_interleave(TILE) / _DOWN  # (n,) the tile's bound to start with
         for li, S in enumerate(LEVELS):
             if li > 0:  # children of the surviving blocks
                 r = LEVELS[li - 1] // S
-                if t1 - t0 > 1 and pq.numel() * r > budget:
-                    return split(t0, t1, pt, pb0)
+                if t1 - t0 > 1 and pq.numel() * r > self.budget:
+                    return self.split(t0, t1, pt, pb0)
                 pq = pq.repeat_interleave(r)
                 pb = (pb[:, None] * r + torch.arange(r, device=dev)).reshape(-1)
             q = QTc.index_select(1, pq)  # (3, pairs)
-            blk = levels[li].index_select(1, pb)  # (9, pairs)
+            blk = self.levels[li].index_select(1, pb)  # (9, pairs)
             r3 = blk[6:9] - q
             # ubq holds the bound already widened by _UP / _DOWN: lb <= ubq is lb * _DOWN <= ub * _UP
             ubq = torch.minimum(ubq, _segment_min((r3 * r3).sum(0), pq, n) * _WIDE + _ABS)
             keep = (_gap2(blk[0:3] - q, q - blk[3:6]) <= ubq.index_select(0, pq)).nonzero().squeeze(1)
             pq, pb = pq.index_select(0, keep), pb.index_select(0, keep)
-        # the surviving blocks' points: a float32 (or float64) pass keeps those within the rounding margin
-        # of each query's least distance, then the exact float64 choice among them
+        self.best[t0 * TILE:t1 * TILE] = self.exact(pq, pb, QTc, t0 * TILE, n)
+
+    def exact(self, pq, pb, QTc, first: int, n: int) -> torch.Tensor:
+        """The surviving last-level blocks' points: a float32 (or float64) pass keeps those within the
+        rounding margin of each query's least distance, then the exact float64 choice among them, ties
+        to the least original index. Returns n original point indices."""
         S = LEVELS[-1]
         pq = pq.repeat_interleave(S)
-        ps = (pb[:, None] * S + torch.arange(S, device=dev)).reshape(-1)  # sorted point slots
-        d = _d2(PX32T.index_select(1, ps), QTc.index_select(1, pq), 0)
-        k = d * _DOWN <= _segment_min(d, pq, n).index_select(0, pq) * _UP + _ABS
-        pq, ps = pq[k], ps[k]
-        d = _d2(PX.index_select(0, ps), QX.index_select(0, pq + t0 * TILE))
+        ps = (pb[:, None] * S + torch.arange(S, device=self.dev)).reshape(-1)  # sorted point slots
+        d = _d2(self.PX32T.index_select(1, ps), QTc.index_select(1, pq), 0)
+        keep = (d * _DOWN <= _segment_min(d, pq, n).index_select(0, pq) * _UP + _ABS).nonzero().squeeze(1)
+        pq, ps = pq.index_select(0, keep), ps.index_select(0, keep)
+        d = _d2(self.PX.index_select(0, ps), self.QX.index_select(0, pq + first))
         dmin = _segment_min(d, pq, n)
-        orig = pslot[ps]  # original point index (padding slots repeat a real point)
-        cand = torch.where(d == dmin[pq], orig, torch.full_like(orig, torch.iinfo(torch.int64).max))
-        res = torch.full((n,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
-        best[t0 * TILE:t1 * TILE] = res.scatter_reduce(0, pq, cand, "amin")
-
-    def split(t0, t1, pt, pb):
-        h = (t0 + t1) // 2
-        c = int(torch.searchsorted(pt, torch.tensor([h], device=dev, dtype=pt.dtype)))
-        descend(t0, h, pt[:c], pb[:c])
-        descend(h, t1, pt[c:], pb[c:])
-
-    # chunks of whole tiles whose level-0 query pairs fit the budget
-    per_tile = torch.bincount(pt, minlength=T) * TILE  # (T,)
-    bounds = [0]
-    cum = torch.cumsum(per_tile, 0)
-    while bounds[-1] < T:
-        base = int(cum[bounds[-1] - 1]) if bounds[-1] > 0 else 0
-        nxt = int(torch.searchsorted(cum, torch.tensor([base + budget], device=dev, dtype=cum.dtype), right=True))
-        bounds.append(min(T, max(nxt, bounds[-1] + 1)))
-    starts = torch.searchsorted(pt, torch.tensor(bounds, device=dev, dtype=pt.dtype))
-    for i in range(len(bounds) - 1):
-        s0, s1 = int(starts[i]), int(starts[i + 1])
-        descend(bounds[i], bounds[i + 1], pt[s0:s1], pb[s0:s1])
-    # padded query slots repeat a real query: writing all slots gives each real query its answer
-    out[qslot] = best
-    return out
+        orig = self.pslot.index_select(0, ps)  # original point index (padding slots repeat a real point)
+        big = torch.iinfo(torch.int64).max
+        cand = torch.where(d == dmin.index_select(0, pq), orig, torch.full_like(orig, big))
+        return torch.full((n,), big, dtype=torch.int64, device=self.dev).scatter_reduce(0, pq, cand, "amin")
 
 
 def nearest_indices(points: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:

@@ -61,7 +61,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from geodepth_lite import camera
+from geodepth_lite import camera, nnsearch
 
 DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
 CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
@@ -164,8 +164,6 @@ def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "
     if method == "kdtree":
         return nearest_indices_kdtree(points, queries)
     if method == "device":
-        from geodepth_lite import nnsearch
-
         return nnsearch.nearest_indices(points, queries)
     if method == "chunked":
         return nearest_indices_chunked(points, queries)
@@ -181,8 +179,6 @@ def nearest_indices_many(pairs: list, method: str = "auto") -> list:
     method = resolve_method(method, pairs[0][0].device)
     if method != "device":
         return [nearest_indices(p, q, method) for p, q in pairs]
-    from geodepth_lite import nnsearch
-
     dev = pairs[0][1].device
     pimg = torch.cat([torch.full((len(p),), i, dtype=torch.int64, device=dev) for i, (p, _) in enumerate(pairs)])
     qimg = torch.cat([torch.full((len(q),), i, dtype=torch.int64, device=dev) for i, (_, q) in enumerate(pairs)])
@@ -491,22 +487,8 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     view = signed and sign_rule in ("view", "masked")  # else no depth map is passed: the nearest-point sign
     S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
     S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
-    out: list = []
-    todo = []  # per image with valid pixels: (b, p_pts, g_pts, q, lower, upper, hit, key)
-    for b in range(B):
-        vb = valid[b].reshape(-1)  # (H*W,)
-        if not bool(vb.any()):
-            out.append(None)
-            continue
-        out.append({})
-        sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
-        key = None
-        if cache is not None and cache.max_bytes > 0:
-            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling)
-        hit = cache.get(key) if key is not None else None
-        g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
-        q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
-        todo.append((b, S_pred[b] if sel is None else S_pred[b, sel], g_pts, q, lower, upper, hit, key))
+    todo = _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling)
+    out: list = [None] * B
     # every search of the batch at once: the predictions' fields, then the ground truths' not cached
     pairs = [(t[1], t[3]) for t in todo] + [(t[2], t[3]) for t in todo if t[6] is None]
     found = iter(nearest_indices_many(pairs, method))
@@ -524,6 +506,25 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     if sign_rule == "masked":
         _mark_known(out, pred, gt_safe, Kb, valid)
     return out
+
+
+def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling) -> list:
+    """Per image of :func:`sdf_fields` with a valid pixel: (b, prediction's points, ground truth's points,
+    samples q, lower, upper, the cache's hit or None, the cache key or None)."""
+    todo = []
+    for b in range(S_pred.shape[0]):
+        vb = valid[b].reshape(-1)  # (H*W,)
+        if not bool(vb.any()):
+            continue
+        sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
+        key = None
+        if cache is not None and cache.max_bytes > 0:
+            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling)
+        hit = cache.get(key) if key is not None else None
+        g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
+        q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
+        todo.append((b, S_pred[b] if sel is None else S_pred[b, sel], g_pts, q, lower, upper, hit, key))
+    return todo
 
 
 @torch.no_grad()
