@@ -52,7 +52,9 @@ def add_arguments_gpu_check(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=100, help="training frames of the timed runs (default 100)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of the benchmarks (default 5)")
     parser.add_argument("--no-pytest", action="store_true", help="skip the CUDA tests")
-    parser.add_argument("--step-timeout", type=int, default=240, help="seconds allowed to the tests and to training")
+    parser.add_argument("--step-timeout", type=int, default=200,
+                        help="seconds allowed to the CUDA tests and to training, each (default 200: the whole "
+                             "check stays within 10 minutes)")
 
 
 def _sync(dev) -> None:
