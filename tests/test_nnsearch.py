@@ -115,3 +115,22 @@ def test_equidistant_points_stay_exact_within_the_pair_budget(monkeypatch):
     p = torch.stack([torch.cos(t) * torch.cos(3 * t), torch.sin(t) * torch.cos(3 * t), torch.sin(3 * t)], 1)
     q = torch.cat([torch.zeros(1, 3, dtype=torch.float64), torch.rand(200, 3, dtype=torch.float64)])
     assert torch.equal(nnsearch.nearest_indices(p, q), _brute(p, q))
+
+
+def test_analytic_views_and_their_dataset(tmp_path):
+    from geodepth_lite import datasets, integrity, utils
+
+    for kind in analytic.KINDS:
+        d = analytic.depth_map(kind, 48, seed=2)
+        assert d.shape == (48, 48) and d.dtype == np.float32 and np.isfinite(d).all() and d.min() > 0
+        assert np.array_equal(d, analytic.depth_map(kind, 48, seed=2))  # reproducible
+        assert not np.array_equal(d, analytic.depth_map(kind, 48, seed=3))
+    # the lumen's far centre is deeper than its rim
+    lumen = analytic.depth_map("lumen", 48, seed=0)
+    assert np.median(lumen[20:28, 20:28]) > 2 * np.median(np.concatenate([lumen[0], lumen[-1]]))
+    root = analytic.write_dataset(tmp_path / "d", {"train": 3, "val": 1, "test": 1}, size=32)
+    assert integrity.verify(root) == []
+    item = datasets.SyntheticDepthDataset(root, "train")[2]
+    assert item["image"].shape == (3, 32, 32) and item["depth"].shape == (1, 32, 32) and item["organ"] == "closeup"
+    with pytest.raises(utils.FileProblem, match="not empty"):
+        analytic.write_dataset(root, {"train": 1}, size=32)
