@@ -512,6 +512,11 @@ def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, 
     """Per image of :func:`sdf_fields` with a valid pixel: (b, prediction's points, ground truth's points,
     samples q, lower, upper, the cache's hit or None, the cache key or None)."""
     todo = []
+    if cache is not None and cache.max_bytes > 0 and gt.device.type != "cpu":
+        # one copy of the batch to the host for the keys, not three per image (each a device sync)
+        gt, valid_h, K_h = gt.detach().cpu(), valid.cpu(), Kb.cpu()
+    else:
+        valid_h, K_h = valid, Kb
     for b in range(S_pred.shape[0]):
         vb = valid[b].reshape(-1)  # (H*W,)
         if not bool(vb.any()):
@@ -519,7 +524,7 @@ def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, 
         sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
         key = None
         if cache is not None and cache.max_bytes > 0:
-            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling)
+            key = GTFieldCache.key(gt[b], valid_h[b], K_h[b], shape, signed, sign_rule, sampling)
         hit = cache.get(key) if key is not None else None
         g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
         q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), shape, sampling, hit)  # (M, 3), (3,), (3,)

@@ -143,3 +143,17 @@ def test_evaluate_on_cuda_matches_the_cpu(trained, analytic_root, tmp_path):
     a, b = res["cpu"]["overall"], res["cuda"]["overall"]
     for k in evaluate.METRIC_KEYS:
         assert b[k] == pytest.approx(a[k], rel=0.02, abs=1e-4), k
+
+
+def test_ground_truth_fields_are_cached_on_the_gpu():
+    d = torch.stack([torch.from_numpy(analytic.depth_map(k, 64, seed=i))[None] for i, k in enumerate(analytic.KINDS)])
+    d = d.cuda()
+    K = torch.from_numpy(analytic.intrinsics(64)).float().cuda()
+    cache = sdf.GTFieldCache()
+    first = float(losses.sdf_loss(d * 1.05, d, K, 8, cache=cache))
+    again = float(losses.sdf_loss(d * 1.05, d, K, 8, cache=cache))
+    assert (cache.misses, cache.hits) == (3, 3) and first == again
+    assert all(item[2].device.type == "cuda" for item in cache._d.values())  # kept where computed
+    # the same frames' keys on the CPU: a CPU search finds the same fields
+    cpu = float(losses.sdf_loss(d.cpu() * 1.05, d.cpu(), K.cpu(), 8, cache=None))
+    assert first == pytest.approx(cpu, rel=1e-5)
