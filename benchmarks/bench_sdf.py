@@ -11,7 +11,15 @@ of repeats, it times:
 3. one training step of DepthNet at the same batch (forward, all five losses, backward,
    Adam step);
    (1 and 3 each without and with the cache of ground-truth fields, i.e. first and later epochs);
-4. inference frames/s of DepthNet at 320x320.
+4. inference frames/s of DepthNet at 320x320;
+5. the nearest-point search alone (``--search``), on the same tensors' device: the batched exact
+   search of the device path (:mod:`geodepth_lite.nnsearch`), scipy's cKDTree (one worker unless
+   ``--threads``) and the matrix-product brute force, side by side, with the device search's
+   agreement with cKDTree on every query. Its points are depth maps back-projected, its queries
+   each map's 32^3 bounding-box grid, as in the SDF loss.
+
+``--data analytic`` takes analytic lumen, wall and close-up views (:mod:`geodepth_lite.analytic`,
+no rendering, so no VTK) instead of rendered frames of the synthetic dataset.
 
 The predictions are the ground truth times a smooth random factor (about +-10 %), so both
 surfaces are realistic endoscopic depth maps.
@@ -43,8 +51,57 @@ def _timed(fn, device) -> float:
     return time.perf_counter() - t0
 
 
-def load_batch(batch: int, size: int, device) -> dict:
-    """``batch`` rendered frames (image, depth, K) at size x size from a small synthetic dataset."""
+def analytic_batch(batch: int, size: int, device) -> dict:
+    """``batch`` analytic frames (image, depth, K): lumen, wall and close-up views in turn (no VTK)."""
+    from geodepth_lite import analytic
+
+    K = torch.from_numpy(analytic.intrinsics(size)).float()
+    depth, image = [], []
+    for i in range(batch):
+        d = analytic.depth_map(analytic.KINDS[i % len(analytic.KINDS)], size, seed=i)
+        depth.append(torch.from_numpy(d)[None])
+        image.append(torch.from_numpy(analytic.shaded_image(d, K.double().numpy(), seed=i)).permute(2, 0, 1) / 255.0)
+    return {"image": torch.stack(image).to(device), "depth": torch.stack(depth).to(device),
+            "K": K.expand(batch, 3, 3).contiguous().to(device)}
+
+
+def search_inputs(depth: torch.Tensor, K: torch.Tensor, grid: int) -> list:
+    """Per image (points N x 3, queries grid^3 x 3): the depth map back-projected and its bounding-box grid."""
+    from geodepth_lite import camera
+
+    pts = camera.backproject(depth, K)  # (B, H*W, 3)
+    return [(p, sdf.grid_points(p.min(0).values, p.max(0).values, grid)) for p in pts]
+
+
+def run_search(pairs: list, repeats: int, bf_images: int, device) -> dict:
+    """Medians of the nearest-point search of ``pairs`` by three methods, and the agreement on every query."""
+    import numpy as np
+
+    dev_idx = sdf.nearest_indices_many(pairs, "device")
+    kd_idx = [sdf.nearest_indices_kdtree(p, q) for p, q in pairs]
+    agree = sum(int((a.cpu() == b.cpu()).sum()) for a, b in zip(dev_idx, kd_idx))
+    queries = sum(len(q) for _, q in pairs)
+    t = {"device": [], "kdtree": [], "bf": []}
+    for _ in range(repeats):
+        t["device"].append(_timed(lambda: sdf.nearest_indices_many(pairs, "device"), device))
+        t["kdtree"].append(_timed(lambda: [sdf.nearest_indices_kdtree(p, q) for p, q in pairs], device))
+        t["bf"].append(_timed(lambda: [sdf.nearest_indices(p, q, "brute_mm") for p, q in pairs[:bf_images]], device))
+    med = {k: statistics.median(v) for k, v in t.items()}
+    n = len(pairs)
+    return {"search_images": n, "search_queries": queries, "search_points": int(np.mean([len(p) for p, _ in pairs])),
+            "search_agree": agree, "search_device_s": med["device"], "search_kdtree_s": med["kdtree"],
+            "search_brute_mm_s": med["bf"] * n / bf_images, "search_brute_mm_measured_images": bf_images,
+            "search_device_per_field_ms": 1e3 * med["device"] / n,
+            "search_kdtree_per_field_ms": 1e3 * med["kdtree"] / n,
+            "search_device_vs_kdtree": med["device"] / med["kdtree"],
+            "search_repeats": repeats}
+
+
+def load_batch(batch: int, size: int, device, data: str = "synthetic") -> dict:
+    """``batch`` rendered frames (image, depth, K) at size x size from a small synthetic dataset
+    (``data="analytic"``: :func:`analytic_batch`)."""
+    if data == "analytic":
+        return analytic_batch(batch, size, device)
     from geodepth_lite.datasets import SyntheticDepthDataset
     from geodepth_lite.synth import ensure_dataset
 
@@ -69,7 +126,8 @@ def sdf_step(pred0, gt, K, grid, method, cache=None):
     losses.sdf_loss(pred, gt, K, grid, method=method, cache=cache).backward()
 
 
-def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", train_step=True, seed=0) -> dict:
+def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", train_step=True, seed=0,
+        data="synthetic", search_only=False) -> dict:
     """Run the benchmark; returns a dict of median seconds and the derived ratios.
 
     The SDF loss and the training step are timed twice: without the ground-truth field cache
@@ -78,11 +136,16 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     """
     dev = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
     utils.seed_everything(seed)
-    data = load_batch(batch, size, dev)
-    gt, K, image = data["depth"], data["K"], data["image"]
+    frames = load_batch(batch, size, dev, data)
+    gt, K, image = frames["depth"], frames["K"], frames["image"]
+    if search_only:
+        res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "data": data,
+               "torch_threads": torch.get_num_threads(), "kdtree_workers": sdf.KDTREE_WORKERS}
+        res.update(run_search(search_inputs(gt, K, grid), repeats, bf_images, dev))
+        return res
     pred = fake_prediction(gt, seed)
     g3 = (grid, grid, grid)
-    index = "chunked" if dev.type == "cuda" else "kdtree"
+    index = sdf.resolve_method("auto", dev)
     res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "repeats": repeats,
            "index_method": index, "bf_images": bf_images, "torch_threads": torch.get_num_threads()}
     cache = sdf.GTFieldCache()
@@ -136,7 +199,27 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     return res
 
 
+def report_search(res: dict) -> str:
+    n, s, g = res["search_images"], res["size"], res["grid"]
+    return "\n".join([
+        f"Nearest-point search on {res['device']} ({res['torch_threads']} torch threads, cKDTree workers "
+        f"{res['kdtree_workers']}), {res['data']} depth maps, {n} images {s}x{s} ({res['search_points']} points "
+        f"each), {g}^3 bounding-box grid ({res['search_queries'] // n} queries each), "
+        f"medians of {res['search_repeats']}",
+        f"  device search (batched, torch ops):   {res['search_device_s']:8.3f} s  "
+        f"({res['search_device_per_field_ms']:.1f} ms per field)",
+        f"  cKDTree:                              {res['search_kdtree_s']:8.3f} s  "
+        f"({res['search_kdtree_per_field_ms']:.1f} ms per field)",
+        f"  matrix-product brute force:           {res['search_brute_mm_s']:8.3f} s  "
+        f"(measured on {res['search_brute_mm_measured_images']} image(s), scaled linearly to {n})",
+        f"  device search / cKDTree:              {res['search_device_vs_kdtree']:8.2f} x",
+        f"  agreement with cKDTree:               {res['search_agree']} of {res['search_queries']} queries",
+    ])
+
+
 def report(res: dict) -> str:
+    if "sdf_s" not in res:
+        return report_search(res)
     b, s, g = res["batch"], res["size"], res["grid"]
     lines = [
         f"SDF loss benchmark on {res['device']} ({res['torch_threads']} torch threads, cKDTree workers "
@@ -175,6 +258,10 @@ def main(argv=None) -> int:
                     help="torch threads and cKDTree workers "
                          "(0: torch's default; 1 gives stable figures on a busy machine)")
     ap.add_argument("--json", default="", help="also write the figures to this JSON file")
+    ap.add_argument("--data", choices=("synthetic", "analytic"), default="synthetic",
+                    help="rendered frames of the synthetic dataset, or analytic views (no VTK)")
+    ap.add_argument("--search", action="store_true",
+                    help="time the nearest-point search alone: device search, cKDTree, brute force")
     a = ap.parse_args(argv)
     for name in ("batch", "size", "grid", "repeats", "bf_images"):
         if getattr(a, name) < 1:
@@ -188,7 +275,8 @@ def main(argv=None) -> int:
     if a.threads:
         torch.set_num_threads(a.threads)
         sdf.KDTREE_WORKERS = a.threads
-    res = run(a.batch, a.size, a.grid, a.repeats, a.bf_images, a.device, not a.no_train_step)
+    res = run(a.batch, a.size, a.grid, a.repeats, a.bf_images, a.device, not a.no_train_step, data=a.data,
+              search_only=a.search)
     print(report(res))
     if a.json:
         finite = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in res.items()}

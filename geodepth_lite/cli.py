@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
     "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
     "convert-checkpoint": ("geodepth_lite.checkpoint", "rewrite checkpoints of the first format so they load safely"),
+    "gpu-check": ("geodepth_lite.gpu_check", "check the CUDA paths in minutes and predict the paper profile's time"),
     "bundle": ("geodepth_lite.bundle", "pack a profile's trained models into one file to hand out (a class bundle)"),
     "unbundle": ("geodepth_lite.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
     "exercises": ("geodepth_lite.exercises", "write the student release of the notebooks' graded exercises (nbgrader)"),

@@ -235,9 +235,9 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     :func:`geodepth_lite.sdf.signed_distance`). ``sign_rule="nearest"`` uses that nearest-point
     sign everywhere (the former rule, for comparison). The loss is the mean over images with at
     least one valid pixel (0 if none). ``method``: exact nearest-neighbour search, "auto" =
-    cKDTree on the CPU, chunked brute force on CUDA. ``signed=False`` gives the unsigned variant
-    (for comparison). ``cache``: ground-truth fields are reused for frames seen before
-    (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search).
+    cKDTree on the CPU, the batched torch search (:mod:`geodepth_lite.nnsearch`) on CUDA.
+    ``signed=False`` gives the unsigned variant (for comparison). ``cache``: ground-truth fields
+    are reused for frames seen before (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search).
 
     Two options, not the paper's (docs/network_and_losses.md, "Where the SDF samples lie"):
     ``sign_rule="masked"`` leaves out the points where the view rule does not apply in either
@@ -381,7 +381,7 @@ def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID
     p = pred.detach().float().clone().requires_grad_(True)
     inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
     out = {}
-    for name in terms or term_names():
+    for name in term_names() if terms is None else terms:
         (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)
         out[name] = 0.0 if g is None else float(g.norm())
     return out

@@ -16,7 +16,8 @@ shared/paper/):
 This module holds what that term is built from, in three layers:
 
 - search: the exact nearest neighbour of each grid point (:func:`nearest_indices`: scipy's
-  cKDTree on the CPU, a chunked exact ``torch.cdist`` on CUDA; the paper uses PyTorch3D's KNN).
+  cKDTree for CPU tensors, the batched torch search of :mod:`geodepth_lite.nnsearch` on other
+  devices, every image of a batch in one call; the paper uses PyTorch3D's KNN).
   Indices are searched without gradient; distances are then recomputed in torch from the
   nearest points, so gradients reach the prediction through them;
 - fields: phi of one point set at given queries (:func:`signed_distance`), and the fields of a
@@ -60,7 +61,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from geodepth_lite import camera
+from geodepth_lite import camera, nnsearch
 
 DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
 CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
@@ -140,19 +141,60 @@ def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_e
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.int64, device=queries.device)
 
 
-def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "auto") -> torch.Tensor:
-    """Nearest-neighbour indices: "kdtree" (exact, CPU), "chunked" (exact, on the device), "auto"
-    (kdtree for CPU tensors, chunked otherwise) or "brute_mm" (matrix-product brute force, a
-    speed baseline only)."""
+NN_METHODS = ("auto", "kdtree", "device", "chunked", "brute_mm")
+
+
+def resolve_method(method: str, device: torch.device) -> str:
+    """The search a ``method`` runs for tensors on ``device``: "auto" is "kdtree" for CPU tensors (the
+    committed results' search) and "device" (:mod:`geodepth_lite.nnsearch`) for any other device."""
+    if method not in NN_METHODS:
+        raise ValueError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
     if method == "auto":
-        method = "kdtree" if points.device.type == "cpu" else "chunked"
+        return "kdtree" if torch.device(device).type == "cpu" else "device"
+    return method
+
+
+def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "auto") -> torch.Tensor:
+    """Nearest-neighbour indices: "kdtree" (exact, scipy's cKDTree on the CPU), "device" (exact, torch
+    ops on the tensors' device: :func:`geodepth_lite.nnsearch.nearest_indices`), "auto" (kdtree for
+    CPU tensors, device otherwise), "chunked" (exact brute force in blocks with ``torch.cdist``, the
+    former CUDA path, kept for comparison) or "brute_mm" (matrix-product brute force, a speed baseline
+    only). The exact methods agree on every query (ties: the least point index)."""
+    method = resolve_method(method, points.device)
     if method == "kdtree":
         return nearest_indices_kdtree(points, queries)
+    if method == "device":
+        return nnsearch.nearest_indices(points, queries)
     if method == "chunked":
         return nearest_indices_chunked(points, queries)
-    if method == "brute_mm":
-        return nearest_indices_chunked(points, queries, exact=False)
-    raise ValueError(f"unknown nearest-neighbour method {method!r}: use 'auto', 'kdtree' or 'chunked'")
+    return nearest_indices_chunked(points, queries, exact=False)
+
+
+def nearest_indices_many(pairs: list, method: str = "auto") -> list:
+    """Nearest-neighbour indices of several (points N_i x 3, queries M_i x 3) pairs, one list entry
+    each: "device" searches them all in one batched call
+    (:func:`geodepth_lite.nnsearch.nearest_indices_batched`), the other methods one pair at a time."""
+    if not pairs:
+        return []
+    method = resolve_method(method, pairs[0][0].device)
+    if method != "device":
+        return [nearest_indices(p, q, method) for p, q in pairs]
+    dev = pairs[0][1].device
+    pimg = torch.cat([torch.full((len(p),), i, dtype=torch.int64, device=dev) for i, (p, _) in enumerate(pairs)])
+    qimg = torch.cat([torch.full((len(q),), i, dtype=torch.int64, device=dev) for i, (_, q) in enumerate(pairs)])
+    pts = torch.cat([p.detach().to(device=dev, dtype=torch.float64) for p, _ in pairs])
+    qs = torch.cat([q.detach().to(dtype=torch.float64) for _, q in pairs])
+    narrow = all(p.dtype in (torch.float32, torch.float16, torch.bfloat16) and
+                 q.dtype in (torch.float32, torch.float16, torch.bfloat16) for p, q in pairs)
+    if narrow:  # every coordinate exact in float32: the search may bound in float32
+        pts, qs = pts.float(), qs.float()
+    idx = nnsearch.nearest_indices_batched(pts, pimg, qs, qimg, len(pairs))  # (sum M_i,) into pts
+    offsets = torch.cumsum(torch.tensor([0] + [len(p) for p, _ in pairs[:-1]], device=dev), 0)
+    out, q0 = [], 0
+    for i, (_, q) in enumerate(pairs):
+        out.append(idx[q0:q0 + len(q)] - offsets[i])
+        q0 += len(q)
+    return out
 
 
 # ----------------------------------------------------------------------------- fields
@@ -300,7 +342,11 @@ def signed_distance(points: torch.Tensor, queries: torch.Tensor, method: str = "
 
     Explained with its equation in notebook 03, section 5 (phi and its sign rule).
     """
-    idx = nearest_indices(points, queries, method)  # (M,)
+    return _phi(points, queries, nearest_indices(points, queries, method), signed, depth, K, valid)
+
+
+def _phi(points, queries, idx, signed: bool = True, depth=None, K=None, valid=None) -> torch.Tensor:
+    """:func:`signed_distance` from the nearest points' indices ``idx`` (M,), already searched."""
     view = None
     if depth is not None and signed:
         if K is None:
@@ -329,12 +375,18 @@ class GTFieldCache:
     The ground truth's field does not depend on the network, and training sees every frame once
     per epoch, so from the second epoch on only the prediction's field has to be searched. A
     hit returns exactly what the search would (same inputs, same exact search). Fields are kept
-    on the CPU in their dtype (128 KiB per frame at 32^3 in float32); the least recently used
-    are dropped beyond ``max_bytes`` (512 MiB: about 4000 frames at 32^3); ``max_bytes = 0``
-    disables the cache.
+    on the device they were computed on (a GPU's fields stay on the GPU, so a hit copies nothing),
+    in their dtype: 128 KiB per frame at 32^3 in float32, so the paper split's 3600 training and
+    900 validation frames take 4500 x 128 KiB = 562.5 MiB. The least recently used are dropped
+    beyond ``max_bytes`` (1 GiB: about 8000 frames at 32^3); ``max_bytes = 0`` disables the cache.
+
+    The key is the frame's content, not its index in the dataset: augmentation (flips, crops, the
+    field-of-view border) changes a frame's ground truth from one epoch to the next, and train and
+    validation frames share indices, so an index alone could return another map's field. Hashing
+    costs a copy of the depth map to the host and a BLAKE2b over it (400 KiB at 320x320).
     """
 
-    def __init__(self, max_bytes: int = 512 * 2**20):
+    def __init__(self, max_bytes: int = 2**30):
         self.max_bytes = int(max_bytes)
         self._d: OrderedDict = OrderedDict()
         self._bytes = 0
@@ -367,7 +419,7 @@ class GTFieldCache:
     def put(self, key: str, lower: torch.Tensor, upper: torch.Tensor, field: torch.Tensor) -> None:
         if self.max_bytes <= 0:
             return
-        item = (lower.detach().cpu(), upper.detach().cpu(), field.detach().cpu())
+        item = (lower.detach(), upper.detach(), field.detach())  # on their device
         size = item[2].numel() * item[2].element_size() + 64
         with self._lock:
             if key in self._d:
@@ -435,23 +487,49 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     view = signed and sign_rule in ("view", "masked")  # else no depth map is passed: the nearest-point sign
     S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
     S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
-    out: list = []
-    for b in range(B):
+    todo = _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling)
+    out: list = [None] * B
+    # every search of the batch at once: the predictions' fields, then the ground truths' not cached
+    pairs = [(t[1], t[3]) for t in todo] + [(t[2], t[3]) for t in todo if t[6] is None]
+    found = iter(nearest_indices_many(pairs, method))
+    idx_pred = [next(found) for _ in todo]
+    for (b, p_pts, g_pts, q, lower, upper, hit, key), ip in zip(todo, idx_pred):
+        phi_pred = _phi(p_pts, q, ip, signed, pred[b, 0].detach() if view else None, Kb[b], valid[b, 0])  # (M,)
+        if hit is not None:
+            phi_gt = hit[2].to(phi_pred)  # (M,)
+        else:
+            phi_gt = _phi(g_pts, q, next(found), signed, gt_safe[b, 0] if view else None, Kb[b],
+                          valid[b, 0]).to(phi_pred)  # (M,)
+            if key is not None:
+                cache.put(key, lower, upper, phi_gt)
+        out[b] = {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt}
+    if sign_rule == "masked":
+        _mark_known(out, pred, gt_safe, Kb, valid)
+    return out
+
+
+def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling) -> list:
+    """Per image of :func:`sdf_fields` with a valid pixel: (b, prediction's points, ground truth's points,
+    samples q, lower, upper, the cache's hit or None, the cache key or None)."""
+    todo = []
+    if cache is not None and cache.max_bytes > 0 and gt.device.type != "cpu":
+        # one copy of the batch to the host for the keys, not three per image (each a device sync)
+        gt, valid_h, K_h = gt.detach().cpu(), valid.cpu(), Kb.cpu()
+    else:
+        valid_h, K_h = valid, Kb
+    for b in range(S_pred.shape[0]):
         vb = valid[b].reshape(-1)  # (H*W,)
         if not bool(vb.any()):
-            out.append(None)
             continue
         sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
         key = None
         if cache is not None and cache.max_bytes > 0:
-            key = GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling)
-        out.append(_image_fields(S_pred[b] if sel is None else S_pred[b, sel],  # (N, 3)
-                                 S_gt[b] if sel is None else S_gt[b, sel],  # (N, 3)
-                                 pred[b, 0].detach() if view else None, gt_safe[b, 0] if view else None,
-                                 Kb[b], valid[b, 0], shape, method, signed, cache, key, sampling))
-    if sign_rule == "masked":
-        _mark_known(out, pred, gt_safe, Kb, valid)
-    return out
+            key = GTFieldCache.key(gt[b], valid_h[b], K_h[b], shape, signed, sign_rule, sampling)
+        hit = cache.get(key) if key is not None else None
+        g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
+        q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
+        todo.append((b, S_pred[b] if sel is None else S_pred[b, sel], g_pts, q, lower, upper, hit, key))
+    return todo
 
 
 @torch.no_grad()
@@ -472,23 +550,6 @@ def _mark_known(fields: list, pred: torch.Tensor, gt_safe: torch.Tensor, K: torc
              & _view_sign(q, gt_safe[idx, 0], K[idx], v)[1])  # (B', M)
     for j, b in enumerate(idx):
         fields[b]["known"] = known[j]
-
-
-def _image_fields(p_pts, g_pts, pred_depth, gt_depth, K, valid, shape, method: str, signed: bool,
-                  cache: GTFieldCache | None, key, sampling: str = "bbox") -> dict:
-    """One image of :func:`sdf_fields`: the samples of ``sampling`` over the ground truth's points
-    and both fields (the ground truth's from ``cache`` under ``key`` when it holds them, else
-    computed and stored)."""
-    hit = cache.get(key) if key is not None else None
-    q, lower, upper = _samples(g_pts, K, tuple(valid.shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
-    phi_pred = signed_distance(p_pts, q, method, signed, pred_depth, K, valid)  # (M,)
-    if hit is not None:
-        phi_gt = hit[2].to(phi_pred)  # (M,)
-    else:
-        phi_gt = signed_distance(g_pts, q, method, signed, gt_depth, K, valid).to(phi_pred)  # (M,)
-        if key is not None:
-            cache.put(key, lower, upper, phi_gt)
-    return {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt}
 
 
 @torch.no_grad()

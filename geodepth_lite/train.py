@@ -69,11 +69,19 @@ def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict):
                              sdf_sign=cfg["sdf_sign"])
 
 
+def weighted_terms(cfg: dict) -> tuple[str, ...]:
+    """The loss terms whose group has a non-zero weight in ``cfg["lambdas"]`` (the ones training evaluates)."""
+    weights = losses.group_weights(cfg["lambdas"])
+    return tuple(name for name, term in losses.LOSS_TERMS.items() if weights[term.group])
+
+
 def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict) -> dict[str, float]:
-    """Each loss term's gradient norm at the network output (logged once per epoch, first batch)."""
+    """The gradient norm at the network output of each weighted loss term (logged once per epoch, on
+    the first batch); a term whose weight is zero is not evaluated, and its ``gradnorm_`` column is
+    absent from the log."""
     g = cfg["sdf_grid"]
     return losses.term_gradient_norms(pred, batch["depth"], batch["image"], batch["K"], mask=batch.get("valid"),
-                                      sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
+                                      sdf_grid=(g, g, g), depth_term=cfg["depth_term"], terms=weighted_terms(cfg),
                                       border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
                                       sdf_sign=cfg["sdf_sign"])
 

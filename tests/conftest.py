@@ -13,6 +13,21 @@ matplotlib.use("Agg")
 os.environ.setdefault("GEODEPTH_LITE_TEST_REAL_HOME", os.environ.get("GEODEPTH_LITE_HOME", ""))
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``cuda`` run only where a CUDA device is available; elsewhere they skip, saying why."""
+    marked = [item for item in items if "cuda" in item.keywords]
+    if not marked:
+        return
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason=f"needs a CUDA GPU: torch {torch.__version__} sees none "
+                                   f"(built with CUDA {torch.version.cuda or 'none'})")
+    for item in marked:
+        item.add_marker(skip)
+
+
 @pytest.fixture(autouse=True)
 def _isolated_workspace(tmp_path, monkeypatch):
     """Keep generated datasets and runs of unit tests out of the checkout."""

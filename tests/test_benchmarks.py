@@ -247,3 +247,14 @@ def test_tune_teach_flips_logs_one_row_per_flips_setting(tmp_path, monkeypatch, 
     assert tagged["name"] == "tiny_flips_none_t2" and tagged | same == rows[0] | same
     with pytest.raises(SystemExit, match="no checkpoint at .*missing"):
         g["main"](["flips", "missing", "--log", str(log)])
+
+
+def test_bench_sdf_search_compares_the_device_search_with_cktree(tmp_path, capsys):
+    out = tmp_path / "search.json"
+    main = load("bench_sdf.py")["main"]
+    assert main(["--search", "--data", "analytic", "--batch", "3", "--size", "32", "--grid", "5", "--repeats", "1",
+                 "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["search_queries"] == 3 * 125 and res["search_agree"] == res["search_queries"]
+    assert res["search_device_s"] > 0 and res["search_kdtree_s"] > 0 and res["search_brute_mm_s"] > 0
+    assert "agreement with cKDTree" in capsys.readouterr().out

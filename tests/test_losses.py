@@ -207,7 +207,7 @@ def test_sdf_loss_between_step_edges_follows_the_view_sign():
     gt = step_depth(near=1.0, far=3.0)
     pred = step_depth(near=1.4, far=2.5)
     pred[..., :, 5:8] = 2.5  # the edge moved left by three columns
-    for method in ("kdtree", "chunked"):
+    for method in ("kdtree", "chunked", "device"):
         view = float(L.sdf_loss(pred, gt, K, grid=6, method=method, cache=None))
         old = float(L.sdf_loss(pred, gt, K, grid=6, method=method, cache=None, sign_rule="nearest"))
         assert math.isclose(view, reference_sdf_loss(pred, gt, K, 6), rel_tol=1e-9)
@@ -226,7 +226,7 @@ def test_sdf_loss_matches_reference_on_random_smooth_surfaces():
     K = camera.intrinsics(12)
     gt = smooth_depth(2, 12, 12, seed=1).reshape(2, 1, 12, 12)
     pred = smooth_depth(2, 12, 12, seed=2).reshape(2, 1, 12, 12) * 1.1
-    for method in ("kdtree", "chunked"):
+    for method in ("kdtree", "chunked", "device"):
         got = float(L.sdf_loss(pred, gt, K, grid=5, method=method, cache=None))
         assert math.isclose(got, reference_sdf_loss(pred, gt, K, 5), rel_tol=1e-9)
 

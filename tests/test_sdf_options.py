@@ -305,7 +305,7 @@ def test_default_options_give_bit_identical_losses_and_gradients(seed):
 @pytest.mark.parametrize("sampling, sign", [("frustum", "view"), ("bbox", "masked"), ("frustum", "masked")])
 def test_options_match_the_reference_on_random_maps(sampling, sign):
     pred, gt, _, K = random_maps(3)
-    for method in ("kdtree", "chunked"):
+    for method in ("kdtree", "chunked", "device"):
         got = float(L.sdf_loss(pred, gt, K, (4, 5, 3), method=method, cache=None, sign_rule=sign, sampling=sampling))
         assert math.isclose(got, reference_sdf_loss(pred, gt, K, (4, 5, 3), sampling, sign, gt > 0), rel_tol=1e-9)
 
@@ -372,8 +372,10 @@ def test_training_passes_the_options_to_the_sdf_term():
             got[sampling, sign] = train.compute_losses(pred, batch, cfg)[1]["sdf"]
             want = L.sdf_loss(pred, gt, batch["K"], 8, sign_rule=sign, sampling=sampling)
             assert got[sampling, sign] == float(want)
-            norms = train.term_gradient_norms(pred, batch, cfg)
+            norms = train.term_gradient_norms(pred, batch, cfg)  # Case 3: lambda2 = 0, so no grad or normal
+            assert sorted(norms) == ["depth", "sdf", "smooth"]
             assert norms == L.term_gradient_norms(pred, gt, img, batch["K"], sdf_grid=(8, 8, 8), depth_term="l1",
-                                                  sdf_sampling=sampling, sdf_sign=sign)
+                                                  sdf_sampling=sampling, sdf_sign=sign,
+                                                  terms=("depth", "smooth", "sdf"))
     assert got["bbox", "view"] == train.compute_losses(pred, batch, base)[1]["sdf"]
     assert len(set(got.values())) == 4

@@ -117,11 +117,15 @@ def test_train_py_is_the_loop_alone():
 
 
 # The only imports that may sit inside a function: heavy ones (VTK, matplotlib, papermill) that
-# would slow every `import geodepth_lite...` and `--help`, or optional / platform-specific ones.
+# would slow every `import geodepth_lite...` and `--help`, or optional / platform-specific ones
+# (imageio, tifffile and pytest: a GPU machine may have torch, numpy, scipy, Pillow, tqdm and PyYAML only).
 # pyplot at module level could also pick a GUI backend on import. nbgrader's gradebook (SQLAlchemy) is read
 # by `course grades` alone.
 LATE_IMPORTS = {"pyvista", "vtk", "vtkmodules", "matplotlib", "papermill", "nbformat", "IPython", "ipywidgets",
-                "imageio_ffmpeg", "fcntl", "scipy", "nbgrader"}
+                "imageio_ffmpeg", "fcntl", "scipy", "nbgrader",
+                # needed only by public datasets' readers: training and gpu-check run on GPU images without them
+                "imageio", "tifffile",
+                "pytest"}  # gpu-check runs the CUDA tests only where pytest is installed
 _PRAGMA = re.compile(r"\b(noqa(:[\s\w,]*)?|type:\s*ignore\S*|pragma:[^#]*)", re.IGNORECASE)  # not reasons
 
 

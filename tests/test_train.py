@@ -478,3 +478,19 @@ def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smok
     assert calls == [(4, 0, 96), (1, 0, None), (1, 1, None)]
     assert paths == [run_cache.checkpoint_dir("smoke", c, s, **o) / "checkpoint.pt" for c, s, o in runs]
     assert paths[1] == paths[3] and paths[0] == paths[4] and len(set(paths)) == 4
+
+
+@pytest.mark.parametrize("case, evaluated", [(1, False), (4, True)])
+def test_a_term_whose_weight_is_zero_is_never_evaluated(monkeypatch, smoke_root, tmp_path, case, evaluated):
+    """Case 1 (SDF weight 0): no SDF field in training, validation or the gradient-norm log; Case 4
+    (the control, so the counter can count) evaluates them, and logs every term's gradient norm."""
+    from geodepth_lite import losses
+
+    calls = []
+    fields = losses.sdf_fields
+    monkeypatch.setattr(losses, "sdf_fields", lambda *a, **k: calls.append(1) or fields(*a, **k))
+    row = checkpoint.read_log(train.fit(_cfg(smoke_root, case=case, epochs=1), tmp_path / "run", progress=False))[-1]
+    assert bool(calls) is evaluated
+    logged = sorted(k[len("gradnorm_"):] for k in row if k.startswith("gradnorm_"))
+    assert logged == sorted(losses.term_names() if evaluated else ("depth", "smooth"))
+    assert row["train_sdf"] == 0.0 if not evaluated else row["train_sdf"] > 0

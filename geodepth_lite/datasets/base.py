@@ -12,7 +12,6 @@ import re
 from pathlib import Path
 from typing import Iterable
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 from PIL import Image
@@ -26,6 +25,8 @@ from .synthetic import resize_frame
 def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
     """A PNG's values divided by its dtype's maximum (8- or 16-bit), as float64 H x W."""
     utils.check_image_file(path, "depth map")  # over utils.MAX_PIXELS: refused from the header
+    import imageio.v3 as iio  # public datasets' files only: training and gpu-check need no imageio
+
     arr = np.asarray(iio.imread(path))
     if arr.ndim == 3:
         arr = arr[..., channel if channel is not None else 0]
@@ -39,6 +40,8 @@ def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
 def read_png_raw(path: Path) -> np.ndarray:
     """A PNG's stored values (channel 0 of a multi-channel image), in its own dtype."""
     utils.check_image_file(path, "depth map")  # over utils.MAX_PIXELS: refused from the header
+    import imageio.v3 as iio  # public datasets' files only: training and gpu-check need no imageio
+
     arr = np.asarray(iio.imread(path))
     if arr.ndim == 3:
         arr = arr[..., 0]

@@ -8,7 +8,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-import tifffile
 
 from .. import camera, utils
 from .base import PublicDepthDataset, numbered, pair_images_with_depths
@@ -74,6 +73,8 @@ class C3VDDataset(PublicDepthDataset):
     @staticmethod
     def decode_depth(path) -> tuple[np.ndarray, np.ndarray]:
         """C3VD ``*_depth.tiff``: 16-bit, 0..65535 -> 0..100 mm z-depth; raw 0 and 65535 are invalid."""
+        import tifffile  # C3VD's files only: training and gpu-check need no tifffile
+
         with tifffile.TiffFile(str(path)) as tif:  # its size from the header, before decoding
             shape = tif.pages[0].shape if tif.pages else ()
         if len(shape) >= 2:
