@@ -103,7 +103,7 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one_whole(smoke_root, t
     real_write = Path.write_bytes
 
     def dying_write(self, data):  # half the checkpoint reaches the disk, then the process "dies"
-        if self.name.startswith(".checkpoint.pt"):
+        if self.name.startswith(utils.temp_prefix("checkpoint.pt")):
             real_write(self, data[: len(data) // 2])
             raise KeyboardInterrupt
         return real_write(self, data)
