@@ -216,3 +216,43 @@ def test_tables_round_trip_check_and_a_missing_folder_is_named(tmp_path):
     (out / "runs.csv").unlink()
     with pytest.raises(FileNotFoundError, match=r"runs\.csv"):
         study2.read_tables(out)
+
+
+# ------------------------------------------------------------------ the committed second study
+@pytest.fixture(scope="module")
+def committed2():
+    return study.read_tables(frames=True), study2.read_tables(frames=True)
+
+
+def test_the_committed_second_study_is_whole_and_its_runs_are_the_means_of_their_frames(committed2):
+    _, t2 = committed2
+    assert study2.check_tables(t2, frames_per_run=480) == []
+    assert len({(r["arm"], r["case"], r["seed"]) for r in t2["runs"]}) == 24
+    assert {r["set"] for r in t2["runs"]} == {study.PRIMARY, ablation.HELDOUT, study.CLOSEUPS}
+    dropped = {**t2, "runs": [r for r in t2["runs"] if (r["case"], r["seed"]) != (3, 5)]}
+    assert study2.check_tables(dropped, frames_per_run=480), "a dropped run is caught"
+
+
+def test_the_notebook_states_the_second_studys_verdicts_and_table(committed2):
+    """Notebook 05's committed verdict lines and six-test table are those of the committed tables,
+    word for word and number for number; a flipped verdict is caught."""
+    import nbformat
+
+    from geodepth_lite import utils
+
+    nb = nbformat.read(str(utils.project_root() / "notebooks" / "05_ablation.ipynb"), as_version=4)
+    cell = next(c for c in nb.cells
+                if c.cell_type == "code" and c.source.lstrip().startswith("# second study: verdicts"))
+    shown = "".join(o.get("text", "") for o in cell.outputs if o.get("name") == "stdout").splitlines()
+    fam = study2.family(*committed2)
+    lines = study2.claims(fam)
+    assert shown[:len(lines)] == lines
+    assert shown[len(lines) + 2:] == (study2.disagreements(fam) or [
+        "nowhere: the sign-flip test and the bootstrap agree with the t-test on all six"])
+    flipped = [line.replace("direction reproduced", "no effect detected", 1) for line in lines]
+    assert flipped != shown[:len(lines)], "a changed verdict would be caught"
+    table = next(c for c in nb.cells if c.cell_type == "code" and "family2 = study2.family" in c.source)
+    text = "".join(o.get("text", "") for o in table.outputs if o.get("name") == "stdout")
+    for t in fam:
+        assert f"[{t['low']:+.1f}, {t['high']:+.1f}]" in text and f"{t['sign_flip_p']:.4f}" in text
+        assert f"[{t['boot_low']:+.1f}, {t['boot_high']:+.1f}]" in text
