@@ -354,37 +354,27 @@ def add_arguments_reproduce(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true")
 
 
-def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True) -> Path:
-    """Train (or reuse) the study's runs, score them and write its tables into ``<run folder>/study/``
-    (``study.write_tables``); returns that folder. An interrupted study continues: finished runs are
-    reused, an unfinished one resumes from its last epoch."""
-    out = resolve_run_dir(profile, run_dir or "") / "study"
+def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True,
+              which=study, name: str = "study", title: str = "the study") -> Path:
+    """Train (or reuse) a study's runs, score them and write its tables into ``<run folder>/<name>/``
+    (``which.write_tables``; ``which`` is :mod:`study` or :mod:`study2`); returns that folder. An
+    interrupted study continues: finished runs are reused, an unfinished one resumes from its last epoch."""
+    out = resolve_run_dir(profile, run_dir or "") / name
     utils.check_can_create_dir(out)
     t0 = time.perf_counter()
-    print(f"[reproduce] the study: {len(study.study_runs(profile))} runs ({profile}) ...", flush=True)
-    paths = study.train(profile, progress=progress)
+    print(f"[reproduce] {title}: {len(which.study_runs(profile))} runs ({profile}) ...", flush=True)
+    paths = which.train(profile, progress=progress)
     print(f"[reproduce] runs ready in {time.perf_counter() - t0:.0f} s; scoring them ...", flush=True)
     sets = study.evaluation_sets(profile, progress=progress)
-    runs, frames = study.score(paths, sets, progress=progress)
-    folder = study.write_tables(out, runs, frames, study.score_baselines(profile, sets))
-    print(f"[reproduce] study tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
+    runs, frames = which.score(paths, sets, progress=progress)
+    folder = which.write_tables(out, runs, frames, study.score_baselines(profile, sets))
+    print(f"[reproduce] {title}'s tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
     return folder
 
 
 def run_study2(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True) -> Path:
-    """The second study's :func:`run_study`: its 24 runs trained (or reused), scored and written into
-    ``<run folder>/study2/`` (``study2.write_tables``); returns that folder."""
-    out = resolve_run_dir(profile, run_dir or "") / "study2"
-    utils.check_can_create_dir(out)
-    t0 = time.perf_counter()
-    print(f"[reproduce] the second study: {len(study2.study_runs(profile))} runs ({profile}) ...", flush=True)
-    paths = study2.train(profile, progress=progress)
-    print(f"[reproduce] runs ready in {time.perf_counter() - t0:.0f} s; scoring them ...", flush=True)
-    sets = study.evaluation_sets(profile, progress=progress)
-    runs, frames = study2.score(paths, sets, progress=progress)
-    folder = study2.write_tables(out, runs, frames, study.score_baselines(profile, sets))
-    print(f"[reproduce] second study tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
-    return folder
+    """:func:`run_study` for the second study (docs/study_plan_2.md): its 24 runs into ``<run folder>/study2/``."""
+    return run_study(profile, run_dir, progress=progress, which=study2, name="study2", title="the second study")
 
 
 def _study_notebook_declares(name: str) -> None:
