@@ -434,31 +434,19 @@ def check_request(profile: str, notebooks: list[str] | None, params: dict[str, A
 
 def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
     t0 = time.perf_counter()
-    if getattr(args, "study2", False):  # checked before the first study's runs too
-        _study_notebook_declares("study2_tables")
-    if args.study:
-        if args.notebooks:
-            raise ValueError("--study runs notebook 05 on the study's tables: leave out --notebooks")
+    studies = [(flag, which, fn) for flag, which, fn in (("study", study, run_study), ("study2", study2, run_study2))
+               if getattr(args, flag, False)]
+    if studies and args.notebooks:
+        raise ValueError(f"--{studies[0][0]} runs notebook 05 on the study's tables: leave out --notebooks")
+    for flag, which, fn in studies:  # the study's tables first, then notebook 05 reads them
         if args.dry_run:
-            runs = study.study_runs(args.profile)
+            runs = which.study_runs(args.profile)
             todo = sum(not run_cache.is_complete(args.profile, c, s, **o) for _, c, s, o in runs)
-            print(f"study: {len(runs)} runs ({todo} to train), scored into "
-                  f"{resolve_run_dir(args.profile, args.out or '') / 'study'}")
+            print(f"{flag}: {len(runs)} runs ({todo} to train), scored into "
+                  f"{resolve_run_dir(args.profile, args.out or '') / flag}")
         else:
-            tables = run_study(args.profile, args.out, progress=not args.no_progress)
-            params["study_tables"] = str(tables)
-        args.notebooks, args.force = ["05"], True
-    if getattr(args, "study2", False):
-        if args.notebooks and not args.study:
-            raise ValueError("--study2 runs notebook 05 on the second study's tables: leave out --notebooks")
-        if args.dry_run:
-            runs = study2.study_runs(args.profile)
-            todo = sum(not run_cache.is_complete(args.profile, c, s, **o) for _, c, s, o in runs)
-            print(f"study2: {len(runs)} runs ({todo} to train), scored into "
-                  f"{resolve_run_dir(args.profile, args.out or '') / 'study2'}")
-        else:
-            tables = run_study2(args.profile, args.out, progress=not args.no_progress)
-            params["study2_tables"] = str(tables)
+            params[f"{flag}_tables"] = str(fn(args.profile, args.out, progress=not args.no_progress))
+    if studies:
         args.notebooks, args.force = ["05"], True
     try:
         report = reproduce(args.profile, notebooks=args.notebooks, params=params, run_dir=args.out,
