@@ -104,14 +104,15 @@ def shaded_image(depth: np.ndarray, K: np.ndarray, seed: int = 0) -> np.ndarray:
     return (img * 255 + 0.5).astype(np.uint8)
 
 
-def write_dataset(root, splits: dict, size: int = 320, seed: int = 0) -> Path:
+def write_dataset(root, splits: dict, size: int = 320, seed: int = 0, workers: int = 1) -> Path:
     """A dataset folder of analytic frames in the synthetic dataset's layout (``synth.py``), without VTK.
 
     ``splits``: frames per split, e.g. {"train": 40, "val": 8, "test": 8}; views cycle through
     :data:`KINDS`, each frame its own seed. Writes manifest.json, ``<split>/frames.jsonl``,
     ``<split>/rgb/NNNNNN.png``, ``<split>/depth/NNNNNN.npy`` and checksums.sha256 last, so ``train``
     and ``evaluate`` check it as they check a generated dataset. ``root`` must not exist or be empty.
-    Returns the folder.
+    ``workers`` > 1 writes the frames in that many processes; each frame depends on its index alone,
+    so the folder is byte-identical whatever the count. Returns the folder.
     """
     root = Path(root)
     if root.exists() and any(root.iterdir()):
@@ -119,20 +120,34 @@ def write_dataset(root, splits: dict, size: int = 320, seed: int = 0) -> Path:
     K = intrinsics(size)
     m = {"name": "analytic", "generator": "geodepth_lite.analytic", "size": size, "seed": seed,
          "splits": {k: int(v) for k, v in splits.items()}}
-    frame = 0
+    jobs, frame = [], 0
     for split, n in m["splits"].items():
         (root / split / "rgb").mkdir(parents=True, exist_ok=True)
         (root / split / "depth").mkdir(parents=True, exist_ok=True)
         records = []
         for i in range(n):
-            kind = KINDS[frame % len(KINDS)]
-            depth = depth_map(kind, size, seed=seed * 100003 + frame, K=K)
-            Image.fromarray(shaded_image(depth, K, seed=frame)).save(root / split / "rgb" / f"{i:06d}.png")
-            np.save(root / split / "depth" / f"{i:06d}.npy", depth)
+            jobs.append((str(root), split, i, frame, size, seed))
             records.append({"index": i, "rgb": f"{split}/rgb/{i:06d}.png", "depth": f"{split}/depth/{i:06d}.npy",
-                            "K": K.tolist(), "organ": kind, "group": "analytic"})
+                            "K": K.tolist(), "organ": KINDS[frame % len(KINDS)], "group": "analytic"})
             frame += 1
         (root / split / "frames.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing
+
+        with multiprocessing.get_context("fork").Pool(min(workers, len(jobs))) as pool:
+            pool.map(_write_frame, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
+    else:
+        for job in jobs:
+            _write_frame(job)
     utils.write_json_atomic(root / "manifest.json", m)
     integrity.write_checksums(root, m)
     return root
+
+
+def _write_frame(job) -> None:
+    """One frame's image and depth map (a worker's unit of :func:`write_dataset`)."""
+    root, split, i, frame, size, seed = job
+    K = intrinsics(size)
+    depth = depth_map(KINDS[frame % len(KINDS)], size, seed=seed * 100003 + frame, K=K)
+    Image.fromarray(shaded_image(depth, K, seed=frame)).save(Path(root) / split / "rgb" / f"{i:06d}.png")
+    np.save(Path(root) / split / "depth" / f"{i:06d}.npy", depth)

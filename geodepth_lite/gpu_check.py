@@ -13,7 +13,10 @@ temporary folder. Steps, each timed and recorded even when one fails:
    loss forward and backward, and DepthNet's forward and backward (autocast) at the same batch;
 4. the paper profile (Case 4) for ``--epochs`` epochs on an analytic dataset of ``--frames``
    training frames, each epoch's time from the run's log; from these, the predicted time of 18
-   epochs over the paper split (3600 training and 900 validation frames).
+   epochs over the paper split (3600 training and 900 validation frames);
+5. with ``--full``, the paper profile itself: Case 4, seed 0, its 18 epochs over an analytic split
+   of the paper's size (3600 + 900 frames at 320 px), within ``--full-timeout`` seconds; every
+   finished epoch is recorded even when the run is stopped at that limit.
 
 It writes ``gpu_check.json`` and ``gpu_check.md`` into ``--out``, locked while it runs; it refuses
 a non-empty folder it did not write (its marker ``.gpu-check`` says it did). ``--device cpu
@@ -52,6 +55,10 @@ def add_arguments_gpu_check(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=100, help="training frames of the timed runs (default 100)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats of the benchmarks (default 5)")
     parser.add_argument("--no-pytest", action="store_true", help="skip the CUDA tests")
+    parser.add_argument("--full", action="store_true",
+                        help="also train the paper profile itself: 18 epochs over 3600 + 900 analytic frames")
+    parser.add_argument("--full-timeout", type=int, default=420,
+                        help="seconds allowed to the --full run, data included (default 420)")
     parser.add_argument("--step-timeout", type=int, default=200,
                         help="seconds allowed to the CUDA tests and to training, each (default 200: the whole "
                              "check stays within 10 minutes)")
@@ -141,30 +148,37 @@ def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
     return res
 
 
-def time_training(dev, work: Path, frames: int, epochs: int, size: int, tiny: bool, timeout: int) -> dict:
-    n_val = max(2, frames // 5)
-    data = analytic.write_dataset(work / "data", {"train": frames, "val": n_val, "test": 2}, size=size)
+def time_training(dev, work: Path, frames: int, epochs: int | None, size: int, tiny: bool, timeout: int,
+                  n_val: int | None = None) -> dict:
+    """Trains Case 4 (seed 0) of the paper profile on an analytic dataset; ``epochs`` None: the
+    profile's own 18. The data are written in parallel, inside the time limit."""
+    n_val = max(2, frames // 5) if n_val is None else n_val
+    t0 = time.perf_counter()
+    data = analytic.write_dataset(work / "data", {"train": frames, "val": n_val, "test": 2}, size=size,
+                                  workers=os.cpu_count() or 1)
+    data_s = time.perf_counter() - t0
     run = work / "run"
     cmd = [sys.executable, "-m", "geodepth_lite", "train", "--profile", "paper", "--case", "4", "--seed", "0",
-           "--dataset", str(data), "--epochs", str(epochs), "--device", str(dev), "--run-dir", str(run),
-           "--no-progress"]
+           "--dataset", str(data), "--device", str(dev), "--run-dir", str(run), "--no-progress"]
+    if epochs is not None:
+        cmd += ["--epochs", str(epochs)]
     if tiny:
         cmd += ["--image-size", str(size), "--batch-size", "4"]
-    t0 = time.perf_counter()
     pkg_root = str(Path(__file__).resolve().parents[1])
     env = dict(os.environ, PYTHONPATH=pkg_root + os.pathsep + os.environ.get("PYTHONPATH", ""))
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=max(1.0, timeout - data_s), env=env)
         status = ("completed" if proc.returncode == 0
                   else f"failed (exit {proc.returncode}): {proc.stderr.strip()[-300:]}")
     except subprocess.TimeoutExpired:
         status = f"timed out after {timeout} s"
-    res = {"status": status, "train_frames": frames, "val_frames": n_val, "size": size, "epochs_asked": epochs,
+    res = {"status": status, "train_frames": frames, "val_frames": n_val, "size": size,
+           "epochs_asked": PAPER_EPOCHS if epochs is None else epochs, "data_s": round(data_s, 1),
            "seconds": round(time.perf_counter() - t0, 1)}
     log = run / "log.json"
     rows = json.loads(log.read_text())["epochs"] if log.is_file() else []
-    res["epochs"] = [{k: r[k] for k in ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse") if k in r}
-                     for r in rows]
+    res["epochs"] = [{k: r[k] for k in ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse",
+                                        "val_abs_rel") if k in r} for r in rows]
     if rows:
         res["prediction"] = predict_paper_time(rows, frames, n_val)
     return res
@@ -213,6 +227,18 @@ def markdown(report: dict) -> str:
                      f"(first epoch {p['first_epoch_s']} s, later {p['later_epoch_s']} s; {p['basis']}) |")
     if tr.get("status", "completed") != "completed":
         lines.append(f"| training | {tr['status']} |")
+    full = report.get("paper_run")
+    if full:
+        done = full.get("epochs", [])
+        train_s = sum(r["epoch_s"] for r in done)
+        lines.append(f"| paper profile run, Case 4 seed 0, {full['train_frames']} + {full['val_frames']} frames | "
+                     f"{len(done)} of {full['epochs_asked']} epochs in {train_s:.0f} s ({train_s / 60:.1f} min; "
+                     f"data written in {full['data_s']:.0f} s); {full['status']} |")
+        if done:
+            last = done[-1]
+            lines.append(f"| paper profile run, last epoch | {last['epoch_s']:.1f} s, {last['train_frames_per_s']:.1f} "
+                         f"frames/s; val RMSE {last.get('val_rmse', float('nan')):.3f}, Abs Rel "
+                         f"{last.get('val_abs_rel', float('nan')):.4f} |")
     lines += ["", f"Total {report['seconds']:.0f} s."]
     return "\n".join(lines) + "\n"
 
@@ -231,7 +257,7 @@ def _claim_out(out: Path) -> None:
 
 
 def run_gpu_check(args: argparse.Namespace) -> int:
-    for name in ("epochs", "frames", "repeats", "step_timeout"):
+    for name in ("epochs", "frames", "repeats", "step_timeout", "full_timeout"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     dev = torch.device(args.device)
@@ -260,6 +286,16 @@ def run_gpu_check(args: argparse.Namespace) -> int:
         finally:
             shutil.rmtree(work, ignore_errors=True)
         print(f"gpu-check: training {report['training']['status']}", flush=True)
+        if args.full:
+            work = Path(tempfile.mkdtemp(prefix="gpu-check-full-"))
+            try:
+                n_train, n_val = (12, 4) if args.tiny else (PAPER_TRAIN, PAPER_VAL)
+                report["paper_run"] = time_training(dev, work, n_train, 2 if args.tiny else None, size, args.tiny,
+                                                    args.full_timeout, n_val=n_val)
+            finally:
+                shutil.rmtree(work, ignore_errors=True)
+            print(f"gpu-check: paper profile run {report['paper_run']['status']}, "
+                  f"{len(report['paper_run']['epochs'])} epochs", flush=True)
         report["seconds"] = round(time.perf_counter() - t0, 1)
         utils.write_json_atomic(out / "gpu_check.json", report)
         utils.write_bytes_atomic(out / "gpu_check.md", markdown(report).encode())

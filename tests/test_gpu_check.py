@@ -28,8 +28,8 @@ def test_the_dry_run_writes_its_json_and_table_without_heavy_imports(tmp_path):
         "sys.argv = ['geodepth_lite'] + sys.argv[1:]\n"
         "runpy.run_module('geodepth_lite', run_name='__main__')\n"
     )
-    proc = subprocess.run([sys.executable, "-c", blocker, "gpu-check", "--device", "cpu", "--tiny", "--out", str(out)],
-                          capture_output=True, text=True, timeout=170, cwd=ROOT)
+    proc = subprocess.run([sys.executable, "-c", blocker, "gpu-check", "--device", "cpu", "--tiny", "--full", "--out",
+                           str(out)], capture_output=True, text=True, timeout=170, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
     rep = json.loads((out / "gpu_check.json").read_text())
     assert rep["tiny"] and rep["environment"]["device"] == "cpu"
@@ -38,8 +38,12 @@ def test_the_dry_run_writes_its_json_and_table_without_heavy_imports(tmp_path):
     pred = rep["training"]["prediction"]
     assert pred["total_s"] == pytest.approx(pred["first_epoch_s"] + 17 * pred["later_epoch_s"], abs=1.0)
     assert rep["cuda_tests"]["status"] in ("passed", "not run: pytest is not installed")
+    full = rep["paper_run"]  # --full: the profile's own run, here at toy sizes
+    assert full["status"] == "completed" and (full["train_frames"], full["val_frames"]) == (12, 4)
+    assert [r["epoch"] for r in full["epochs"]] == [1, 2] and all(r["val_rmse"] > 0 for r in full["epochs"])
     table = (out / "gpu_check.md").read_text()
     assert "| predicted paper profile" in table and "agrees with cKDTree" in table
+    assert "| paper profile run, Case 4 seed 0, 12 + 4 frames | 2 of 2 epochs" in table
 
 
 def test_the_prediction_scales_measured_epochs_to_the_paper_split():

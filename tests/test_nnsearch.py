@@ -134,3 +134,8 @@ def test_analytic_views_and_their_dataset(tmp_path):
     assert item["image"].shape == (3, 32, 32) and item["depth"].shape == (1, 32, 32) and item["organ"] == "closeup"
     with pytest.raises(utils.FileProblem, match="not empty"):
         analytic.write_dataset(root, {"train": 1}, size=32)
+    # written by three processes, the folder is byte-identical (each frame depends on its index alone)
+    par = analytic.write_dataset(tmp_path / "p", {"train": 3, "val": 1, "test": 1}, size=32, workers=3)
+    files = sorted(f.relative_to(root) for f in root.rglob("*") if f.is_file())
+    assert files == sorted(f.relative_to(par) for f in par.rglob("*") if f.is_file()) and len(files) > 10
+    assert all((root / f).read_bytes() == (par / f).read_bytes() for f in files)
