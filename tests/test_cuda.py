@@ -51,9 +51,14 @@ def test_autocast_and_grad_scaler_train_one_step():
                        for x in d]).float() / 255
     d, img, Kd = d.to(dev), img.to(dev), K.to(dev)
     before = [p.detach().clone() for p in net.parameters()]
+    low = torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    conv_dtypes = []
+    hook = net.encoder.conv1.register_forward_hook(lambda m, i, o: conv_dtypes.append(o.dtype))
     with inference.autocast(dev):
         pred = net(img)
-    assert pred.dtype == (torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16)
+    hook.remove()
+    # the convolutions run in the low precision; the depth head's exp is one of autocast's float32 ops
+    assert conv_dtypes == [low] and pred.dtype == torch.float32
     loss, terms = losses.total_loss(pred.float(), d, img, Kd, sdf_grid=(8, 8, 8))
     assert all(np.isfinite(v) for v in terms.values()) and terms["sdf"] > 0
     opt.zero_grad()
