@@ -73,3 +73,29 @@ def test_cuda_without_a_gpu_is_one_line(tmp_path, capsys):
     assert cli.main(["gpu-check", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "no CUDA device" in err and "--device cpu --tiny" in err
+
+
+def test_the_stated_gpu_figures_come_from_the_committed_record():
+    """README and docs/timings.md quote the H200 record in benchmarks/gpu/; recomputed here."""
+    import statistics
+
+    rec = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-26.json").read_text())
+    epochs = rec["paper_run"]["epochs"]
+    first, later = epochs[0]["epoch_s"], statistics.median(e["epoch_s"] for e in epochs[1:])
+    figures = {
+        "first": f"{first:.1f} s", "later": f"{later:.1f} s", "total": f"{(first + 17 * later) / 60:.1f} min",
+        "field": f"{1e3 * rec['search']['search_batch_s'] / rec['search']['batch']:.2f} ms per field",
+        "net": f"{1e3 * rec['search']['network_fwd_bwd_s']:.1f} ms",
+        "step": f"{1e3 * 20 / statistics.median(e['train_frames_per_s'] for e in epochs[1:]):.0f} ms",
+        "done": f"{len(epochs)} of 18 epochs",
+    }
+    assert figures["total"] == "11.7 min"  # the figure the README states in bold
+    texts = {name: " ".join((ROOT / name).read_text().split()) for name in ("README.md", "docs/timings.md")}
+
+    def missing(text):
+        return [what for what, fig in figures.items() if fig not in text]
+
+    for name, text in texts.items():
+        assert missing(text) == [], f"{name} does not state the record's {missing(text)}"
+    # the check can fail: a text whose total disagrees with the record is caught
+    assert missing(texts["README.md"].replace("11.7 min", "12.1 min")) == ["total"]
