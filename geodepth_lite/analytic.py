@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
 from pathlib import Path
 
 import numpy as np
@@ -132,8 +133,6 @@ def write_dataset(root, splits: dict, size: int = 320, seed: int = 0, workers: i
             frame += 1
         (root / split / "frames.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
     if workers > 1 and len(jobs) > 1:
-        import multiprocessing
-
         with multiprocessing.get_context("fork").Pool(min(workers, len(jobs))) as pool:
             pool.map(_write_frame, jobs, chunksize=max(1, len(jobs) // (8 * workers)))
     else:
