@@ -106,14 +106,38 @@ def solution_lines(answer: str) -> list[str]:
     return [line.strip() for line in _split_solutions(answer)[0] if line.strip()]
 
 
+def new_namespace() -> dict:
+    """A fresh namespace for an exercise's cells, with an input history ``In`` as IPython keeps one (the
+    hidden tests run the answer cell again from it: :func:`geodepth_lite.grading.rerun_answer`)."""
+    history = [""]
+    return {"__name__": "__exercise__", "In": history, "_ih": history}
+
+
+def run_cell(source: str, namespace: dict, name: str = "<cell>") -> None:
+    """Execute one cell's source in ``namespace`` as a kernel would: its source enters ``In`` first."""
+    namespace["In"].append(source)
+    exec(compile(source, name, "exec"), namespace)  # noqa: S102 - the workbook's own cells
+
+
+def visible_check(check: str) -> str:
+    """A check cell's source as the student release shows it: without its hidden tests."""
+    lines, hidden = [], False
+    for line in check.splitlines(keepends=True):
+        if line.strip() in HIDDEN_MARKERS:
+            hidden = line.strip() == HIDDEN_MARKERS[0]
+        elif not hidden:
+            lines.append(line)
+    return "".join(lines)
+
+
 def run_exercise(answer: str, check: str) -> None:
     """Execute an exercise's answer then check cell in a fresh namespace, in a temporary working
     folder. Raises what the check raises, or an AssertionError when the exercise left files in
     its working folder (in a notebook that folder is ``notebooks/``)."""
-    namespace: dict = {"__name__": "__exercise__"}
+    namespace = new_namespace()
     with tempfile.TemporaryDirectory(prefix="geodepth-exercise-") as tmp, contextlib.chdir(tmp):
-        exec(compile(answer, "<answer>", "exec"), namespace)  # noqa: S102 - the workbook's own cells
-        exec(compile(check, "<check>", "exec"), namespace)  # noqa: S102
+        run_cell(answer, namespace, "<answer>")
+        run_cell(check, namespace, "<check>")
         left = sorted(os.listdir(tmp))
     if left:  # in a notebook the working folder is notebooks/: an exercise must not write there
         raise AssertionError(f"the exercise wrote {left} into its working folder; use a temporary folder")
@@ -125,14 +149,14 @@ def stub_fails(answer_stub: str, check: str) -> tuple[bool, str]:
     The stub itself raises NotImplementedError where the solution was; the check then runs on
     whatever the stub left defined, and must raise an AssertionError or NotImplementedError (a
     NameError would mean the check tests nothing of the answer's own)."""
-    namespace: dict = {"__name__": "__exercise__"}
+    namespace = new_namespace()
     with tempfile.TemporaryDirectory(prefix="geodepth-exercise-") as tmp, contextlib.chdir(tmp):
         try:
-            exec(compile(answer_stub, "<stub>", "exec"), namespace)  # noqa: S102
+            run_cell(answer_stub, namespace, "<stub>")
         except NotImplementedError:
             pass
         try:
-            exec(compile(check, "<check>", "exec"), namespace)  # noqa: S102
+            run_cell(check, namespace, "<check>")
         except (AssertionError, NotImplementedError) as exc:
             return True, type(exc).__name__
         except Exception as exc:  # noqa: BLE001 - any other error is reported, not a pass

@@ -1,0 +1,523 @@
+"""Checks that test the skill: for every exercise of notebooks 01-07, the shortcut and a plausible wrong
+answer both lose the points, and the solution keeps them.
+
+- A **shortcut** gets the answer without the skill: it calls the package function that the prompt asks
+  the student to write (or the check's own reference), or, where the prompt forbids nothing, it is an
+  answer that meets the visible check only. It passes the visible check (so it is a real threat) and fails
+  the full check, hidden tests included, as ``nbgrader autograde`` runs it.
+- A **wrong answer** is a plausible mistake; the visible check alone rejects it, so a student sees it.
+- An **open-ended** exercise is graded by hand (``course.grade_by_hand``: its check carries no points);
+  its visible check still rejects a placeholder answer.
+
+The answers are the exercise's answer cell with its solution regions replaced; each runs with its check
+in a fresh namespace (``exercises.run_exercise``), in-process.
+"""
+
+import copy
+import json
+import sys
+import textwrap
+
+import pytest
+
+from geodepth_lite import course, grading
+from geodepth_lite import exercises as E
+
+NOTEBOOKS = {p.name: json.loads(p.read_text()) for p in E.notebook_paths()}
+EXERCISES = {ex.ident: ex for nb in NOTEBOOKS.values() for ex in E.collect(nb).values()}
+
+
+def _manual() -> set:
+    marked = set()
+    for nb in NOTEBOOKS.values():
+        marked.update(course.grade_by_hand(copy.deepcopy(nb)))
+    return marked
+
+
+OPEN = _manual()
+
+# Each answer is a tuple of replacements, one per solution region of the answer cell, in order (None keeps
+# the solution of that region). Code is written unindented; it takes the indentation of its region.
+
+SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one the prompt names)
+    "01-1": [("""
+        import re
+        from geodepth_lite import manifest
+        my_fields = {}
+        for letter, edit in edits.items():
+            try:
+                manifest.load_manifest("scenario_smoke", edit)
+            except ValueError as err:
+                my_fields[letter] = re.search(r"(?:field|key|split) '([^']+)'", str(err)).group(1)
+        """,)],
+    "01-2": [("""
+        my_report = integrity.verify(root)
+        my_counts = integrity.frame_counts(root, m)
+        """,)],
+    "01-3": [("""  # meets the visible check (a > 0) only: the sign of a is lost
+        xn, yn = camera.normalized_grid(K, height, width).numpy()
+        q = xn * xn + yn * yn
+        half_b = abs(a) * xn
+        return (half_b + np.sqrt(half_b * half_b + q * (radius * radius - a * a))) / q
+        """,)],
+    "02-1": [("""
+        from geodepth_lite import model as M
+        _shapes = M.feature_shapes(M.DepthNet().eval(), 64, 96)
+        my_encoder, my_decoder = _shapes["encoder"], _shapes["decoder"]
+        my_heights_250, my_failing_scale = [125, 63, 32, 16, 8], 2
+        """,), ("""
+        import torch
+        from geodepth_lite import model as M
+        my_encoder = [(64, 32, 48), (64, 16, 24), (128, 8, 12), (256, 4, 6), (512, 2, 3)]
+        my_decoder = [(256, 4, 6), (128, 8, 12), (64, 16, 24), (32, 32, 48), (16, 64, 96)]
+        _e = M.ResNet18Encoder().eval()
+        with torch.no_grad():
+            _f = [_e.relu(_e.bn1(_e.conv1(torch.zeros(1, 3, 250, 64))))]
+            _f.append(_e.layer1(_e.maxpool(_f[0])))
+            for _layer in (_e.layer2, _e.layer3, _e.layer4):
+                _f.append(_layer(_f[-1]))
+        my_heights_250, my_failing_scale = [f.shape[-2] for f in _f], 2
+        """,)],
+    "02-2": [("""
+        from geodepth_lite import model as M
+        return M.count_parameters(M.DepthDecoder(enc_ch, dec_ch))
+        """, """
+        from geodepth_lite import model as M
+        my_sab_params = M.count_parameters(M.SpatialAttention())
+        """), (None, """  # a module of torch's own is a module too
+        import torch
+        my_sab_params = sum(p.numel() for p in torch.nn.Conv2d(2, 1, 7, bias=False).parameters())
+        """)],
+    "02-3": [("""
+        from geodepth_lite import model as M
+        block = M.SpatialAttention(kernel_size=weight.shape[-1])
+        with torch.no_grad():
+            block.conv.weight.copy_(weight)
+        return block(x)
+        """,)],
+    "03-1": [("""  # meets the visible check (sections 1, 3 and 5) only
+        offset_blind = {"grad", "normal"}
+        """,)],
+    "03-2": [("""
+        from geodepth_lite import losses
+        return losses.smoothness_loss(pred, image)
+        """,), ("""  # the function smoothness_loss delegates to
+        from geodepth_lite import losses
+        sx, sy = losses.smoothness_maps(pred, image)
+        return sx.mean() + sy.mean()
+        """,)],
+    "03-3": [("""
+        import torch
+        from geodepth_lite import camera, sdf
+        D = torch.full((H, W), float(d), dtype=torch.float64)
+        points = camera.backproject(D, K).reshape(-1, 3)
+        return sdf.signed_distance(points, torch.as_tensor(q), depth=D, K=K).numpy()
+        """,)],
+    "04-1": [("""
+        n_valid = int(metrics.eval_mask(gt).sum())
+        ratio = float(metrics.compute_depth_metrics(pred, gt)["ratios"][0])
+        """,)],
+    "04-2": [("""
+        from geodepth_lite import metrics
+        return metrics.compute_depth_metrics(pred, gt)
+        """,), ("""  # the solution's loop, with the package's per-frame metrics
+        from geodepth_lite import metrics
+        for p, g in zip(pred, gt):
+            with np.errstate(invalid="ignore"):
+                keep = np.isfinite(g) & (g > 1e-3) & (g < 100.0)
+            if keep.any():
+                g, p = g[keep], p[keep]
+                per_frame.append(metrics.frame_metrics(np.clip(p * np.median(g) / np.median(p), 1e-3, 100.0), g))
+        return {key: float(np.mean([f[key] for f in per_frame])) for key in per_frame[0]}
+        """,)],
+    "04-3": [("""
+        return losses.total_loss(pred, gt, image, K, lambdas=lambdas, sdf_grid=sdf_grid, depth_term="silog",
+                                 border_weight=2.0)[0]
+        """,)],
+    "05-1": [("""
+        from geodepth_lite import ablation
+        _res = {"seeds": [0, 1, 2], "scores": {}}
+        for _s in range(3):
+            _res["scores"][(1, _s)] = {"test split": {"rmse": float(CASE1[_s])}}
+            _res["scores"][(3, _s)] = {"test split": {"rmse": float(CASE3[_s])}}
+        _q = ablation.paired(_res, "rmse", "test split", 3, level=LEVEL)
+        r, rel, p, rel_low, rel_high = _q["rel_diffs"], _q["rel"], _q["p"], _q["rel_low"], _q["rel_high"]
+        """,)],
+    "05-2": [("""
+        from geodepth_lite import ablation
+        return ablation.holm(pvalues, alpha)
+        """,)],
+    "05-3": [("""
+        verdicts = {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(toy_result)}
+        """,)],
+    "06-1": [("""
+        from geodepth_lite import border
+        bands, ratios = border.border_bands(np.nan_to_num(abs_mean) * count, count)
+        worst = max(ratios, key=ratios.get)
+        """,)],
+    "06-2": [("""
+        from geodepth_lite import evaluate
+        _rows = [dict(metrics.compute_depth_metrics(p, g), organ=o) for g, p, o in zip(test_gt, test_pred, test_organ)]
+        _colon = evaluate.summarize(_rows, by="organ")["colon"]
+        _held = evaluate.summarize([metrics.compute_depth_metrics(p, g) for g, p in zip(heldout_gt, heldout_pred)])
+        change_abs_rel = 100 * (_held["abs_rel"] / _colon["abs_rel"] - 1)
+        change_rmse = 100 * (_held["rmse"] / _colon["rmse"] - 1)
+        """,)],
+    "07-1": [("""
+        from geodepth_lite import camera
+        depth = np.full((int(v) + 1, int(u) + 1), float(z))
+        return camera.backproject(depth, np.asarray(K, dtype=float))[int(v), int(u)]
+        """,)],
+    "07-2": [("""  # meets the visible check (square pixels) only: fx serves for y too
+        v, u = np.nonzero(depth > 0)
+        z = depth[v, u]
+        x, y = z * (u - K[0, 2]) / K[0, 0], z * (v - K[1, 2]) / K[0, 0]
+        (c1, c2, c3), *_ = np.linalg.lstsq(np.column_stack([x, y, np.ones_like(x)]), x * x + y * y, rcond=None)
+        return float(np.sqrt(c3 + c1 * c1 / 4 + c2 * c2 / 4)), float(c1 / 2), float(c2 / 2)
+        """,)],
+    "07-3": [("""
+        from geodepth_lite import recon
+        frame_ratios = recon.median_scale_ratios(pred_frames, gt_frames)
+        ratio_cv = float(np.std(frame_ratios) / np.mean(frame_ratios))
+        """,)],
+}
+
+WRONG = {  # exercise -> a plausible mistake that the visible check rejects
+    "01-1": ("""  # the edited field, not the one the error names
+        my_fields = {"a": "camera.fov_x_deg", "b": "camera.near", "c": "camera.focal",
+                     "d": "organ_presets.colon.fold_depth", "e": "splits.validation", "f": "camera_path.views"}
+        """,),
+    "01-2": ("""  # an image copied over itself has a new date, not new contents
+        my_report = ["changed: manifest.json", "changed: train/depth/000001.npy", "changed: train/rgb/000000.png",
+                     "missing: test/depth/000000.npy"]
+        my_counts = {"train": (2, 2), "test": (0, 1)}
+        """,),
+    "01-3": ("""  # the on-axis formula
+        xn, yn = camera.normalized_grid(K, height, width).numpy()
+        return radius / np.hypot(xn, yn)
+        """,),
+    "01-4": ("""  # cap and cup swapped
+        xn, yn = camera.normalized_grid(K, height, width).numpy()
+        bowl = {"cap": -(xn**2 + yn**2), "cup": xn**2 + yn**2, "ridge": xn**2, "saddle": xn**2 - yn**2}[kind]
+        return 2.0 + 0.8 * bowl
+        """,),
+    "02-1": ("""  # the max pooling without its padding
+        my_encoder = [(64, 32, 48), (64, 16, 24), (128, 8, 12), (256, 4, 6), (512, 2, 3)]
+        my_decoder = [(256, 4, 6), (128, 8, 12), (64, 16, 24), (32, 32, 48), (16, 64, 96)]
+        my_heights_250, my_failing_scale = [125, 62, 31, 16, 8], 1
+        """,),
+    "02-2": ("""  # BatchNorm's weight and bias forgotten
+        total = 9 * dec_ch[0] + 1
+        for i in range(4, -1, -1):
+            c_from_below = enc_ch[4] if i == 4 else dec_ch[i + 1]
+            c_skip = enc_ch[i - 1] if i > 0 else 0
+            total += 9 * c_from_below * dec_ch[i] + 9 * (dec_ch[i] + c_skip) * dec_ch[i]
+        return total
+        """, None),
+    "02-3": ("""  # the two pooled maps in the wrong order
+        pooled = torch.cat([x.max(dim=1, keepdim=True).values, x.mean(dim=1, keepdim=True)], dim=1)
+        return x * torch.sigmoid(F.conv2d(pooled, weight, padding=weight.shape[-1] // 2))
+        """,),
+    "02-4": ("""  # padded at the bottom and right...
+        H, W = image.shape[-2:]
+        return F.pad(image, (0, (-W) % 32, 0, (-H) % 32), mode="reflect")
+        """, """  # ...but cropped from the middle
+        top, left = (depth.shape[-2] - height) // 2, (depth.shape[-1] - width) // 2
+        return depth[..., top:top + height, left:left + width]
+        """),
+    "03-1": ("""  # only what section 3 says outright
+        offset_blind = {"grad"}
+        """,),
+    "03-2": ("""  # the colour differences summed over the channels, not averaged
+        ix = (image[..., :, 1:] - image[..., :, :-1]).abs().sum(dim=1, keepdim=True)
+        iy = (image[..., 1:, :] - image[..., :-1, :]).abs().sum(dim=1, keepdim=True)
+        dx = pred[..., :, 1:] - pred[..., :, :-1]
+        dy = pred[..., 1:, :] - pred[..., :-1, :]
+        return (torch.exp(-ix) * dx).pow(2).mean() + (torch.exp(-iy) * dy).pow(2).mean()
+        """,),
+    "03-3": ("""  # the fallback sign rule everywhere
+        col = np.clip(np.rint(fx * q[:, 0] / d + cx), 0, W - 1)
+        row = np.clip(np.rint(fy * q[:, 1] / d + cy), 0, H - 1)
+        nearest = np.column_stack((d * (col - cx) / fx, d * (row - cy) / fy, np.full(len(q), float(d))))
+        to_wall = nearest - q
+        return np.sign(np.einsum("ij,ij->i", to_wall, nearest)) * np.linalg.norm(to_wall, axis=1)
+        """,),
+    "03-4": ("""  # a smaller scale error: better for every loss, the normal loss included
+        pred = 1.05 * gt
+        why = "A smaller scale error than the reference is better for the depth and gradient losses."
+        """,),
+    "04-1": ("""  # means instead of medians
+        scored = np.isfinite(gt) & (gt > 1e-3) & (gt < 100.0)
+        n_valid = int(scored.sum())
+        ratio = float(np.mean(gt[scored]) / np.mean(pred[scored]))
+        """,),
+    "04-2": ("""  # the scaled prediction not clamped
+        for p, g in zip(pred, gt):
+            with np.errstate(invalid="ignore"):
+                keep = np.isfinite(g) & (g > 1e-3) & (g < 100.0)
+            if not keep.any():
+                continue
+            g, p = g[keep], p[keep]
+            p = p * np.median(g) / np.median(p)
+            worst = np.maximum(g / p, p / g)
+            per_frame.append({"abs_rel": np.mean(np.abs(g - p) / g), "sq_rel": np.mean((g - p) ** 2 / g),
+                              "rmse": np.sqrt(np.mean((g - p) ** 2)),
+                              "rmse_log": np.sqrt(np.mean((np.log(g) - np.log(p)) ** 2)),
+                              "a1": np.mean(worst < 1.25), "a2": np.mean(worst < 1.25 ** 2),
+                              "a3": np.mean(worst < 1.25 ** 3)})
+        return {key: float(np.mean([f[key] for f in per_frame])) for key in per_frame[0]}
+        """,),
+    "04-3": ("""  # the border weight forgotten
+        group1 = losses.silog_depth_loss(pred, gt) + losses.smoothness_loss(pred, image)
+        group2 = losses.gradient_loss(pred, gt) + losses.normal_loss(pred, gt)
+        return lambda1 * group1 + lambda2 * group2 + lambda3 * losses.sdf_loss(pred, gt, K, grid=sdf_grid)
+        """,),
+    "04-4": ("""  # the perfect prediction: better in both metrics
+        pred = gt.copy()
+        why = "A perfect prediction has no error at all, so it should be better than the constant one."
+        """,),
+    "05-1": ("""  # a 95% interval instead of the level LEVEL
+        r = 100 * (CASE3 / CASE1 - 1)
+        rel = r.mean()
+        se = r.std(ddof=1) / np.sqrt(r.size)
+        p = 2 * stats.t.sf(abs(rel / se), r.size - 1)
+        half = stats.t.ppf(0.975, r.size - 1) * se
+        rel_low, rel_high = rel - half, rel + half
+        """,),
+    "05-2": ("""  # no stopping rule: every p-value against its own level
+        pv = np.asarray(pvalues, dtype=float)
+        m = pv.size
+        rejected = np.zeros(m, dtype=bool)
+        for k, i in enumerate(np.argsort(pv, kind="stable")):
+            rejected[i] = pv[i] <= alpha / (m - k)
+        return [bool(x) for x in rejected]
+        """,),
+    "05-3": ("""  # Holm's rule over each metric separately
+        verdicts = {}
+        for metric in ("abs_rel", "rmse"):
+            keys = [(metric, c) for c in (2, 3, 4)]
+            comps = {k: ablation.paired(toy_result, k[0], "test split", k[1], level=1 - 0.05 / 6) for k in keys}
+            for k, d in zip(keys, ablation.holm([comps[k]["p"] for k in keys], 0.05)):
+                verdicts[k] = ablation.size_verdict(comps[k]["rel_low"], comps[k]["rel_high"], comps[k]["rel"],
+                                                    ablation.PAPER_REDUCTION[k[1]][k[0]], d)
+        """,),
+    "05-4": ("""  # a one-sided test
+        return float(stats.nct.sf(stats.t.ppf(1 - alpha, n - 1), n - 1, effect * np.sqrt(n) / sd))
+        """, None, None),
+    "06-1": ("""  # rows and columns swapped
+        bh, bw = max(1, round(0.1 * W)), max(1, round(0.1 * H))
+        regions = {"top": (slice(0, bh), slice(None)), "bottom": (slice(H - bh, H), slice(None)),
+                   "left": (slice(None), slice(0, bw)), "right": (slice(None), slice(W - bw, W)),
+                   "centre": (slice(H // 4, H - H // 4), slice(W // 4, W - W // 4))}
+        err_sum = np.nan_to_num(abs_mean) * count
+        bands = {k: err_sum[s].sum() / count[s].sum() for k, s in regions.items()}
+        ratios = {k: bands[k] / bands["centre"] for k in ("top", "bottom", "left", "right")}
+        worst = max(ratios, key=ratios.get)
+        """,),
+    "06-2": ("""  # against the whole test split, not its colon frames
+        _ref = metrics.compute_depth_metrics(np.stack(test_pred), np.stack(test_gt))
+        _grp = metrics.compute_depth_metrics(np.stack(heldout_pred), np.stack(heldout_gt))
+        change_abs_rel = 100 * (_grp["abs_rel"] / _ref["abs_rel"] - 1)
+        change_rmse = 100 * (_grp["rmse"] / _ref["rmse"] - 1)
+        """,),
+    "06-3": ("""  # both view kinds with a hard right border: the pooled map shows it
+        abs_err = np.full((4, 20, 20), 0.1)
+        abs_err[:, :, 18:] = 0.2
+        views = ["wall", "wall", "lumen", "lumen"]
+        """,),
+    "07-1": ("""  # u and v swapped
+        fx, fy, cx, cy = K[0][0], K[1][1], K[0][2], K[1][2]
+        return np.array([z * (v - cx) / fx, z * (u - cy) / fy, z], dtype=float)
+        """,),
+    "07-2": ("""  # the invalid pixels kept
+        pts = camera.backproject(np.asarray(depth, dtype=float), K).reshape(-1, 3)
+        x, y = pts[:, 0], pts[:, 1]
+        (c1, c2, c3), *_ = np.linalg.lstsq(np.column_stack([x, y, np.ones_like(x)]), x * x + y * y, rcond=None)
+        return float(np.sqrt(c3 + c1 * c1 / 4 + c2 * c2 / 4)), float(c1 / 2), float(c2 / 2)
+        """,),
+    "07-3": ("""  # the sample standard deviation
+        frame_ratios = np.array([np.median(g[g > 0]) / np.median(q[g > 0]) for g, q in zip(gt_frames, pred_frames)])
+        ratio_cv = float(np.std(frame_ratios, ddof=1) / np.mean(frame_ratios))
+        """,),
+    "07-4": ("""  # the ratio used as the factor that multiplies the prediction
+        ramp = np.arange(len(gts), dtype=float)
+        wanted = 1.0 + cv * (ramp - ramp.mean()) / ramp.std()
+        return [np.asarray(g, dtype=float) * r for g, r in zip(gts, wanted)]
+        """,),
+}
+
+PLACEHOLDERS = {  # open-ended exercise -> an answer that fills in the blanks with nothing of substance
+    "01-4": ("return np.full((height, width), 2.0)",),
+    "02-4": ("return torch.zeros(image.shape[0], 3, -(-image.shape[-2] // 32) * 32, -(-image.shape[-1] // 32) * 32)",
+             "return torch.zeros(depth.shape[0], 1, height, width)"),
+    "03-4": ('pred, why = gt.clone(), ""',),
+    "04-4": ('pred, why = np.ones((8, 8)), ""',),
+    "05-4": ("return 0.0", "return 2", "n_plan = 2"),
+    "06-3": ('abs_err, views = np.ones((4, 10, 10)), ["wall", "wall", "lumen", "lumen"]',),
+    "07-4": ("return [np.asarray(g, dtype=float).copy() for g in gts]",),
+}
+
+
+def answer_with(answer: str, replacements) -> str:
+    """The answer cell with its solution regions replaced, in order (None keeps a region's solution); the
+    markers go, as in a student's notebook."""
+    out, region, inside = [], -1, False
+    for line in answer.splitlines(keepends=True):
+        stripped = line.strip()
+        if stripped == E.SOLUTION_MARKERS[0]:
+            region, inside = region + 1, True
+            code = replacements[region] if region < len(replacements) else None
+            if code is not None:
+                indent = line[: len(line) - len(line.lstrip())]
+                note, _, body = code.partition("\n")  # a note on the opening line: what the answer is
+                text = (note.strip() + "\n" if note.strip() else "") + textwrap.dedent(body).strip("\n") + "\n"
+                out.append(textwrap.indent(text, indent))
+            continue
+        if stripped == E.SOLUTION_MARKERS[1]:
+            inside = False
+            continue
+        code = replacements[region] if inside and region < len(replacements) else None
+        if not inside or code is None:
+            out.append(line)
+    assert region + 1 == len(replacements), f"{region + 1} solution regions, {len(replacements)} replacements"
+    return "".join(out)
+
+
+def outcome(answer: str, check: str) -> BaseException | None:
+    """What running the answer then the check raises (None: the check passes)."""
+    try:
+        E.run_exercise(answer, check)
+    except Exception as exc:  # noqa: BLE001 - reported by the callers
+        return exc
+    return None
+
+
+def _ids():
+    return sorted(EXERCISES)
+
+
+def test_every_exercise_has_its_answers():
+    """A new exercise needs a wrong answer, and a shortcut (or, open-ended, a placeholder)."""
+    assert len(EXERCISES) >= 27
+    missing = [i for i in EXERCISES if i not in WRONG or (i not in SHORTCUTS and i not in PLACEHOLDERS)]
+    assert not missing, f"exercises without their answers in this file: {missing}"
+    assert set(PLACEHOLDERS) == OPEN, "the placeholders are for the open-ended (hand-graded) exercises"
+    assert set(SHORTCUTS) | OPEN == set(EXERCISES) and not set(WRONG) - set(EXERCISES)
+
+
+@pytest.mark.parametrize("ident", _ids())
+def test_shortcut_and_wrong_answer_lose_the_points(ident):
+    ex = EXERCISES[ident]
+    assert ident in WRONG, f"exercise {ident}: add a wrong answer (and a shortcut or placeholder) to this file"
+    visible = E.visible_check(ex.check)
+    assert outcome(ex.answer, ex.check) is None, f"{ident}: the solution fails its own check"
+
+    wrong = outcome(answer_with(ex.answer, WRONG[ident]), visible)
+    assert isinstance(wrong, AssertionError), f"{ident}: the visible check does not reject the wrong answer ({wrong!r})"
+
+    for shortcut in SHORTCUTS.get(ident, []):
+        answer = answer_with(ex.answer, shortcut)
+        assert outcome(answer, visible) is None, f"{ident}: the shortcut is no threat, the visible check rejects it"
+        failed = outcome(answer, ex.check)
+        assert isinstance(failed, AssertionError), f"{ident}: the full check passes the shortcut ({failed!r})"
+        if not any("meets the visible check" in (code or "") for code in shortcut):  # it calls what is forbidden
+            assert isinstance(failed, grading.ForbiddenCall), f"{ident}: failed for another reason: {failed!r}"
+            assert str(failed).startswith("this exercise asks you to ") and "is not allowed" in str(failed)
+
+
+@pytest.mark.parametrize("ident", sorted(OPEN))
+def test_open_ended_exercises_are_graded_by_hand_and_reject_a_placeholder(ident):
+    ex = EXERCISES[ident]
+    nb = copy.deepcopy(next(nb for nb in NOTEBOOKS.values() if ident in E.collect(nb)))
+    assert ident in course.grade_by_hand(nb)
+    graded = E.collect(nb)[ident]
+    answer, check = graded.cells["answer"]["metadata"]["nbgrader"], graded.cells["check"]["metadata"]["nbgrader"]
+    assert check["points"] == 0 and answer["points"] == ex.points > 0 and answer["grade"] and answer["solution"]
+    placeholder = outcome(answer_with(ex.answer, PLACEHOLDERS[ident]), E.visible_check(ex.check))
+    assert isinstance(placeholder, AssertionError), f"{ident}: the placeholder is not rejected ({placeholder!r})"
+
+
+def test_an_explanation_of_mere_words_earns_no_points_automatically():
+    """03-4 and 04-4 ask for an explanation: a string of eight words still passes their check cells (which
+    only ask that one is there), but those cells carry no points in the course; a person grades the answer."""
+    for ident in ("03-4", "04-4"):
+        ex = EXERCISES[ident]
+        words = ex.answer.replace("why = (", 'why = "x x x x x x x x"\n_unused = (', 1)
+        assert outcome(words, ex.check) is None
+        assert ident in OPEN
+
+
+# ------------------------------------------------------------------------------------------ grading.forbid
+def test_forbid_replaces_every_binding_and_restores_them():
+    from geodepth_lite import ablation, study
+
+    original = ablation.holm
+    namespace = {"holm_alias": ablation.holm, "other": len}
+    with grading.forbid(ablation.holm, task="write holm yourself", namespace=namespace):
+        for call in (lambda: ablation.holm([0.01]), lambda: namespace["holm_alias"]([0.01]),
+                     lambda: study.ablation.holm([0.01])):
+            with pytest.raises(grading.ForbiddenCall, match=r"^this exercise asks you to write holm yourself; "
+                               r"calling geodepth_lite\.ablation\.holm is not allowed$"):
+                call()
+        assert namespace["other"] is len
+    assert ablation.holm is original and namespace["holm_alias"] is original and ablation.holm([0.01]) == [True]
+    assert sys.getprofile() is None
+
+
+def test_forbid_catches_a_reference_taken_before_the_block():
+    from geodepth_lite import ablation
+
+    def sneaky(p, _kept=ablation.holm):  # a default argument keeps the original function
+        return _kept(p)
+
+    with grading.forbid(ablation.holm, task="write holm yourself"):
+        with pytest.raises(grading.ForbiddenCall):
+            sneaky([0.01])
+    assert sneaky([0.2]) == [False]
+
+
+def test_forbid_a_class_stops_building_and_running_it_and_a_module_stops_all_its_functions():
+    import torch
+
+    from geodepth_lite import losses
+    from geodepth_lite import model as M
+
+    built = M.SpatialAttention(3)
+    x = torch.rand(1, 2, 4, 4)
+    with grading.forbid(M.SpatialAttention, task="write the block yourself"):
+        with pytest.raises(grading.ForbiddenCall, match="building geodepth_lite.model.SpatialAttention"):
+            M.SpatialAttention(3)
+        with pytest.raises(grading.ForbiddenCall, match="SpatialAttention.forward"):
+            built(x)
+    with grading.forbid(losses, task="use torch only"):
+        with pytest.raises(grading.ForbiddenCall, match="smoothness_maps"):
+            losses.smoothness_maps(torch.rand(1, 1, 4, 4), torch.rand(1, 3, 4, 4))
+    assert built(x).shape == x.shape and float(losses.grad_x(torch.ones(1, 1, 2, 2)).abs().sum()) == 0
+
+
+def test_rerun_answer_needs_the_history_and_every_name_set_again():
+    with pytest.raises(AssertionError, match="cannot find the answer cell"):
+        grading.rerun_answer({}, ["x"])
+    namespace = E.new_namespace()
+    E.run_cell("x = 1\nprint('hidden')", namespace)
+    E.run_cell("pass", namespace)
+    assert grading.rerun_answer(namespace, ["x"])["x"] == 1
+    E.run_cell("z = 3", namespace)  # the cell before the check does not set y
+    E.run_cell("pass", namespace)
+    with pytest.raises(AssertionError, match="does not set y"):
+        grading.rerun_answer(namespace, ["y"])
+
+
+def test_rerun_answer_in_a_kernel_without_history_runs_nothing_and_with_history_needs_the_cell(monkeypatch):
+    """nbval runs cells with store_history=False: the execution count stays 1 and nothing is run again;
+    a kernel that counts its cells but lost the answer cell from its history fails the check."""
+    from types import SimpleNamespace
+
+    shell = SimpleNamespace(execution_count=1, history_manager=SimpleNamespace(input_hist_parsed=[""]))
+    monkeypatch.setattr(grading, "_shell", lambda: shell)
+    assert grading.rerun_answer({"x": 1}, ["x"]) == {"x": 1}
+    shell.execution_count = 7
+    with pytest.raises(AssertionError, match="cannot find the answer cell"):
+        grading.rerun_answer({"x": 1}, ["x"])
+    shell.history_manager.input_hist_parsed += ["x = 2", "check"]
+    assert grading.rerun_answer({"In": []}, ["x"])["x"] == 2
