@@ -34,6 +34,7 @@ import argparse
 import ast
 import base64
 import contextlib
+import functools
 import hashlib
 import html
 import json
@@ -319,9 +320,10 @@ class Module:
         return f"{SOURCE}/{self.name}.html"
 
 
+@functools.lru_cache(maxsize=4)
 def index_package(package_dir: Path = PACKAGE_DIR) -> dict[str, Module]:
     """Every module of the package with the line of each top-level function, class, class method and
-    assigned name."""
+    assigned name (read once per process: the package's files do not change while it runs)."""
     modules: dict[str, Module] = {}
     for path in sorted(Path(package_dir).rglob("*.py")):
         rel = path.relative_to(package_dir).with_suffix("")
@@ -817,7 +819,8 @@ class Site:
         config = json.loads((self.build / "config.json").read_text(encoding="utf-8"))
         project = (config.get("projects") or [{}])[0]
         self.index_slug = project.get("index", "index")
-        self.nav: list[dict] = [{"slug": self.index_slug, "title": "Home", "level": 1}] + list(project.get("pages", []))
+        self.nav: list[dict] = [{"slug": self.index_slug, "title": "Home", "level": 1}] + [
+            p for p in project.get("pages", []) if p.get("slug") != self.index_slug]
         self.slugs = {p["slug"] for p in self.nav if p.get("slug")} | {""}
         self.images: set[str] = set()
         self.usage: dict[tuple[str, str], list[tuple[str, str]]] = {}  # (module, symbol) -> [(page, title)]
@@ -864,7 +867,7 @@ class Site:
             css.insert(0, f"{prefix}{STATIC}/katex/katex.min.css")
         links = "".join(f'<link rel="stylesheet" href="{h}">' for h in css)
         return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-                f'<meta name="viewport" content="width=device-width, initial-scale=1">'
+                f'<meta name="viewport" content="width=device-width, initial-scale=1"><link rel="icon" href="data:,">'
                 f'<title>{html.escape(title)} · geodepth-lite</title>{links}</head>')
 
     def sidebar(self, current: str, prefix: str) -> str:
@@ -1081,9 +1084,10 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
                 log(f"book: KaTeX's style sheet is not at hand ({why or 'not asked for'}); the equations are "
                     "drawn by the browser's MathML instead")
             modules = index_package()
-            lesson_names = {}
+            lesson_names, lesson_pages = {}, {}
             for nb in notebooks:
                 slug = _slug_for(site_dir, nb.name)
+                lesson_pages[nb.name] = f"{slug}.html"
                 data = json.loads(nb.read_text(encoding="utf-8"))
                 sources = ["".join(c.get("source", "")) for c in data.get("cells", []) if c.get("cell_type") == "code"]
                 lesson_names[slug] = notebook_names(sources, modules)
@@ -1094,7 +1098,8 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
             sources = site.render_sources()
             (new / ".nojekyll").write_text("")
         summary = {"pages": pages, "source_pages": len(sources), "figures": len(site.images),
-                   "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks]}
+                   "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks],
+                   "lesson_pages": lesson_pages}
         publishing = True
         _publish(out, new, summary)
     except BaseException:
