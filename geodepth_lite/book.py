@@ -37,6 +37,7 @@ import contextlib
 import functools
 import hashlib
 import html
+import importlib.util
 import json
 import os
 import re
@@ -47,6 +48,11 @@ import tarfile
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from pygments.formatters import HtmlFormatter
+from pygments.lexers import get_lexer_by_name
+from pygments.token import STANDARD_TYPES, Name, Operator, Text
+from pygments.util import ClassNotFound
 
 from geodepth_lite import utils
 from geodepth_lite.exercises import HIDDEN_MARKERS, SOLUTION_MARKERS, git_tracked
@@ -148,7 +154,7 @@ def check_node(path: str | None = None) -> str:
     :class:`BookError` of one line where there is none, or it is older than Node.js 18."""
     node = shutil.which("node", path=path)
     if node is None:
-        raise BookError(f"cannot build the book: Jupyter Book 2 needs Node.js {NODE_MIN} or newer, and no `node` "
+        raise BookError(f"cannot build the book: Jupyter Book 2 needs Node.js {NODE_MIN} or newer, and no node "
                         "is on PATH; install Node.js (e.g. apt-get install nodejs) and run the command again")
     version = node_version(node)
     if version is None or version[0] < NODE_MIN:
@@ -159,8 +165,6 @@ def check_node(path: str | None = None) -> str:
 
 
 def check_jupyter_book() -> None:
-    import importlib.util
-
     if importlib.util.find_spec("jupyter_book") is None:
         raise BookError("cannot build the book: the Python package jupyter-book is not installed; install "
                         "the project's environment (python -m pip install -r environment.txt)")
@@ -425,26 +429,15 @@ def resolve(chain: list[str], names: Names, modules: dict[str, Module]) -> tuple
 
 
 def _token_class(ttype) -> str:
-    from pygments.token import STANDARD_TYPES
-
     while ttype not in STANDARD_TYPES:
         ttype = ttype.parent
     return STANDARD_TYPES[ttype]
 
 
-def highlight_lines(code: str, lang: str = "python", link=None) -> list[str]:
-    """``code`` as highlighted HTML, one string per line. ``link(chain) -> (parts used, href) | None``
-    turns a dotted name of the code into a link to its source."""
-    from pygments.lexers import get_lexer_by_name
-    from pygments.token import Name, Operator, Text
-    from pygments.util import ClassNotFound
-
-    try:
-        lexer = get_lexer_by_name(lang or "text", stripnl=False, ensurenl=False)
-    except ClassNotFound:
-        lexer = get_lexer_by_name("text", stripnl=False, ensurenl=False)
-    tokens = list(lexer.get_tokens(code))
-    pieces: list[tuple[str, str, str | None]] = []  # (css class, text, href of the link it opens or "")
+def _link_tokens(tokens: list, link) -> list[tuple[str, str, str | None]]:
+    """Pygments tokens as (css class, text, None), with ("", "", href) opening a link around a dotted name
+    of the package that ``link`` resolves and ("", "", "/") closing it."""
+    pieces: list[tuple[str, str, str | None]] = []
     i = 0
     while i < len(tokens):
         ttype, value = tokens[i]
@@ -455,12 +448,11 @@ def highlight_lines(code: str, lang: str = "python", link=None) -> list[str]:
                 chain.append(tokens[j + 1][1])
                 j += 2
             prev = next((t for t in reversed(tokens[:i]) if t[0] not in Text), None)
-            found = None if prev == (Operator, ".") else link(chain)
+            found = None if prev == (Operator, ".") else link(chain)  # an attribute of something else
             if found:
                 used, href = found
-                span = tokens[i:i + 2 * used - 1]
                 pieces.append(("", "", href))
-                pieces += [(_token_class(t), v, None) for t, v in span]
+                pieces += [(_token_class(t), v, None) for t, v in tokens[i:i + 2 * used - 1]]
                 pieces.append(("", "", "/"))
                 i += 2 * used - 1
                 continue
@@ -472,8 +464,18 @@ def highlight_lines(code: str, lang: str = "python", link=None) -> list[str]:
                 continue
         pieces.append((_token_class(ttype), value, None))
         i += 1
+    return pieces
+
+
+def highlight_lines(code: str, lang: str = "python", link=None) -> list[str]:
+    """``code`` as highlighted HTML, one string per line. ``link(chain) -> (parts used, href) | None``
+    turns a dotted name of the code into a link to its source."""
+    try:
+        lexer = get_lexer_by_name(lang or "text", stripnl=False, ensurenl=False)
+    except ClassNotFound:
+        lexer = get_lexer_by_name("text", stripnl=False, ensurenl=False)
     lines, cur, open_href = [], [], None
-    for cls, text, href in pieces:
+    for cls, text, href in _link_tokens(list(lexer.get_tokens(code)), link):
         if href == "/":
             cur.append("</a>")
             open_href = None
@@ -482,9 +484,8 @@ def highlight_lines(code: str, lang: str = "python", link=None) -> list[str]:
             cur.append(f'<a class="src" href="{html.escape(href)}">')
             open_href = href
             continue
-        parts = text.split("\n")
-        for k, part in enumerate(parts):
-            if k:
+        for k, part in enumerate(text.split("\n")):
+            if k:  # a new line: close the open link and reopen it there, so that each line is whole HTML
                 if open_href:
                     cur.append("</a>")
                 lines.append("".join(cur))
@@ -970,8 +971,6 @@ class Site:
         return written
 
     def write_static(self, katex_dir: Path | None) -> None:
-        from pygments.formatters import HtmlFormatter
-
         static = utils.make_dir(self.dest / STATIC)
         (static / "book.css").write_text(CSS + ("" if katex_dir else MATHML_CSS))
         (static / "pygments.css").write_text(HtmlFormatter(style="default").get_style_defs("pre"))
@@ -1070,36 +1069,7 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
         check_out(out)  # again, under the lock
         if new.exists():
             _remove(new)
-        with tempfile.TemporaryDirectory(prefix="geodepth-book-") as tmp:
-            project = Path(tmp, "project")
-            stage(project, notebooks, docs, readme)
-            log(f"book: jupyter-book build --site ({len(notebooks)} notebooks, {len(docs)} docs)")
-            site_dir = run_myst(project)
-            katex_dir, why = None, ""
-            if katex:
-                tgz, why = fetch_katex(katex_cache())
-                if tgz is not None:
-                    katex_dir = extract_katex(tgz, Path(tmp, "katex"))
-            if katex_dir is None:
-                log(f"book: KaTeX's style sheet is not at hand ({why or 'not asked for'}); the equations are "
-                    "drawn by the browser's MathML instead")
-            modules = index_package()
-            lesson_names, lesson_pages = {}, {}
-            for nb in notebooks:
-                slug = _slug_for(site_dir, nb.name)
-                lesson_pages[nb.name] = f"{slug}.html"
-                data = json.loads(nb.read_text(encoding="utf-8"))
-                sources = ["".join(c.get("source", "")) for c in data.get("cells", []) if c.get("cell_type") == "code"]
-                lesson_names[slug] = notebook_names(sources, modules)
-            utils.make_dir(new)
-            site = Site(site_dir, new, modules, lesson_names, katex_dir is not None)
-            site.write_static(katex_dir)
-            pages = site.render_pages()
-            sources = site.render_sources()
-            (new / ".nojekyll").write_text("")
-        summary = {"pages": pages, "source_pages": len(sources), "figures": len(site.images),
-                   "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks],
-                   "lesson_pages": lesson_pages}
+        summary = _make_site(new, notebooks, docs, readme, katex, log)
         publishing = True
         _publish(out, new, summary)
     except BaseException:
@@ -1114,6 +1084,40 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
         raise
     lock.release()
     return summary
+
+
+def _make_site(new: Path, notebooks: list[Path], docs: list[Path], readme: Path | None, katex: bool,
+               log) -> dict:
+    """Stage, build with MyST and render the whole site into ``new``; returns the summary."""
+    with tempfile.TemporaryDirectory(prefix="geodepth-book-") as tmp:
+        project = Path(tmp, "project")
+        stage(project, notebooks, docs, readme)
+        log(f"book: jupyter-book build --site ({len(notebooks)} notebooks, {len(docs)} docs)")
+        site_dir = run_myst(project)
+        katex_dir, why = None, ""
+        if katex:
+            tgz, why = fetch_katex(katex_cache())
+            if tgz is not None:
+                katex_dir = extract_katex(tgz, Path(tmp, "katex"))
+        if katex_dir is None:
+            log(f"book: KaTeX's style sheet is not at hand ({why or 'not asked for'}); the equations are "
+                "drawn by the browser's MathML instead")
+        modules = index_package()
+        lesson_names, lesson_pages = {}, {}
+        for nb in notebooks:
+            slug = _slug_for(site_dir, nb.name)
+            lesson_pages[nb.name] = f"{slug}.html"
+            data = json.loads(nb.read_text(encoding="utf-8"))
+            sources = ["".join(c.get("source", "")) for c in data.get("cells", []) if c.get("cell_type") == "code"]
+            lesson_names[slug] = notebook_names(sources, modules)
+        utils.make_dir(new)
+        site = Site(site_dir, new, modules, lesson_names, katex_dir is not None)
+        site.write_static(katex_dir)
+        pages = site.render_pages()
+        sources = site.render_sources()
+        (new / ".nojekyll").write_text("")
+    return {"pages": pages, "source_pages": len(sources), "figures": len(site.images),
+            "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks], "lesson_pages": lesson_pages}
 
 
 def _slug_for(site_dir: Path, filename: str) -> str:

@@ -154,7 +154,7 @@ def test_missing_node_is_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("PATH", str(bare))
     out = tmp_path / "site"
     assert cli.main(["book", "--out", str(out)]) == 2
-    one_line_error(capsys, "Node.js 18 or newer", "no `node`")
+    one_line_error(capsys, "Node.js 18 or newer", "no node is on PATH")
     assert not out.exists()
 
 
