@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "unbundle": ("geodepth_lite.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
     "exercises": ("geodepth_lite.exercises", "write the student release of the notebooks' graded exercises (nbgrader)"),
     "course": ("geodepth_lite.course", "run a course with nbgrader: release, collect, autograde, feedback, grades"),
+    "book": ("geodepth_lite.book", "publish the executed notebooks as a static web book (Jupyter Book 2, MyST)"),
 }
 
 

@@ -1,0 +1,453 @@
+"""The web book (``python -m geodepth_lite book``): its pieces without a browser (folding the solutions,
+links to the source, the output folder's refusals, the missing Node.js line, a failed build leaving
+no site), then the real book built once and opened page by page in Debian's chromium through
+Playwright: every page loads with no error, no image is missing, no markdown is left raw, the math
+is typeset, and every solution stays folded until its control is clicked.
+
+The browser test skips, saying why, where chromium, Playwright, Node.js or jupyter-book is missing;
+with GEODEPTH_REQUIRE_BROWSER=1 it fails instead."""
+
+import functools
+import http.server
+import io
+import json
+import os
+import re
+import subprocess
+import tarfile
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from conftest import one_line_error
+
+from geodepth_lite import book, cli, exercises
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+REQUIRE_ENV = "GEODEPTH_REQUIRE_BROWSER"
+
+# --------------------------------------------------------------------------- pieces, no browser
+
+
+def test_split_folds_known_ranges():
+    code = ("import torch\n\ndef f(x):\n    ### BEGIN SOLUTION\n    return x * 2\n    ### END SOLUTION\n"
+            "assert f(1) == 2\n### BEGIN HIDDEN TESTS\nassert f(2) == 4\n### END HIDDEN TESTS")
+    assert book.split_folds(code) == [("code", 0, 3), ("solution", 4, 5), ("code", 6, 7), ("hidden", 8, 9)]
+    assert book.split_folds("x = 1\ny = 2") == [("code", 0, 2)]
+
+
+def test_highlight_keeps_lines_and_links_package_names():
+    modules = book.index_package()
+    imports = "from geodepth_lite import losses as L\nfrom geodepth_lite.sdf import signed_distance"
+    names = book.notebook_names([imports], modules)
+    assert names.modules == {"L": "losses"} and names.symbols == {"signed_distance": ("sdf", "signed_distance")}
+
+    def link(chain):
+        found = book.resolve(chain, names, modules)
+        return found and (found[0], f"{found[1]}#{found[2]}")
+
+    code = 'x = L.sdf_loss(a)\ns = """two\nlines"""\ny = signed_distance(p, q)\nz = L.nothing_here\nw = np.sum(x)'
+    lines = book.highlight_lines(code, "python", link)
+    assert len(lines) == len(code.split("\n"))
+    assert 'href="losses#sdf_loss"' in lines[0]
+    assert 'href="sdf#signed_distance"' in lines[3]
+    assert 'href="losses#"' in lines[4]  # an unknown name of a known module: the module's page
+    assert "href" not in lines[5]  # numpy is not the package
+    assert re.sub(r"<[^>]+>", "", lines[1]) == 's = """two'  # the string spans two lines, each whole
+    assert book.resolve(["L", "sdf_loss"], names, modules)[2] == "sdf_loss"
+    assert modules["losses"].symbols["sdf_loss"] > 1
+
+
+def test_tag_solutions_marks_only_solution_cells():
+    nb = {"cells": [{"cell_type": "code", "metadata": {"nbgrader": {"solution": True}}, "source": ""},
+                    {"cell_type": "code", "metadata": {"nbgrader": {"solution": False, "grade": True}}, "source": ""},
+                    {"cell_type": "markdown", "metadata": {}, "source": ""}]}
+    tagged = book.tag_solutions(nb)["cells"]
+    assert [c["metadata"].get("tags", []) for c in tagged] == [[book.SOLUTION_TAG], [], []]
+
+
+def _fake_site(tmp_path):
+    site = SimpleNamespace(modules=book.index_package(), slugs={"", "index", "lesson"}, images=set())
+    site.image = lambda value, mime: "_static/img/" + Path(value.get("path", "")).name if value.get("path") else None
+    site.public_text = lambda path: ""
+    return site
+
+
+def _code_block(code, tags=(), outputs=()):
+    return {"type": "block", "kind": "notebook-code", "data": {"tags": list(tags)}, "identifier": "c1",
+            "children": [{"type": "code", "lang": "python", "value": code},
+                         {"type": "outputs", "children": [{"type": "output", "jupyter_data": o} for o in outputs]}]}
+
+
+def test_solution_folds_with_its_output(tmp_path):
+    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names({"losses": "losses"}))
+    block = _code_block("answer = None\n### BEGIN SOLUTION\nanswer = losses.depth_loss(a, b)\n### END SOLUTION",
+                        [book.SOLUTION_TAG], [{"output_type": "stream", "name": "stdout", "text": "0.4242\n"}])
+    out = r.node(block)
+    details = re.findall(r'<details class="solution">.*?</details>', out, re.S)
+    assert len(details) == 2, out  # the solution's code, and the output it printed
+    assert "depth_loss" in details[0] and "0.4242" in details[1]
+    outside = re.sub(r'<details class="solution">.*?</details>', "", out, flags=re.S)
+    assert "depth_loss" not in outside and "0.4242" not in outside and "answer" in outside
+    assert "BEGIN SOLUTION" not in out
+    assert ("losses", "depth_loss") in r.used
+
+
+def test_inline_code_links_to_the_source_line(tmp_path):
+    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    line = book.index_package()["losses"].symbols["sdf_loss"]
+    for text in ("losses.sdf_loss", "losses.sdf_loss(pred, gt)", "geodepth_lite.losses.sdf_loss"):
+        assert f'href="source/losses.html#L{line}"' in r.n_inlineCode({"value": text}), text
+    assert 'href="source/losses.html"' in r.n_inlineCode({"value": "geodepth_lite/losses.py"})
+    for text in ("losses", "numpy.sum", "losses.no_such_name", "python -m geodepth_lite train"):
+        assert "href" not in r.n_inlineCode({"value": text}), text
+
+
+def test_links_to_files_outside_the_book_are_named_not_linked(tmp_path):
+    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    assert r.n_link({"url": "/lesson#goal", "children": [{"type": "text", "value": "x"}]}) == \
+        '<a href="lesson.html#goal">x</a>'
+    assert "<a" not in r.n_link({"url": "CHANGELOG.md", "children": [{"type": "text", "value": "log"}]})
+    assert 'href="source/utils.html#L3"' in r.n_link({"url": "../geodepth_lite/utils.py#L3", "children": []})
+
+
+def test_check_out_refusals(tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    with pytest.raises(OSError, match="a file of that name exists"):
+        book.check_out(a_file)
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("mine")
+    with pytest.raises(OSError, match="did not write"):
+        book.check_out(theirs)
+    repo = tmp_path / "repo"
+    (repo / "site").mkdir(parents=True)
+    (repo / "site" / "index.html").write_text("tracked")
+    (repo / "site" / book.MARKER).write_text("{}")
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    subprocess.run(["git", "-C", str(repo), "add", "site/index.html"], check=True)
+    with pytest.raises(OSError, match="tracked by git"):
+        book.check_out(repo / "site")
+    ours = tmp_path / "ours"
+    ours.mkdir()
+    (ours / book.MARKER).write_text("{}")
+    (ours / "index.html").write_text("old")
+    book.check_out(ours)  # written by the book command before: accepted
+    book.check_out(tmp_path / "new")  # does not exist yet: accepted
+
+
+def test_missing_node_is_one_line(tmp_path, monkeypatch, capsys):
+    bare = tmp_path / "bin"
+    bare.mkdir()
+    with pytest.raises(book.BookError, match="needs Node.js 18 or newer"):
+        book.check_node(str(bare))
+    old = bare / "node"
+    old.write_text("#!/bin/sh\necho v16.20.0\n")
+    old.chmod(0o755)
+    with pytest.raises(book.BookError, match="this one is v16.20.0"):
+        book.check_node(str(bare))
+    old.unlink()
+    monkeypatch.setenv("PATH", str(bare))
+    out = tmp_path / "site"
+    assert cli.main(["book", "--out", str(out)]) == 2
+    one_line_error(capsys, "Node.js 18 or newer", "no node is on PATH")
+    assert not out.exists()
+
+
+# a MyST build of one page, written by the test instead of jupyter-book: the rendering runs without Node
+def _fake_myst(pages_content, png=b"\x89PNG\r\n\x1a\n"):
+    def run_myst(project, timeout=0):
+        site = project / "_build" / "site"
+        (site / "content").mkdir(parents=True)
+        (site / "public").mkdir()
+        (site / "public" / "fig.png").write_bytes(png)
+        pages = [{"slug": slug, "title": slug, "level": 1} for slug in pages_content]
+        (site / "config.json").write_text(json.dumps({"projects": [{"index": "index", "pages": pages}]}))
+        for slug, mdast in pages_content.items():
+            loc = "/index.md" if slug == "index" else f"/notebooks/{slug}.ipynb"
+            (site / "content" / f"{slug}.json").write_text(json.dumps(
+                {"kind": "Notebook", "location": loc, "frontmatter": {"title": f"Title {slug}"}, "mdast": mdast}))
+        return site
+    return run_myst
+
+
+LESSON = {"type": "root", "children": [
+    {"type": "block", "kind": "notebook-content", "children": [
+        {"type": "paragraph", "children": [
+            {"type": "text", "value": "See "},
+            {"type": "inlineMath", "value": "x^2", "html": '<span class="katex">x2</span>'}]}]},
+    _code_block("from geodepth_lite import losses\nv = losses.depth_loss(a, b)",
+                outputs=[{"output_type": "display_data", "data": {"image/png": {"path": "/fig.png"}}}])]}
+
+
+def _lesson_nb(tmp_path):
+    nb = tmp_path / "nbs" / "lesson.ipynb"
+    nb.parent.mkdir()
+    nb.write_text(json.dumps({"cells": [{"cell_type": "code", "metadata": {}, "outputs": [],
+                                         "source": "from geodepth_lite import losses\nv = losses.depth_loss(a, b)"}],
+                              "metadata": {}, "nbformat": 4, "nbformat_minor": 5}))
+    return nb
+
+
+def _few_modules(monkeypatch):
+    """Source pages for two modules only: the build tests stay fast."""
+    few = {k: v for k, v in book.index_package().items() if k in ("losses", "utils")}
+    monkeypatch.setattr(book, "index_package", lambda: few)
+
+
+def test_build_renders_and_marks_complete(tmp_path, monkeypatch):
+    _few_modules(monkeypatch)
+    monkeypatch.setattr(book, "run_myst", _fake_myst({"index": {"type": "root", "children": []}, "lesson": LESSON}))
+    monkeypatch.setattr(book, "check_node", lambda path=None: "node")
+    out = tmp_path / "site"
+    summary = book.build(out, notebooks=[_lesson_nb(tmp_path)], docs=[], readme=None, katex=False, log=lambda m: None)
+    assert summary["pages"] == ["index.html", "lesson.html"] and summary["figures"] == 1
+    assert book.read_marker(out)["complete"] is True
+    page = (out / "lesson.html").read_text()
+    line = book.index_package()["losses"].symbols["depth_loss"]
+    assert f'href="source/losses.html#L{line}"' in page
+    assert '<img src="_static/img/fig.png"' in page and (out / "_static/img/fig.png").is_file()
+    assert 'id="L1"' in (out / "source/losses.html").read_text()
+    assert "lesson.html" in (out / "source/losses.html").read_text()  # the source page names the lesson using it
+    assert not (out / book.NEW_DIR).exists() and not (out / ".lock").exists()
+    book.build(out, notebooks=[tmp_path / "nbs/lesson.ipynb"], docs=[], readme=None, katex=False,
+               log=lambda m: None)  # a second build replaces the first
+    assert book.read_marker(out)["complete"] is True
+
+
+def test_failed_build_leaves_no_site(tmp_path, monkeypatch):
+    _few_modules(monkeypatch)
+    monkeypatch.setattr(book, "check_node", lambda path=None: "node")
+    nb = _lesson_nb(tmp_path)
+
+    def broken(project, timeout=0):
+        raise book.BookError("cannot build the book: jupyter-book build failed (exit status 1): boom")
+
+    monkeypatch.setattr(book, "run_myst", broken)
+    new = tmp_path / "new" / "site"
+    with pytest.raises(book.BookError, match="boom"):
+        book.build(new, notebooks=[nb], docs=[], readme=None, katex=False, log=lambda m: None)
+    assert not (tmp_path / "new").exists()  # the folders it made are gone again
+
+    # a complete site stays as it was when a rebuild fails before it is published
+    monkeypatch.setattr(book, "run_myst", _fake_myst({"index": {"type": "root", "children": []}, "lesson": LESSON}))
+    out = tmp_path / "site"
+    book.build(out, notebooks=[nb], docs=[], readme=None, katex=False, log=lambda m: None)
+    before = (out / "lesson.html").read_text()
+    monkeypatch.setattr(book.Site, "render_sources", lambda self: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        book.build(out, notebooks=[nb], docs=[], readme=None, katex=False, log=lambda m: None)
+    assert (out / "lesson.html").read_text() == before and book.read_marker(out)["complete"] is True
+    assert not (out / book.NEW_DIR).exists()
+
+    # cut off while the new site replaces the old: no page left, and the marker says incomplete
+    monkeypatch.undo()
+    _few_modules(monkeypatch)
+    monkeypatch.setattr(book, "check_node", lambda path=None: "node")
+    monkeypatch.setattr(book, "run_myst", _fake_myst({"index": {"type": "root", "children": []}, "lesson": LESSON}))
+    real_replace = os.replace
+    calls = []
+
+    def failing_replace(a, b):
+        calls.append(a)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        return real_replace(a, b)
+
+    monkeypatch.setattr(book.os, "replace", failing_replace)
+    with pytest.raises(OSError):
+        book.build(out, notebooks=[nb], docs=[], readme=None, katex=False, log=lambda m: None)
+    assert book.read_marker(out)["complete"] is False
+    assert sorted(p.name for p in out.iterdir()) == [book.MARKER]
+
+
+def test_katex_tarball_is_checked_and_bounded(tmp_path):
+    cache = tmp_path / "katex.tgz"
+    cache.write_bytes(b"not the package")
+    failing_npm = tmp_path / "npm"
+    failing_npm.write_text("#!/bin/sh\necho 'npm error network unreachable' >&2\nexit 1\n")
+    failing_npm.chmod(0o755)
+    got, why = book.fetch_katex(cache, npm=str(failing_npm))
+    assert got is None and "network unreachable" in why
+    # a tarball with a path out of its folder and a link: only the two expected regular files come out
+    tgz = tmp_path / "crafted.tgz"
+    with tarfile.open(tgz, "w:gz") as tar:
+        for name, data in (("package/dist/katex.min.css", b".katex{}"),
+                           ("package/dist/fonts/KaTeX_Main-Regular.woff2", b"font"),
+                           ("package/dist/fonts/../../../evil.css", b"evil")):
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+        link = tarfile.TarInfo("package/dist/fonts/KaTeX_Link.woff")
+        link.type, link.linkname = tarfile.SYMTYPE, "/etc/passwd"
+        tar.addfile(link)
+    dest = book.extract_katex(tgz, tmp_path / "k")
+    found = sorted(p.relative_to(dest).as_posix() for p in dest.rglob("*") if p.is_file())
+    assert found == ["fonts/KaTeX_Main-Regular.woff2", "katex.min.css"]
+    assert not (tmp_path / "evil.css").exists()
+
+
+# --------------------------------------------------------------------------- the real book in a browser
+
+
+def _browser_missing() -> str:
+    if not Path(CHROMIUM).is_file():
+        return f"{CHROMIUM} is missing (Debian: apt-get install chromium)"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "the Python package playwright is missing (pip install -r environment.txt)"
+    try:
+        book.check_node()
+        book.check_jupyter_book()
+    except book.BookError as exc:
+        return str(exc)
+    return ""
+
+
+@pytest.fixture(scope="module")
+def served_book(tmp_path_factory):
+    """The book built once from the checkout, served by a local http.server thread."""
+    missing = _browser_missing()
+    if missing:
+        if os.environ.get(REQUIRE_ENV, "") not in ("", "0"):
+            pytest.fail(f"{REQUIRE_ENV}=1, but the browser test cannot run: {missing}")
+        pytest.skip(f"browser test: {missing}")
+    out = tmp_path_factory.mktemp("book") / "site"
+    summary = book.build(out, log=lambda m: None)
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(out)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield out, f"http://127.0.0.1:{server.server_port}", summary
+    server.shutdown()
+    server.server_close()
+
+
+def _notebook_facts():
+    """Per lesson notebook: whether its markdown has $...$ math, and the first line of each solution."""
+    facts = {}
+    for nb in book.lesson_notebooks():
+        data = json.loads(nb.read_text(encoding="utf-8"))
+        md = "\n".join("".join(c["source"]) for c in data["cells"] if c["cell_type"] == "markdown")
+        public = "\n".join("\n".join(exercises._split_solutions("".join(c["source"]))[1]) for c in data["cells"])
+        solutions = []
+        for c in data["cells"]:
+            if c["cell_type"] == "code" and c["metadata"].get("nbgrader", {}).get("solution"):
+                lines = [ln for ln in exercises.solution_lines("".join(c["source"]))
+                         if len(ln) > 12 and ln not in public]
+                if lines:  # a line of the solution that the notebook shows nowhere else
+                    solutions.append(lines[0])
+        facts[nb.name] = {"math": bool(re.search(r"\$[^$\n]+\$", md)), "solutions": solutions}
+    return facts
+
+
+VISIBLE_TEXT = """() => {
+  const body = document.querySelector('main').cloneNode(true);
+  body.querySelectorAll('pre, code, .katex, script, style').forEach(e => e.remove());
+  return body.textContent;
+}"""
+
+
+@pytest.fixture(scope="module")
+def browsed(served_book):
+    """Every page of the built book opened in chromium once: what each showed."""
+    from playwright.sync_api import sync_playwright
+
+    out, base, summary = served_book
+    pages = sorted(p.relative_to(out).as_posix() for p in out.rglob("*.html"))
+    report = {}
+    with sync_playwright() as pw:
+        ctx = pw.chromium.launch_persistent_context(str(out.parent / "profile"), executable_path=CHROMIUM,
+                                                    args=CHROMIUM_ARGS, headless=True)
+        page = ctx.new_page()
+        problems = []
+        page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+        page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+        page.on("requestfailed", lambda r: problems.append(f"request failed: {r.url}"))
+        page.on("response", lambda r: problems.append(f"HTTP {r.status}: {r.url}") if r.status >= 400 else None)
+        for rel in pages:
+            problems.clear()
+            response = page.goto(f"{base}/{rel}", wait_until="load")
+            entry = {"status": response.status if response else None}
+            entry["broken_images"] = page.evaluate(
+                "() => [...document.images].filter(i => !(i.complete && i.naturalWidth > 0)).map(i => i.src)")
+            entry["images"] = page.evaluate("() => document.images.length")
+            entry["text"] = page.evaluate(VISIBLE_TEXT)
+            entry["katex"] = page.evaluate("() => document.querySelectorAll('main .katex').length")
+            entry["katex_font"] = page.evaluate(
+                "() => { const k = document.querySelector('main .katex'); return k ? getComputedStyle(k).fontFamily"
+                " : ''; }")
+            entry["math_shown"] = page.evaluate(
+                "() => [...document.querySelectorAll('main .katex')].filter(k => k.getBoundingClientRect().width > 0)"
+                ".length")
+            if not rel.startswith(book.SOURCE + "/"):
+                entry["folded_text"] = page.evaluate("() => document.querySelector('main').innerText")
+                entry["solutions"] = page.locator("details.solution").count()
+                entry["closed"] = page.evaluate(
+                    "() => [...document.querySelectorAll('details.solution')].every(d => !d.open)")
+                for summary_el in page.locator("details > summary").all():
+                    summary_el.click()
+                entry["open_text"] = page.evaluate("() => document.querySelector('main').innerText")
+                entry["opened"] = page.evaluate(
+                    "() => [...document.querySelectorAll('details.solution')].every(d => d.open)")
+            entry["problems"] = list(problems)
+            report[rel] = entry
+        ctx.close()
+    return report, summary
+
+
+def test_every_page_loads_without_errors(browsed):
+    report, summary = browsed
+    assert len(report) >= len(summary["pages"]) + summary["source_pages"]
+    bad = {rel: (e["status"], e["problems"]) for rel, e in report.items() if e["status"] != 200 or e["problems"]}
+    assert not bad
+
+
+def test_no_missing_image(browsed):
+    report, summary = browsed
+    assert not {rel: e["broken_images"] for rel, e in report.items() if e["broken_images"]}
+    assert summary["figures"] > 0 and sum(e["images"] for e in report.values()) >= summary["figures"]
+
+
+def test_no_raw_markdown(browsed):
+    report, _ = browsed
+    raw = {}
+    for rel, e in report.items():
+        found = [m for m in ("$$", "**", "```", ":::", "\\frac", "\\mathbf") if m in e["text"]]
+        found += re.findall(r"\$[^$\s][^$\n]{0,40}\$", e["text"])  # inline math left as $...$
+        if found:
+            raw[rel] = found
+    assert not raw
+
+
+def test_math_is_typeset(browsed):
+    report, summary = browsed
+    facts = _notebook_facts()
+    assert sum(f["math"] for f in facts.values()) >= 1
+    for name, f in facts.items():
+        e = report[summary["lesson_pages"][name]]
+        if f["math"]:
+            assert e["katex"] > 0 and e["math_shown"] == e["katex"], name
+            if summary["katex"]:  # KaTeX's style sheet and fonts are in use
+                assert "KaTeX_Main" in e["katex_font"], (name, e["katex_font"])
+
+
+def test_solutions_are_folded_until_clicked(browsed):
+    report, summary = browsed
+    facts = _notebook_facts()
+    assert sum(len(f["solutions"]) for f in facts.values()) >= 1
+    for name, f in facts.items():
+        e = report[summary["lesson_pages"][name]]
+        assert e["solutions"] >= len(f["solutions"]) and e["closed"] and e["opened"], name
+        for first_line in f["solutions"]:
+            assert first_line not in e["folded_text"], (name, first_line)
+            assert first_line in e["open_text"], (name, first_line)
