@@ -214,16 +214,22 @@ def holds_solutions(path: Path) -> bool:
                "".join(c.get("source", "")).splitlines())
 
 
+# tracked files that hold answers outside the notebooks: the tests that play shortcuts and wrong answers
+# against every check (their answers overlap the solutions), kept by the lecturer
+LECTURER_FILES = frozenset({"tests/test_exercise_shortcuts.py"})
+
+
 def edition_files(root: Path) -> tuple[list[str], list[str]]:
-    """(files of the checkout ``root`` that the student edition copies, notebooks it leaves out): every
-    file git tracks but the notebooks that hold solutions."""
+    """(files of the checkout ``root`` that the student edition copies, files it leaves out): every
+    file git tracks but the notebooks that hold solutions and :data:`LECTURER_FILES`."""
     tracked = exercises.git_tracked(root)
     if not tracked:
         raise FileNotFoundError(f"cannot list the files of {root}: the student edition is made from a git "
                                 "checkout of geodepth-lite (git ls-files)")
     keep, dropped = [], []
     for rel in tracked:
-        is_solution = rel.endswith(".ipynb") and (root / rel).is_file() and holds_solutions(root / rel)
+        is_solution = rel in LECTURER_FILES or (
+            rel.endswith(".ipynb") and (root / rel).is_file() and holds_solutions(root / rel))
         (dropped if is_solution else keep).append(rel)
     return keep, dropped
 
