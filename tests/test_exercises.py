@@ -94,3 +94,12 @@ def test_release_command_writes_the_student_notebooks(tmp_path, capsys):
     assert cli.main(["exercises", "--out", str(tmp_path / "class")]) == 0
     assert sorted(p.name for p in (tmp_path / "class").iterdir()) == sorted(p.name for p in NOTEBOOKS)
     assert "exercises" in capsys.readouterr().out
+
+
+def test_the_lecturers_page_states_the_notebooks_exercise_count_and_points():
+    total = [ex for p in E.notebook_paths() for ex in E.collect(E.read_notebook(p)).values()]
+    stated = f"{len(total)} graded exercises, {sum(ex.points for ex in total):g} points in all"
+    text = " ".join((E.NOTEBOOK_DIR.parent / "docs" / "teaching.md").read_text().split())
+    assert stated in text
+    # the check can fail: the page's former count (26) is not what the notebooks hold
+    assert stated not in text.replace(stated, "26 graded exercises, 77 points in all")
