@@ -36,7 +36,6 @@ from geodepth_lite import exercises, utils
 COURSE_ID = "geodepth"
 TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the machine that executed notebooks/
 TIMEOUT_MIN_S = 120  # a notebook without execution records (or only fast cells) still gets two minutes a cell
-OPEN_LEVEL = re.compile(r"\(open,")  # the prompt's level marker of an open-ended exercise
 STUDENT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
 CONFIG = "nbgrader_config.py"
 GRADE_COLUMNS = ["student", "assignment", "points", "max_points", "needs_manual_grading", "pending_max_points"]
@@ -85,18 +84,7 @@ def assignment_name(notebook: Path) -> str:
     return Path(notebook).stem
 
 
-def grade_by_hand(nb: dict) -> list[str]:
-    """Mark each open-ended exercise of ``nb`` (in place) as manually graded: the answer cell becomes a
-    graded solution cell with the exercise's points, the check cell a graded cell worth 0. Returns the ids."""
-    marked = []
-    for ex in exercises.collect(nb).values():
-        if not OPEN_LEVEL.search(ex.prompt) or set(ex.cells) != {"answer", "check"}:
-            continue
-        answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
-        answer.update(grade=True, solution=True, locked=False, points=float(check.get("points", 0)))
-        check.update(grade=True, solution=False, locked=True, points=0.0)
-        marked.append(ex.ident)
-    return marked
+grade_by_hand = exercises.grade_by_hand  # the release and the course mark open answers alike
 
 
 def _config_text(course_id: str, timeout: int, slowest: tuple[float, str]) -> str:

@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -40,6 +40,7 @@ EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks wit
 GRADE_ID = re.compile(r"^ex(\d\d)-(\d+)-(answer|check)$")
 SOLUTION_MARKERS = ("### BEGIN SOLUTION", "### END SOLUTION")
 HIDDEN_MARKERS = ("### BEGIN HIDDEN TESTS", "### END HIDDEN TESTS")
+OPEN_LEVEL = re.compile(r"\(open,")  # the prompt's level marker of an open-ended exercise
 ASSIGNMENT = "geodepth"  # nbgrader's assignment name inside the temporary course folder
 
 
@@ -315,8 +316,10 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
     with tempfile.TemporaryDirectory(prefix="geodepth-release-") as tmp:
         source = Path(tmp, "source", ASSIGNMENT)
         source.mkdir(parents=True)
-        for nb in sources:
-            shutil.copy2(nb, source / nb.name)
+        for nb, content in sources.items():  # open-ended exercises graded by hand, as in a course
+            marked = copy.deepcopy(content)
+            grade_by_hand(marked)
+            (source / nb.name).write_text(json.dumps(marked, indent=1, ensure_ascii=False) + "\n")
         names = ", ".join(nb.name for nb in sources)
         run_nbgrader(["generate_assignment", ASSIGNMENT, "--force"], Path(tmp), f"release {names}")
         released = Path(tmp, "release", ASSIGNMENT)
@@ -331,6 +334,20 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
             utils.write_bytes_atomic(out / nb.name, (released / nb.name).read_bytes())
             written.append(out / nb.name)
     return written
+
+
+def grade_by_hand(nb: dict) -> list[str]:
+    """Mark each open-ended exercise of ``nb`` (in place) as manually graded: the answer cell becomes a
+    graded solution cell with the exercise's points, the check cell a graded cell worth 0. Returns the ids."""
+    marked = []
+    for ex in collect(nb).values():
+        if not OPEN_LEVEL.search(ex.prompt) or set(ex.cells) != {"answer", "check"}:
+            continue
+        answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
+        answer.update(grade=True, solution=True, locked=False, points=float(check.get("points", 0)))
+        check.update(grade=True, solution=False, locked=True, points=0.0)
+        marked.append(ex.ident)
+    return marked
 
 
 def leaks(source_nb: dict, released_nb: dict) -> list[str]:

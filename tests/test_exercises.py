@@ -103,3 +103,18 @@ def test_the_lecturers_page_states_the_notebooks_exercise_count_and_points():
     assert stated in text
     # the check can fail: the page's former count (26) is not what the notebooks hold
     assert stated not in text.replace(stated, "26 graded exercises, 77 points in all")
+
+
+def test_release_sends_open_ended_answers_to_hand_grading(released):
+    """An open answer's points sit on its answer cell (graded by hand), its check is worth 0: a long
+    enough explanation earns nothing automatically in the release either."""
+    seen = 0
+    for p in NOTEBOOKS:
+        for ex in E.collect(released[p.name]).values():
+            answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
+            if E.OPEN_LEVEL.search(ex.prompt):
+                seen += 1
+                assert answer.get("grade") and answer.get("points", 0) > 0 and check.get("points") == 0, ex.ident
+            else:
+                assert not answer.get("grade") and check.get("points", 0) > 0, ex.ident
+    assert seen == len(NOTEBOOKS)  # one open exercise per notebook
