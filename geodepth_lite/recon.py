@@ -19,14 +19,16 @@ Points are in the camera frame of ``camera`` (x right, y down, z forward) unless
 
 from __future__ import annotations
 
-import importlib.util
+import base64
+import hashlib
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from . import camera, render, utils
+from . import camera, render, utils, viz
 from . import manifest as mf
 from . import tube as tube_mod
 from .metrics import median_scale
@@ -233,41 +235,82 @@ VIEWS = {"front": (20.0, 25.0), "side": (-80.0, 15.0)}
 VIEW_NAMES = tuple(VIEWS)
 
 
+# Lighting of the rendered meshes: a light at the viewer (VTK lights both sides of a surface), enough
+# ambient light that a wall turned away is still seen, a diffuse term that shows the relief.
+LIGHTING = {"ambient": 0.35, "diffuse": 0.65, "specular": 0.1}
+# The interactive view has one light on one side of each triangle (plotly): more ambient light, so
+# that the wall's far side, seen when the reader turns the view, stays visible.
+PLOTLY_LIGHTING = {"ambient": 0.65, "diffuse": 0.5, "specular": 0.1, "roughness": 0.6, "fresnel": 0.05}
+SURFACE_RGB = (222, 160, 140)  # color_by="surface": one tissue tone, so that light alone shows the shape
+COLOR_BY = ("image", "depth", "surface")
+
+
+def depth_clim(poly) -> tuple[float, float]:
+    """Colour range of a cloud's or mesh's "depth" point data: its 2nd and 98th percentiles (as 2D maps)."""
+    return viz.depth_range(np.asarray(poly.point_data["depth"]))
+
+
+def _check_color_by(poly, color_by: str) -> str:
+    if color_by not in COLOR_BY:
+        raise ValueError(f"color_by must be one of {', '.join(COLOR_BY)}, got {color_by!r}")
+    if color_by == "image" and "rgb" not in poly.point_data:
+        return "depth"  # a cloud without colours: depth is the only colour it has
+    return color_by
+
+
+def _view_frame(poly, reference_pose):
+    """Points in the reference camera's frame (the points' own frame without a pose), the 5-95th
+    percentile box's centre and its diagonal."""
+    if poly.n_points == 0:
+        raise ValueError("nothing to render: the cloud or mesh has no points")
+    pts = np.asarray(poly.points, dtype=np.float64)
+    if reference_pose is not None:
+        pts = camera.transform(np.linalg.inv(np.asarray(reference_pose, dtype=np.float64)), pts)
+    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
+    return pts, 0.5 * (lo + hi), float(np.linalg.norm(hi - lo)) or 1.0
+
+
+def _view_direction(view: str) -> np.ndarray:
+    """Unit viewing direction of ``view``: +z turned by yaw about y, then tilted down by pitch (y is down)."""
+    if view not in VIEWS:
+        raise ValueError(f"unknown view {view!r}: choose from {', '.join(VIEWS)}")
+    yaw, pitch = (math.radians(a) for a in VIEWS[view])
+    return np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)])
+
+
 def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: float = 3.0, background="white",
-                 reference_pose=None, zoom: float = 1.0, color_by: str = "image") -> list[np.ndarray]:
+                 reference_pose=None, zoom: float = 1.0, color_by: str = "image", clim=None) -> list[np.ndarray]:
     """Headless renders (H x W x 3 uint8) of a cloud or mesh, one per view in ``views`` (Fig. 9).
 
     Views are set in a camera frame: the points' own frame, or the frame of
     ``reference_pose`` (a 4x4 T_world_cam) for world-frame clouds such as fused sequences.
-    color_by: "image" (the "rgb" point data, when present) or "depth" (magma colour map).
+    color_by: "image" (the "rgb" point data, when present), "depth" (the workbook's depth colours,
+    near = bright, clipped to ``clim``, by default :func:`depth_clim`; draw its colour bar with
+    ``viz.depth_colorbar``) or "surface" (one tissue tone: the light alone shows the shape).
+    Meshes are lit by a light at the viewer (:data:`LIGHTING`); points are not lit.
     """
-    if color_by not in ("image", "depth"):
-        raise ValueError(f"color_by must be 'image' or 'depth', got {color_by!r}")
+    color_by = _check_color_by(poly, color_by)
     import pyvista as pv  # VTK: heavy, needed only to build or render meshes
 
-    if poly.n_points == 0:
-        raise ValueError("nothing to render: the cloud or mesh has no points")
-    if reference_pose is not None:
-        poly = poly.copy()
-        poly.points = camera.transform(np.linalg.inv(np.asarray(reference_pose, dtype=np.float64)),
-                                       np.asarray(poly.points, dtype=np.float64)).astype(np.float32)
-    pts = np.asarray(poly.points, dtype=np.float64)
-    lo, hi = np.percentile(pts, 5, axis=0), np.percentile(pts, 95, axis=0)
-    centre = 0.5 * (lo + hi)
-    extent = float(np.linalg.norm(hi - lo)) or 1.0
+    pts, centre, extent = _view_frame(poly, reference_pose)
+    poly = poly.copy()
+    poly.points = pts.astype(np.float32)
+    if color_by == "image":
+        kw = dict(rgb=True, scalars="rgb")
+    elif color_by == "depth":
+        kw = dict(scalars="depth", cmap=viz.DEPTH_CMAP, clim=depth_clim(poly) if clim is None else clim,
+                  show_scalar_bar=False)
+    else:
+        kw = dict(color=SURFACE_RGB)
     images = []
     for view in views:
-        if view not in VIEWS:
-            raise ValueError(f"unknown view {view!r}: choose from {', '.join(VIEWS)}")
-        yaw, pitch = (math.radians(a) for a in VIEWS[view])
-        # viewing direction: +z turned by yaw about y, then tilted down by pitch (y is down)
-        direction = np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch), math.cos(yaw) * math.cos(pitch)])
-        pl = pv.Plotter(off_screen=True, window_size=list(window_size))
+        direction = _view_direction(view)
+        pl = pv.Plotter(off_screen=True, window_size=list(window_size), lighting="none")
         pl.set_background(background)
-        kw = (dict(rgb=True, scalars="rgb") if color_by == "image" and "rgb" in poly.point_data
-              else dict(scalars="depth", cmap="magma", show_scalar_bar=False))
+        pl.add_light(pv.Light(light_type="headlight", intensity=1.0))
         if poly.n_cells and poly.n_faces:
-            pl.add_mesh(poly, smooth_shading=True, ambient=0.45, diffuse=0.7, specular=0.0, **kw)
+            pl.add_mesh(poly, smooth_shading=True, ambient=LIGHTING["ambient"], diffuse=LIGHTING["diffuse"],
+                        specular=LIGHTING["specular"], specular_power=10.0, **kw)
         else:
             pl.add_points(poly, point_size=point_size, render_points_as_spheres=False, lighting=False, **kw)
         pos = centre - direction * extent * 1.8 / zoom
@@ -278,25 +321,185 @@ def render_views(poly, window_size=(360, 360), views=VIEW_NAMES, point_size: flo
     return images
 
 
-def jupyter_backend_available() -> bool:
-    """True when a pyvista Jupyter backend (trame) is installed, so 3D views can be interactive."""
-    return all(importlib.util.find_spec(m) is not None for m in ("trame", "trame_vtk"))
+# --------------------------------------------------------------------------- interactive 3D (plotly)
+# A view a reader can turn: plotly's figure JSON, which JupyterLab draws through the extension the
+# plotly package installs, and which ``plotly_html`` turns into HTML for a static page. Arrays travel
+# as base64 typed arrays (compact, exact, the same bytes on every run); plotly itself is needed only
+# to draw (its JupyterLab extension, or plotly.js for HTML), not to build the figure.
+PLOTLY_MIME = "application/vnd.plotly.v1+json"
+MAX_VIEW_POINTS = 20000  # vertices or points one interactive view may carry (about 0.1 MB each in a notebook)
+
+
+def _typed_array(values, dtype: str) -> dict:
+    """plotly's base64 typed array of ``values`` as little-endian ``dtype`` ("f4", "u2", "u4")."""
+    a = np.ascontiguousarray(values, dtype=np.dtype("<" + dtype))
+    return {"dtype": dtype, "bdata": base64.b64encode(a.tobytes()).decode("ascii")}
+
+
+def _typed_length(spec: dict) -> int:
+    return len(base64.b64decode(spec["bdata"])) // np.dtype(spec["dtype"]).itemsize
+
+
+def _rgb_strings(rgb) -> list[str]:
+    return [f"rgb({r},{g},{b})" for r, g, b in np.asarray(rgb, dtype=np.uint8).tolist()]
+
+
+def depth_colorscale(n: int = 11) -> list:
+    """The workbook's depth colours (``viz.DEPTH_CMAP``, near = bright) as a plotly colour scale."""
+    import matplotlib  # heavy, needed only for its colour maps
+
+    cmap = matplotlib.colormaps[viz.DEPTH_CMAP]
+    return [[round(t, 4), "rgb({},{},{})".format(*(int(round(255 * c)) for c in cmap(t)[:3]))]
+            for t in np.linspace(0.0, 1.0, n).tolist()]
+
+
+def _trace_3d(poly, pts: np.ndarray, color_by: str, clim, max_points: int, scene: str, colorbar: bool,
+              light: dict) -> dict:
+    """One plotly trace: a Mesh3d lit from ``light`` (a position) for a mesh, a Scatter3d of markers for a cloud."""
+    is_mesh = bool(poly.n_cells and poly.n_faces)
+    keep = np.arange(len(pts))
+    if len(pts) > max_points:
+        if is_mesh:
+            raise ValueError(f"the mesh has {len(pts)} vertices, more than max_points={max_points}: "
+                             "build it with a larger stride")
+        keep = np.unique(np.round(np.linspace(0, len(pts) - 1, max_points)).astype(np.int64))
+    xyz = {a: _typed_array(pts[keep, i], "f4") for i, a in enumerate("xyz")}
+    if color_by == "depth":
+        colour = {"colorscale": depth_colorscale(), "cmin": float(clim[0]), "cmax": float(clim[1]),
+                  "showscale": colorbar, "colorbar": {"title": {"text": "z-depth, near = bright<br>(clipped to "
+                                                                         f"{clim[0]:.3g}-{clim[1]:.3g})"},
+                                                      "len": 0.8}}
+        values = _typed_array(np.asarray(poly.point_data["depth"])[keep], "f4")
+    else:
+        colour = {}
+        values = (_rgb_strings(np.asarray(poly.point_data["rgb"])[keep]) if color_by == "image"
+                  else "rgb({},{},{})".format(*SURFACE_RGB))
+    if is_mesh:
+        faces = np.asarray(poly.regular_faces)
+        idx = "u2" if len(pts) < 2**16 else "u4"
+        trace = {"type": "mesh3d", **xyz, **{a: _typed_array(faces[:, i], idx) for i, a in enumerate("ijk")},
+                 "lighting": dict(PLOTLY_LIGHTING), "lightposition": light,
+                 "flatshading": False, "hoverinfo": "skip", **colour}
+        trace.update({"intensity": values} if color_by == "depth" else
+                     {"vertexcolor": values} if color_by == "image" else {"color": values})
+        return {**trace, "scene": scene}
+    marker = {"size": 2, "color": values, **colour}
+    return {"type": "scatter3d", "mode": "markers", **xyz, "marker": marker, "hoverinfo": "skip", "scene": scene}
+
+
+def figure_3d(panels, color_by: str = "depth", clim=None, reference_pose=None, view: str = "front",
+              max_points: int = MAX_VIEW_POINTS, height: int = 420) -> dict:
+    """A plotly figure (a JSON-ready dict) of one or more clouds or meshes side by side, to turn and zoom.
+
+    panels: a cloud or mesh, or {title: cloud or mesh}. Meshes are lit by a light behind the
+    camera (:data:`LIGHTING`); clouds are markers. color_by as :func:`render_views`; with
+    "depth" all panels share one colour range (``clim``, by default :func:`depth_clim` of the
+    first panel) and one colour bar that states its clip. Points are shown in the frame of
+    ``reference_pose`` (a 4x4 T_world_cam) when given; the camera starts at ``view`` (:data:`VIEWS`).
+    A cloud over ``max_points`` is thinned evenly; a mesh over it is refused (build it with a
+    larger stride).
+    """
+    panels = panels if isinstance(panels, dict) else {"": panels}
+    if not panels:
+        raise ValueError("figure_3d needs at least one cloud or mesh")
+    first = next(iter(panels.values()))
+    color_by = _check_color_by(first, color_by)
+    if color_by == "depth" and clim is None:
+        clim = depth_clim(first)
+    eye = -_view_direction(view) * 2.2
+    n, traces, layout = len(panels), [], {"height": int(height), "margin": {"l": 0, "r": 0, "t": 30, "b": 0},
+                                          "showlegend": False, "annotations": []}
+    for k, (title, poly) in enumerate(panels.items()):
+        pts, centre, _ = _view_frame(poly, reference_pose)
+        scene = "scene" if k == 0 else f"scene{k + 1}"
+        light = dict(zip("xyz", (centre + eye * 1e4).round(1).tolist()))  # far out where the reader's eye starts
+        traces.append(_trace_3d(poly, pts, _check_color_by(poly, color_by), clim, max_points, scene, k == n - 1,
+                                light))
+        axis = {"showspikes": False}
+        layout[scene] = {"domain": {"x": [k / n, (k + 1) / n], "y": [0, 1]}, "aspectmode": "data",
+                         "xaxis": axis, "yaxis": axis, "zaxis": axis,
+                         "camera": {"eye": dict(zip("xyz", eye.round(4).tolist())), "up": {"x": 0, "y": -1, "z": 0},
+                                    "center": {"x": 0, "y": 0, "z": 0}}}
+        if title:
+            layout["annotations"].append({"text": title, "x": (k + 0.5) / n, "y": 1.0, "xref": "paper",
+                                          "yref": "paper", "showarrow": False, "yanchor": "bottom"})
+    return {"data": traces, "layout": layout}
+
+
+class View3D:
+    """An interactive 3D view in a notebook: JupyterLab draws its plotly figure through plotly's
+    extension (``PLOTLY_MIME``); ``text/plain`` says what it shows where nothing can draw it;
+    :meth:`html` gives the HTML for a static page."""
+
+    def __init__(self, figure: dict, summary: str):
+        self.figure, self.summary = figure, summary
+
+    def _repr_mimebundle_(self, include=None, exclude=None):
+        return {PLOTLY_MIME: self.figure, "text/plain": self.summary}
+
+    def html(self, plotly_js: bool = False) -> str:
+        return plotly_html(self.figure, plotly_js)
+
+
+def view_3d(panels, color_by: str = "depth", **kw) -> View3D:
+    """:func:`figure_3d` as a :class:`View3D` whose text says what it shows: panels, sizes, colours."""
+    fig = figure_3d(panels, color_by=color_by, **kw)
+    parts = []
+    for trace, title in zip(fig["data"], panels if isinstance(panels, dict) else [""]):
+        n = _typed_length(trace["x"])
+        what = (f"mesh of {n} vertices and {_typed_length(trace['i'])} triangles" if trace["type"] == "mesh3d"
+                else f"cloud of {n} points")
+        parts.append(f"{title + ': ' if title else ''}{what}")
+    colour = fig["data"][0].get("marker", fig["data"][0])
+    by = (f"coloured by depth ({colour['cmin']:.3g}-{colour['cmax']:.3g}, colour bar)" if "cmin" in colour
+          else f"coloured by {color_by}")
+    return View3D(fig, f"interactive 3D view ({'; '.join(parts)}), {by}: drag to turn, scroll to zoom")
+
+
+def plotly_html(figure: dict, plotly_js: bool = False) -> str:
+    """HTML that draws ``figure`` with plotly.js, for a page without a Jupyter kernel (a static book).
+
+    plotly_js=True inlines plotly.js (about 4.8 MB, from the plotly package: offline, self-contained;
+    once per page is enough); False expects it on the page and waits up to 30 s for ``window.Plotly``.
+    The element id is a hash of the figure, so the same figure gives the same bytes.
+    """
+    text = json.dumps(figure, separators=(",", ":"), sort_keys=True)
+    div = "geodepth3d-" + hashlib.sha256(text.encode()).hexdigest()[:12]
+    height = int(figure.get("layout", {}).get("height", 420))
+    lib = ""
+    if plotly_js:
+        from plotly.offline import get_plotlyjs  # optional: only pages that carry plotly.js need it
+
+        lib = f"<script type=\"text/javascript\">{get_plotlyjs()}</script>\n"
+    safe = text.replace("</", "<\\/")  # no "</script>" inside the script
+    draw = (f"(function(){{var fig={safe};"
+            f"function draw(){{window.Plotly.newPlot(\"{div}\",fig.data,fig.layout,"
+            "{responsive:true,displaylogo:false});}"
+            "(function wait(n){if(window.Plotly){draw();}else if(n>0){setTimeout(function(){wait(n-1);},100);}})(300);"
+            "})();")
+    return (f"<div id=\"{div}\" class=\"geodepth-3d\" style=\"width:100%;height:{height}px;\"></div>\n"
+            f"{lib}<script type=\"text/javascript\">{draw}</script>\n")
+
+
+def save_html(view, path) -> Path:
+    """A standalone HTML page of a :class:`View3D` (or a figure dict) with plotly.js inlined: opens
+    offline in any browser. Written atomically."""
+    figure = view.figure if isinstance(view, View3D) else view
+    page = ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>geodepth-lite 3D view</title></head>\n"
+            f"<body>\n{plotly_html(figure, plotly_js=True)}</body></html>\n")
+    path = Path(path)
+    with utils.atomic_path(path) as tmp:
+        Path(tmp).write_text(page, encoding="utf-8")
+    return path
 
 
 def show(poly, interactive: bool = False, titles=None, **kw):
-    """Show a cloud or mesh in a notebook: interactive (pyvista's trame backend) when asked and
-    available, else the two static views of ``render_views`` side by side (matplotlib)."""
+    """Show a cloud or mesh in a notebook: an interactive :class:`View3D` (returned; ``kw`` go to
+    :func:`view_3d`), else the two static views of :func:`render_views` side by side (matplotlib)."""
+    if interactive:
+        return view_3d(poly, **kw)
     import matplotlib.pyplot as plt  # heavy, may pick a GUI backend: only when a figure is drawn
 
-    if interactive:
-        if not jupyter_backend_available():
-            raise ValueError("interactive 3D needs a pyvista Jupyter backend: pip install 'pyvista[jupyter]' (trame)")
-        import pyvista as pv  # VTK: heavy, needed only to build or render meshes
-
-        pl = pv.Plotter(notebook=True)
-        scalars = dict(rgb=True, scalars="rgb") if "rgb" in poly.point_data else dict(scalars="depth", cmap="magma")
-        pl.add_mesh(poly, **scalars)
-        return pl.show(jupyter_backend="trame")
     images = render_views(poly, **kw)
     fig, axes = plt.subplots(1, len(images), figsize=(3.5 * len(images), 3.5), squeeze=False)
     for ax, im, title in zip(axes[0], images, titles or kw.get("views", VIEW_NAMES)):

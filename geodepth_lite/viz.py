@@ -393,3 +393,16 @@ def border_map_figure(maps: dict, title: str = ""):
         fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def depth_colorbar(fig, axes, vmin: float, vmax: float, *, label: str = "z-depth"):
+    """The colour bar of 3D views coloured by depth (``recon.render_views(color_by="depth")`` with
+    ``clim=(vmin, vmax)``): the workbook's colours (:data:`DEPTH_CMAP`, near = bright), the clip
+    written on the bar."""
+    import matplotlib  # heavy, needed only for its colour maps
+
+    sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(vmin, vmax), cmap=DEPTH_CMAP)
+    cb = fig.colorbar(sm, ax=axes, extend="both", fraction=0.046, pad=0.02)
+    cb.set_label(f"{label}, near = bright\n(clipped to {vmin:.3g}-{vmax:.3g})", fontsize=7)
+    cb.ax.tick_params(labelsize=7)
+    return cb
