@@ -54,7 +54,7 @@ from pygments.lexers import get_lexer_by_name
 from pygments.token import STANDARD_TYPES, Name, Operator, Text
 from pygments.util import ClassNotFound
 
-from geodepth_lite import utils
+from geodepth_lite import recon, utils
 from geodepth_lite.exercises import HIDDEN_MARKERS, SOLUTION_MARKERS, git_tracked
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -72,6 +72,7 @@ SOLUTION_TAG = "geodepth-solution"  # the tag a staged notebook's solution cells
 BUILD_TIMEOUT_S = 900
 MAX_PAGE_JSON_BYTES = 64 * 2**20
 STATIC = "_static"
+PLOTLY_JS = "plotly.min.js"  # drawn by the 3D views (notebook 07), from the plotly package
 SOURCE = "source"
 
 CSS = """
@@ -626,6 +627,17 @@ class Renderer:
             return str(value["content"])
         return self.site.public_text(value.get("path", ""))
 
+    def plotly_figure(self, value) -> dict | None:
+        """A plotly figure as the notebook stored it, or as jupyter-book wrote it (inline or a file)."""
+        if isinstance(value, dict) and "data" in value:
+            return value
+        text = self.output_text(value) if isinstance(value, dict) else str(value)
+        try:
+            figure = json.loads(text)
+        except ValueError:
+            return None
+        return figure if isinstance(figure, dict) and "data" in figure else None
+
     def output(self, jd: dict) -> str:
         kind = jd.get("output_type")
         if kind == "stream":
@@ -637,6 +649,10 @@ class Renderer:
             tb = "\n".join(jd.get("traceback") or [f"{jd.get('ename')}: {jd.get('evalue')}"])
             return f'<pre class="stderr">{html.escape(ANSI.sub("", tb), quote=False)}</pre>'
         data = jd.get("data") or {}
+        if recon.PLOTLY_MIME in data:  # an interactive 3D view: plotly.js, served from _static, draws it
+            figure = self.plotly_figure(data[recon.PLOTLY_MIME])
+            if figure is not None:
+                return recon.plotly_html(figure)
         for mime in ("image/png", "image/jpeg", "image/gif", "image/svg+xml"):
             if mime in data:
                 src = self.site.image(data[mime], mime)
@@ -888,8 +904,10 @@ class Site:
 
     def write_page(self, rel: str, title: str, current: str, body: str) -> None:
         prefix = "../" * rel.count("/")
+        scripts = (f'<script src="{prefix}{STATIC}/{PLOTLY_JS}"></script>' if 'class="geodepth-3d"' in body
+                   else "")  # plotly.js only on pages with a 3D view
         doc = (f'{self.head(title, prefix)}<body><div class="layout">{self.sidebar(current, prefix)}'
-               f'<main>{body}</main></div></body></html>\n')
+               f'<main>{body}</main></div>{scripts}</body></html>\n')
         target = self.dest / rel
         utils.make_dir(target.parent)
         target.write_text(doc, encoding="utf-8")
@@ -976,6 +994,18 @@ class Site:
         (static / "pygments.css").write_text(HtmlFormatter(style="default").get_style_defs("pre"))
         if katex_dir:
             shutil.copytree(katex_dir, static / "katex")
+        plotly_js = plotly_js_file()
+        if plotly_js is not None:
+            shutil.copyfile(plotly_js, static / PLOTLY_JS)
+
+
+def plotly_js_file() -> Path | None:
+    """plotly.js as the installed plotly package ships it (offline), or None without plotly."""
+    spec = importlib.util.find_spec("plotly")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    path = Path(list(spec.submodule_search_locations)[0]) / "package_data" / PLOTLY_JS
+    return path if path.is_file() else None
 
 
 # --------------------------------------------------------------------------- KaTeX's style sheet and fonts

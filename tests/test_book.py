@@ -389,6 +389,14 @@ def browsed(served_book):
             entry["math_shown"] = page.evaluate(
                 "() => [...document.querySelectorAll('main .katex')].filter(k => k.getBoundingClientRect().width > 0)"
                 ".length")
+            entry["views_3d"] = page.locator(".geodepth-3d").count()
+            if entry["views_3d"]:  # plotly.js draws each view (it waits for the script at the page's end)
+                page.wait_for_function(
+                    "() => [...document.querySelectorAll('.geodepth-3d')].every(d => d.querySelector('.main-svg'))",
+                    timeout=30000)
+                entry["views_3d_drawn"] = page.evaluate(
+                    "() => [...document.querySelectorAll('.geodepth-3d')].filter(d => d.querySelector('canvas')"
+                    " && d.getBoundingClientRect().height > 100).length")
             if not rel.startswith(book.SOURCE + "/"):
                 entry["folded_text"] = page.evaluate("() => document.querySelector('main').innerText")
                 entry["solutions"] = page.locator("details.solution").count()
@@ -451,3 +459,15 @@ def test_solutions_are_folded_until_clicked(browsed):
         for first_line in f["solutions"]:
             assert first_line not in e["folded_text"], (name, first_line)
             assert first_line in e["open_text"], (name, first_line)
+
+
+def test_interactive_3d_views_are_drawn(browsed):
+    """Every output that holds a plotly figure in a notebook is drawn on its page, offline (WebGL canvas)."""
+    report, summary = browsed
+    stored = {nb.name: sum(book.recon.PLOTLY_MIME in o.get("data", {}) for c in
+                           json.loads(nb.read_text(encoding="utf-8"))["cells"] for o in c.get("outputs", []))
+              for nb in book.lesson_notebooks()}
+    assert sum(stored.values()) >= 1  # notebook 07 has views to turn
+    for name, n in stored.items():
+        e = report[summary["lesson_pages"][name]]
+        assert e["views_3d"] == n and e.get("views_3d_drawn", 0) == n, (name, n, e["views_3d"])
