@@ -36,8 +36,6 @@ NUMBER_WORDS = {w: i for i, w in enumerate(
 PENDING = {
     "03_losses_explained": "issue 34, 'numbers that agree': notebook 03's Time line (run and reading time) "
                            "is mended with notebook 03's other items",
-    "07_reconstruction_3d": "issue 34, 'numbers that agree': notebook 07's Time line (reading time, the "
-                            "training time of its two models) is mended with notebook 07's other items",
 }
 
 
@@ -244,8 +242,6 @@ PRINTED_NUMBER = re.compile(r"\d+(?:\.\d+)?")
 FINDINGS_PENDING = {
     "03_losses_explained": "issue 34, 'numbers that agree': notebook 03's findings state loss values that no cell "
                            "above prints; mended with notebook 03's other items",
-    "07_reconstruction_3d": "issue 34, 'numbers that agree': notebook 07 closes with its record, not its findings, "
-                            "and states shares no cell prints; mended with notebook 07's other items",
 }
 
 
