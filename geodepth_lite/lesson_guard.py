@@ -11,7 +11,7 @@ writable as usual). A save to a lesson notebook is refused with a message that s
 The editable install enables it for every Jupyter server of that environment through
 ``etc/jupyter/jupyter_server_config.d/geodepth_lite.json``. ``GEODEPTH_LITE_EDIT_LESSONS=1``
 in the server's environment turns it off (for authors who edit the lessons in JupyterLab).
-Only the standard library here: the server imports this module at start-up.
+Only the standard library and tornado here: the server imports this module at start-up.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ import inspect
 import os
 import subprocess
 from pathlib import Path
+
+from tornado.web import HTTPError  # the Jupyter server's own web framework: present wherever this runs
 
 LESSON_DIR = "notebooks"  # lesson notebooks sit here in a checkout
 PACKAGE_MARKER = ("geodepth_lite", "lesson_guard.py")  # what makes a git work tree a geodepth-lite checkout
@@ -79,8 +81,6 @@ class TrackedLessons:
 def guard(contents_manager, lessons: TrackedLessons | None = None) -> None:
     """Make ``contents_manager`` (a Jupyter server's, sync or async) report lesson notebooks as not
     writable, in their own models and in directory listings, and refuse to save them."""
-    from tornado.web import HTTPError  # the server's own dependency
-
     lessons = lessons or TrackedLessons()
     get, save = contents_manager.get, contents_manager.save
 
