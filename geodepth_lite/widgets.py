@@ -46,19 +46,19 @@ BUSY_HTML = '<span style="color:#b35c00"><b>&#8987; computing...</b></span>'
 DEAD_TEXT = ("The kernel has stopped, so the sliders no longer change this figure: re-run this cell "
              "(after the cells above it) to use the explorer again.")  # shown instead of the sliders
 # How the live explorer looks in JupyterLab (and Notebook 7) when its kernel is gone. ipywidgets marks
-# the views of a restarted kernel's widgets with the class jupyter-widgets-disconnected: the sliders and
-# the status line then hide and DEAD_TEXT shows under the last figure. After a reload the widget's model
-# is gone ("Error displaying widget: model not found"): that output hides and the static copy of the
-# figure saved beside it shows instead (hidden while the live explorer is in the same cell's output).
+# the views of a restarted kernel's widgets with the class jupyter-widgets-disconnected (and a red
+# broken-link sign, kept on the outer box only): the sliders and the status line then hide and DEAD_TEXT
+# shows above the last figure. After a reload the widget's model is gone: the widget output (a Lumino
+# panel saying "Error displaying widget: model not found") hides and the static copy of the figure
+# saved beside it shows instead (hidden while the live explorer is in the same cell's output).
 EXPLORER_CSS = """
 .geodepth-explorer-dead { display: none; }
 .geodepth-explorer.jupyter-widgets-disconnected .geodepth-explorer-controls { display: none; }
 .geodepth-explorer.jupyter-widgets-disconnected .geodepth-explorer-dead { display: block; }
 .jp-OutputArea:has(.geodepth-explorer) .geodepth-explorer-static { display: none; }
+.geodepth-explorer .jupyter-widgets-disconnected::before { display: none; }
 .jp-OutputArea:has(.geodepth-explorer-static)
-  .jp-OutputArea-output[data-mime-type="application/vnd.jupyter.widget-view+json"]:not(:has(.geodepth-explorer)) {
-  display: none;
-}
+  .jp-OutputArea-child:has(> .jp-OutputArea-output.lm-Panel):not(:has(.geodepth-explorer)) { display: none; }
 """
 
 

@@ -67,8 +67,9 @@ def lab(tmp_path_factory):
     env.pop("GEODEPTH_LITE_EDIT_LESSONS", None)
     log = open(tmp / "lab.log", "w")
     server = subprocess.Popen(
-        [sys.executable, "-m", "jupyterlab", "--no-browser", "--ServerApp.ip=127.0.0.1", f"--ServerApp.port={port}",
-         f"--IdentityProvider.token={token}", f"--ServerApp.root_dir={clone}", "--LabApp.expose_app_in_browser=True",
+        [sys.executable, "-m", "jupyterlab", "--no-browser", "--allow-root", "--ServerApp.ip=127.0.0.1",
+         f"--ServerApp.port={port}", f"--IdentityProvider.token={token}", f"--ServerApp.root_dir={clone}",
+         "--LabApp.expose_app_in_browser=True",
          "--LabApp.check_for_updates_class=jupyterlab.NeverCheckForUpdate"],
         cwd=clone, env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
@@ -103,31 +104,50 @@ def git_status(lab) -> str:
                           capture_output=True, text=True).stdout
 
 
-def command(page, name: str) -> None:
-    page.evaluate("name => { window.jupyterapp.commands.execute(name); }", name)
+def command(page, name: str, args: dict | None = None) -> None:
+    page.evaluate("([name, args]) => { window.jupyterapp.commands.execute(name, args); }", [name, args or {}])
 
 
-def wait_idle(page, timeout_s: float) -> None:
-    page.wait_for_selector('.jp-Notebook-ExecutionIndicator[data-status="idle"]', timeout=timeout_s * 1000)
+def open_ready(page, path: str) -> None:
+    """Wait until ``path`` is the current document and its kernel is idle."""
+    page.wait_for_function(
+        """p => { const w = window.jupyterapp && window.jupyterapp.shell.currentWidget;
+                  const k = w && w.context && w.context.path === p && w.sessionContext.session
+                            && w.sessionContext.session.kernel;
+                  return !!k && k.status === 'idle'; }""", arg=path, timeout=180_000, polling=200)
+
+
+def run_all(page) -> None:
+    """Run All; returns once the explorer's sliders are there and the kernel is idle again."""
+    command(page, "notebook:run-all-cells")
+    page.wait_for_selector(f"{EXPLORER} .noUi-handle", state="attached", timeout=300_000)
+    page.wait_for_selector('.jp-Notebook-ExecutionIndicator[data-status="idle"]', timeout=300_000)
 
 
 def move_slider(page, index: int, dx: float) -> float:
     """Drag slider ``index`` by ``dx`` pixels and release it; seconds until the figure changed."""
-    img = page.locator(f"{EXPLORER} .geodepth-explorer img")
-    before = img.get_attribute("src")
-    box = page.locator(f"{EXPLORER} .noUi-handle").nth(index).bounding_box()
+    img = f"{EXPLORER} .geodepth-explorer img"
+    before = page.locator(img).get_attribute("src")
+    handle = page.locator(f"{EXPLORER} .noUi-handle").nth(index)
+    handle.scroll_into_view_if_needed()
+    box = handle.bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     page.mouse.move(x, y)
     page.mouse.down()
-    page.mouse.move(x + dx, y, steps=4)
+    for step in range(1, 6):
+        page.mouse.move(x + dx * step / 5, y)
     page.mouse.up()
     start = time.perf_counter()
-    page.wait_for_function("([sel, old]) => document.querySelector(sel).src !== old",
-                           arg=[f"{EXPLORER} .geodepth-explorer img", before], timeout=30_000, polling=20)
+    page.wait_for_function("([sel, old]) => document.querySelector(sel).src !== old", arg=[img, before],
+                           timeout=30_000, polling=20)
     seconds = time.perf_counter() - start
     page.wait_for_function("sel => document.querySelector(sel).textContent.includes('updated in')",
                            arg=f"{EXPLORER} .geodepth-explorer-controls", timeout=30_000)
     return seconds
+
+
+def no_model_not_found(page) -> bool:
+    return page.get_by_text("model not found").filter(visible=True).count() == 0
 
 
 def test_the_explorer_over_a_sitting(lab):
@@ -143,50 +163,59 @@ def test_the_explorer_over_a_sitting(lab):
         page = browser.pages[0] if browser.pages else browser.new_page()
         page.on("dialog", lambda dialog: dialog.accept())  # "leave the page?" when reloading a running notebook
         page.set_default_timeout(60_000)
-        page.goto(f"{lab['base']}/lab/tree/{LESSON}?token={lab['token']}")
-        wait_idle(page, 120)
+        lesson_url = f"{lab['base']}/lab/tree/{LESSON}?token={lab['token']}"
+        page.goto(lesson_url)
+        open_ready(page, LESSON)
+        run_all(page)
+        cell = page.locator(EXPLORER)
+        assert cell.locator(".geodepth-explorer-static").is_hidden()  # the static copy waits hidden
+        assert cell.locator(".geodepth-explorer-dead").is_hidden()
 
-        command(page, "notebook:run-all-cells")  # the explorer cell is live once its sliders show
-        page.wait_for_selector(f"{EXPLORER} .noUi-handle", timeout=300_000)
-        wait_idle(page, 300)
-        assert page.locator(f"{EXPLORER} .geodepth-explorer-static").is_hidden()  # the static copy waits hidden
-        assert page.locator(f"{EXPLORER} .geodepth-explorer-dead").is_hidden()
-
+        # a student trying the sliders for two minutes, one after the other (autosave runs meanwhile)
         seconds, start, i = [], time.monotonic(), 0
-        while time.monotonic() - start < SITTING_S:  # a student trying the sliders, one after the other
-            seconds.append(move_slider(page, i % 6, 25 if (i // 6) % 2 == 0 else -25))
+        while time.monotonic() - start < SITTING_S:
+            seconds.append(move_slider(page, i % 6, 30 if (i // 6) % 2 == 0 else -30))
             i += 1
             page.wait_for_timeout(3000)
         assert statistics.median(seconds) < UPDATE_S, seconds
+        command(page, "docmanager:save")  # even a save by hand is refused: the lesson is read-only
+        assert "read-only" in page.locator(".jp-Dialog").inner_text()
+        page.locator(".jp-Dialog .jp-mod-accept").click()
         assert git_status(lab) == "", "Run All and two minutes of use rewrote a tracked file"
 
-        command(page, "docmanager:save-as")  # the student keeps their work in a copy of their own
-        page.locator(".jp-Dialog input").fill(COPY)
+        command(page, "kernelmenu:restart")  # a dead kernel: no live-looking sliders, a "re-run" line
         page.locator(".jp-Dialog .jp-mod-accept").click()
-        page.wait_for_function("p => window.jupyterapp.shell.currentWidget.context.path === p", arg=COPY)
-        assert git_status(lab) == f"?? {COPY}\n"  # the lesson itself is unchanged
-
-        command(page, "kernelmenu:restart")
-        page.locator(".jp-Dialog .jp-mod-accept").click()
-        page.wait_for_selector(f"{EXPLORER} .geodepth-explorer.jupyter-widgets-disconnected", timeout=60_000)
-        cell = page.locator(EXPLORER)
-        assert cell.locator(".geodepth-explorer-controls").is_hidden()  # no live-looking sliders
+        page.wait_for_selector(f"{EXPLORER} .geodepth-explorer.jupyter-widgets-disconnected", state="attached")
+        assert cell.locator(".geodepth-explorer-controls").is_hidden()
         assert cell.locator(".noUi-handle").first.is_hidden()
+        cell.locator(".geodepth-explorer-dead").scroll_into_view_if_needed()
         assert "re-run this cell" in cell.locator(".geodepth-explorer-dead").inner_text()
         assert cell.locator(".geodepth-explorer img").is_visible()  # the last figure stays, as a picture
 
-        page.reload()  # the copy reopens (trusted: the student saved it) in a fresh kernel without widgets
-        wait_idle(page, 120)
-        cell = page.locator('.jp-CodeCell:has-text("widgets.explorer(")')
-        cell.locator(".geodepth-explorer-static img").wait_for(state="visible", timeout=60_000)
-        page.wait_for_timeout(5000)  # the widget manager gives up on the missing model after its retries
-        assert "re-run this cell" in cell.locator(".geodepth-explorer-static").inner_text()
-        assert page.get_by_text("model not found").filter(visible=True).count() == 0
+        page.reload()  # the lesson as committed: the static figure, nothing about missing models
+        open_ready(page, LESSON)
+        explorer_cell = page.locator('.jp-CodeCell:has-text("widgets.explorer(")').first
+        explorer_cell.scroll_into_view_if_needed()
+        assert explorer_cell.locator(".jp-OutputArea-output img").first.is_visible()
+        assert no_model_not_found(page)
 
-        page.goto(f"{lab['base']}/lab/tree/{LESSON}?token={lab['token']}")  # the lesson: its committed figure
-        wait_idle(page, 120)
-        lesson_cell = page.locator('.jp-CodeCell:has-text("widgets.explorer(")').first
-        assert lesson_cell.locator(".jp-OutputArea-output img").first.is_visible()
-        assert page.get_by_text("model not found").filter(visible=True).count() == 0
+        run_all(page)  # a student keeps their work: Save As, a copy of their own (the lesson tab closes)
+        command(page, "docmanager:save-as")
+        page.locator(".jp-Dialog input").fill(COPY)
+        page.locator(".jp-Dialog .jp-mod-accept").click()
+        page.locator(".jp-Dialog button", has_text="Discard").click()  # the lesson's unsaved outputs
+        command(page, "docmanager:open", {"path": COPY})
+        open_ready(page, COPY)
+        assert git_status(lab) == f"?? {COPY}\n"  # the lesson itself is unchanged
+        for reload in (False, True):  # the copy has a new kernel: its saved widgets have no model
+            if reload:
+                page.reload()
+                open_ready(page, COPY)
+            page.wait_for_timeout(5000)  # the widget manager gives up on a missing model after its retries
+            explorer_cell = page.locator('.jp-CodeCell:has-text("widgets.explorer(")').first
+            explorer_cell.scroll_into_view_if_needed()
+            static = explorer_cell.locator(".geodepth-explorer-static")
+            assert static.locator("img").is_visible() and "re-run this cell" in static.inner_text()
+            assert no_model_not_found(page)
         browser.close()
     assert git_status(lab) == f"?? {COPY}\n"
