@@ -8,6 +8,10 @@ writable (``"writable": false`` in the contents model): JupyterLab then never au
 File > Save Notebook As... keeps the student's work in a copy of their own (an untracked file,
 writable as usual). A save to a lesson notebook is refused with a message that says so.
 
+A student edition (``course edition``: the released notebooks, without solutions, that students
+fill in and hand back under the same name) is left alone even when it is kept in git: the guard
+applies only to a checkout where some tracked lesson notebook holds a solution region.
+
 The editable install enables it for every Jupyter server of that environment through
 ``etc/jupyter/jupyter_server_config.d/geodepth_lite.json``. ``GEODEPTH_LITE_EDIT_LESSONS=1``
 in the server's environment turns it off (for authors who edit the lessons in JupyterLab).
@@ -17,6 +21,7 @@ Only the standard library and tornado here: the server imports this module at st
 from __future__ import annotations
 
 import inspect
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -26,6 +31,8 @@ from tornado.web import HTTPError  # the Jupyter server's own web framework: pre
 LESSON_DIR = "notebooks"  # lesson notebooks sit here in a checkout
 PACKAGE_MARKER = ("geodepth_lite", "lesson_guard.py")  # what makes a git work tree a geodepth-lite checkout
 EDIT_ENV = "GEODEPTH_LITE_EDIT_LESSONS"  # "1": lessons stay writable (authors)
+SOLUTION_MARKER = "### BEGIN SOLUTION"  # nbgrader's; a line of a code cell in the solved lessons only
+MAX_NOTEBOOK_BYTES = 256 * 2**20  # larger files are not read for the marker
 SAVE_REFUSED = ("{path} is a lesson notebook of this checkout (tracked by git) and opens read-only, so that running "
                 "it never rewrites the lesson: keep your work with File > Save Notebook As... under another name")
 
@@ -63,6 +70,8 @@ class TrackedLessons:
         except (OSError, subprocess.SubprocessError):  # no git: nothing is known to be tracked
             return frozenset()
         lessons = frozenset(os.fsdecode(p) for p in out.split(b"\0") if p)
+        if not any(_holds_solutions(top / rel) for rel in lessons):
+            lessons = frozenset()  # a student edition: its notebooks are the students' own work
         self._tracked[top] = (stamp, lessons)
         return lessons
 
@@ -76,6 +85,22 @@ class TrackedLessons:
             return False
         rel = file.relative_to(top).as_posix()
         return rel.startswith(LESSON_DIR + "/") and rel in self._lessons(top)
+
+
+def _holds_solutions(path: Path) -> bool:
+    """Whether the notebook ``path`` has a code cell with a :data:`SOLUTION_MARKER` line."""
+    try:
+        if path.stat().st_size > MAX_NOTEBOOK_BYTES:
+            return False
+        cells = json.loads(path.read_bytes()).get("cells", [])
+    except (OSError, ValueError, AttributeError):
+        return False
+    for cell in cells if isinstance(cells, list) else ():
+        source = cell.get("source", "") if isinstance(cell, dict) else ""
+        text = "".join(source) if isinstance(source, list) else str(source)
+        if cell.get("cell_type") == "code" and any(ln.strip() == SOLUTION_MARKER for ln in text.splitlines()):
+            return True
+    return False
 
 
 def guard(contents_manager, lessons: TrackedLessons | None = None) -> None:

@@ -129,15 +129,21 @@ def move_slider(page, index: int, dx: float) -> float:
     img = f"{EXPLORER} .geodepth-explorer img"
     before = page.locator(img).get_attribute("src")
     handle = page.locator(f"{EXPLORER} .noUi-handle").nth(index)
+    readout = page.locator(f"{EXPLORER} .widget-readout").nth(index)
+    value = readout.inner_text()
     handle.scroll_into_view_if_needed()
+    page.wait_for_timeout(300)  # the notebook settles after scrolling
     box = handle.bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     page.mouse.move(x, y)
+    page.wait_for_timeout(100)
     page.mouse.down()
     for step in range(1, 6):
+        page.wait_for_timeout(30)
         page.mouse.move(x + dx * step / 5, y)
     page.mouse.up()
     start = time.perf_counter()
+    assert readout.inner_text() != value, f"dragging slider {index} by {dx} px left it at {value}"
     page.wait_for_function("([sel, old]) => document.querySelector(sel).src !== old", arg=[img, before],
                            timeout=30_000, polling=20)
     seconds = time.perf_counter() - start

@@ -21,16 +21,19 @@ def git(cwd, *args):
     subprocess.run(["git", "-C", str(cwd), *args], check=True, capture_output=True)
 
 
-def checkout(tmp_path, marker=True):
-    """A git work tree shaped like a geodepth-lite checkout: notebooks/lesson.ipynb tracked,
-    notebooks/mine.ipynb not."""
+def checkout(tmp_path, marker=True, solutions=True):
+    """A git work tree shaped like a geodepth-lite checkout: notebooks/lesson.ipynb tracked (with a
+    solution region unless ``solutions`` is False: a student edition), notebooks/mine.ipynb not."""
     repo = tmp_path / "repo"
     (repo / "notebooks").mkdir(parents=True)
     if marker:
         (repo / "geodepth_lite").mkdir()
         (repo / "geodepth_lite" / "lesson_guard.py").write_text("")
+    solved = "x = None\n### BEGIN SOLUTION\nx = 1\n### END SOLUTION" if solutions else "x = None"
     for name in ("lesson", "mine"):
-        nbformat.write(nbformat.v4.new_notebook(), repo / "notebooks" / f"{name}.ipynb")
+        nb = nbformat.v4.new_notebook(cells=[nbformat.v4.new_markdown_cell("### BEGIN SOLUTION is a marker"),
+                                             nbformat.v4.new_code_cell(solved if name == "lesson" else "")])
+        nbformat.write(nb, repo / "notebooks" / f"{name}.ipynb")
     git(repo, "init", "-q")
     git(repo, "add", "notebooks/lesson.ipynb", *(["geodepth_lite"] if marker else []))
     return repo
@@ -71,6 +74,8 @@ def test_a_newly_tracked_notebook_is_guarded_and_other_repositories_are_not(tmp_
     assert call(cm.get("notebooks/mine.ipynb"))["writable"] is True
     git(repo, "add", "notebooks/mine.ipynb")  # the git index changed: read again
     assert call(cm.get("notebooks/mine.ipynb"))["writable"] is False
+    edition = manager(checkout(tmp_path / "edition", solutions=False))  # students fill these in: writable
+    assert call(edition.get("notebooks/lesson.ipynb"))["writable"] is True
     other = manager(checkout(tmp_path / "other", marker=False))  # a git repository that is not a geodepth-lite checkout
     assert call(other.get("notebooks/lesson.ipynb"))["writable"] is True
     outside = tmp_path / "plain"
