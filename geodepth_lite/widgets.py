@@ -43,6 +43,23 @@ STATIC_FIGSIZE = (15, 6.2)  # inches of draw()'s figure (the notebook's static o
 LIVE_FIGSIZE = (12.8, 4.9)  # inches of the live figure: with the sliders it fits a 1400 x 1000 laptop window
 LIVE_DPI = 90  # pixels per inch of the live figure's PNG (1152 x 441 px)
 BUSY_HTML = '<span style="color:#b35c00"><b>&#8987; computing...</b></span>'
+DEAD_TEXT = ("The kernel has stopped, so the sliders no longer change this figure: re-run this cell "
+             "(after the cells above it) to use the explorer again.")  # shown instead of the sliders
+# How the live explorer looks in JupyterLab (and Notebook 7) when its kernel is gone. ipywidgets marks
+# the views of a restarted kernel's widgets with the class jupyter-widgets-disconnected (and a red
+# broken-link sign, kept on the outer box only): the sliders and the status line then hide and DEAD_TEXT
+# shows above the last figure. After a reload the widget's model is gone: the widget output (a Lumino
+# panel saying "Error displaying widget: model not found") hides and the static copy of the figure
+# saved beside it shows instead (hidden while the live explorer is in the same cell's output).
+EXPLORER_CSS = """
+.geodepth-explorer-dead { display: none; }
+.geodepth-explorer.jupyter-widgets-disconnected .geodepth-explorer-controls { display: none; }
+.geodepth-explorer.jupyter-widgets-disconnected .geodepth-explorer-dead { display: block; }
+.jp-OutputArea:has(.geodepth-explorer) .geodepth-explorer-static { display: none; }
+.geodepth-explorer .jupyter-widgets-disconnected::before { display: none; }
+.jp-OutputArea:has(.geodepth-explorer-static)
+  .jp-OutputArea-child:has(> .jp-OutputArea-output.lm-Panel):not(:has(.geodepth-explorer)) { display: none; }
+"""
 
 
 def example_frame(size: int = 128, index: int = 0, progress: bool = False) -> dict:
@@ -154,8 +171,10 @@ def describe(settings: dict) -> str:
 
 
 def _panels(gt, image, pred, rep: dict) -> list[tuple]:
-    """The figure's ten panels in order, as (array, title, colour map, vmin, vmax); the last three
-    are x-z slices (x along the first axis) through the middle of the SDF grid."""
+    """The figure's ten panels in order, as (array, title, colour map, vmin, vmax, colour bar label);
+    the last three are x-z slices (x along the first axis) through the middle of the SDF grid. The
+    prediction's depth and SDF use the ground truth's colour range and clip to it: their labels say
+    so (and their colour bars end in arrows, :data:`CLIPPED`)."""
     img = np.asarray(image)
     img = img.transpose(1, 2, 0) if img.shape[0] == 3 else img
     vmin, vmax = float(np.min(gt)), float(np.max(gt))
@@ -169,13 +188,14 @@ def _panels(gt, image, pred, rep: dict) -> list[tuple]:
     lim = float(np.nanmax(np.abs(rep["sdf_gt"][:, j, :])))
     diff = np.abs(rep["sdf_pred"] - rep["sdf_gt"])[:, j, :]
     return [
-        (img, "image", None, None, None),
-        (gt, "ground truth depth (near = bright)", DEPTH_CMAP, vmin, vmax),
-        (pred, "prediction", DEPTH_CMAP, vmin, vmax),
-        *[(a, t, "viridis", 0.0, _vmax(a)) for a, t in maps],
-        (rep["sdf_gt"][:, j, :], "SDF of ground truth (x-z slice)", "RdBu", -lim, lim),
-        (rep["sdf_pred"][:, j, :], "SDF of prediction", "RdBu", -lim, lim),
-        (diff, f"|SDF diff|: sdf {rep['sdf']:.3f}", "viridis", 0.0, _vmax(diff)),
+        (img, "image", None, None, None, None),
+        (gt, "ground truth depth (near = bright)", DEPTH_CMAP, vmin, vmax, "depth"),
+        (pred, "prediction", DEPTH_CMAP, vmin, vmax, f"clipped to {vmin:.3g}..{vmax:.3g}"),
+        *[(a, t, "viridis", 0.0, _vmax(a), None) for a, t in maps],
+        (rep["sdf_gt"][:, j, :], "SDF of ground truth (x-z slice)", "RdBu", -lim, lim, "signed distance"),
+        (rep["sdf_pred"][:, j, :], "SDF of prediction", "RdBu", -lim, lim,
+         f"clipped to \u00b1{lim:.3g}"),
+        (diff, f"|SDF diff|: sdf {rep['sdf']:.3f}", "viridis", 0.0, _vmax(diff), None),
     ]
 
 
@@ -189,6 +209,7 @@ class ExplorerFigure:
     """
 
     SDF_PANELS = (7, 8, 9)  # indices of the SDF slices among the ten panels
+    CLIPPED = (2, 8)  # panels drawn in the ground truth's fixed colour range: values beyond it are clipped
     CHANGING = (2, 3, 4, 5, 6, 8, 9)  # panels whose data and title follow the sliders
     RESCALED = (3, 4, 5, 6, 9)  # panels whose colour limits follow the data (their colour bars are redrawn)
 
@@ -199,8 +220,8 @@ class ExplorerFigure:
         self.extent = (lo[0], hi[0], lo[2], hi[2])  # x horizontal, z (depth) vertical
         self.artists, self.colorbars, self.contours = [], {}, {}
         self._background = None  # the canvas without the changing artists, once png() has run
-        for i, (ax, (a, title, cmap, vlo, vhi)) in enumerate(zip(fig.subplots(2, 5).flat,
-                                                                  _panels(gt, image, pred, rep))):
+        for i, (ax, (a, title, cmap, vlo, vhi, label)) in enumerate(zip(fig.subplots(2, 5).flat,
+                                                                         _panels(gt, image, pred, rep))):
             if i in self.SDF_PANELS:
                 im = ax.imshow(a.T, origin="lower", extent=self.extent, aspect="auto", cmap=cmap, vmin=vlo, vmax=vhi)
                 ax.set_xlabel("x", fontsize=8), ax.set_ylabel("z (depth)", fontsize=8)
@@ -209,8 +230,13 @@ class ExplorerFigure:
                 im = ax.imshow(a, cmap=cmap, vmin=vlo, vmax=vhi)
                 ax.set_xticks([]), ax.set_yticks([])
             ax.set_title(title, fontsize=9)
-            if cmap is not None:
-                self.colorbars[i] = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+            if cmap is not None:  # arrows at both ends where values beyond the range are clipped
+                extend = "both" if i in self.CLIPPED else "neither"
+                cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, extend=extend)
+                if label:
+                    cb.set_label(label, fontsize=7)
+                cb.ax.tick_params(labelsize=7)
+                self.colorbars[i] = cb
             if cmap == "RdBu":
                 self._contour(i, ax, a)
             self.artists.append(im)
@@ -230,7 +256,7 @@ class ExplorerFigure:
         """Show the prediction ``pred`` with its loss report ``rep`` for perturbation ``settings``."""
         panels = _panels(self.gt, self.image, pred, rep)
         for i in self.CHANGING:
-            a, title, cmap, vlo, vhi = panels[i]
+            a, title, cmap, vlo, vhi, _label = panels[i]
             im = self.artists[i]
             im.set_data(a.T if i in self.SDF_PANELS else a)
             im.set_clim(vlo, vhi)
@@ -368,7 +394,12 @@ class LiveExplorer:
         self.image_widget = w.Image(format="png", layout=w.Layout(width="100%", max_width=width))
         grid = w.GridBox(list(self.sliders.values()),  # three columns sharing the width
                          layout=w.Layout(grid_template_columns="repeat(3, minmax(0, 1fr))", max_width=width))
-        self.ui = w.VBox([grid, w.HBox([self.reset_button, self.status, self.values]), self.image_widget])
+        controls = w.VBox([grid, w.HBox([self.reset_button, self.status, self.values])])
+        controls.add_class("geodepth-explorer-controls")  # hidden when the kernel is gone (EXPLORER_CSS)
+        self.dead = w.HTML(f'<b style="color:#b00020">{html.escape(DEAD_TEXT)}</b>')
+        self.dead.add_class("geodepth-explorer-dead")  # shown when the kernel is gone
+        self.ui = w.VBox([controls, self.dead, self.image_widget])
+        self.ui.add_class("geodepth-explorer")
 
     def settings(self) -> dict:
         """The sliders' current values: {perturbation: value}."""
@@ -451,13 +482,29 @@ class LiveExplorer:
         """Block until no update is pending (tests, scripts); False if still busy after ``timeout`` s."""
         return self._idle.wait(timeout)
 
+    def static_html(self) -> str:
+        """The figure shown now as a static HTML output (a PNG) with :data:`DEAD_TEXT` and the
+        :data:`EXPLORER_CSS`: what the cell shows once its kernel and widget models are gone."""
+        png = base64.b64encode(bytes(self.image_widget.value)).decode("ascii")
+        return (f"<style>{EXPLORER_CSS}</style><div class=\"geodepth-explorer-static\">"
+                f'<p><b style="color:#b00020">{html.escape(DEAD_TEXT)}</b></p>'
+                f'<img src="data:image/png;base64,{png}" alt="the explorer figure" style="max-width:100%"></div>')
+
     def _repr_mimebundle_(self, **kwargs) -> dict:
-        """Displayed as :attr:`ui`, with the figure shown at display time (PNG) and a line of text as
-        fallbacks where the widget models are gone (the saved notebook reopened untrusted, nbviewer)."""
+        """The widgets (:attr:`ui`), with a line of text where widgets cannot show (nbviewer, a notebook
+        reopened untrusted). :meth:`_ipython_display_` shows the static figure beside them."""
         bundle = dict(self.ui._repr_mimebundle_(**kwargs) or {})
-        bundle["image/png"] = base64.b64encode(bytes(self.image_widget.value)).decode("ascii")
         bundle["text/plain"] = "loss explorer (its sliders need this cell run in a live Jupyter kernel)"
         return bundle
+
+    def _ipython_display_(self) -> None:
+        """Two outputs: the static figure (:meth:`static_html`, hidden while the widgets live) and the
+        widgets. A saved notebook keeps both, so a reload without the kernel shows the figure and
+        the "re-run this cell" line, not "Error displaying widget: model not found"."""
+        from IPython.display import HTML, display  # optional: only under IPython
+
+        display(HTML(self.static_html()))
+        display(self._repr_mimebundle_(), raw=True)
 
 
 def explorer(gt, image, K, grid: int = 16, live: bool | None = None, seed: int = 0):
@@ -475,7 +522,7 @@ def explorer(gt, image, K, grid: int = 16, live: bool | None = None, seed: int =
     if not live:
         fig, rep = draw(gt, image, K, None, grid, seed=seed)
         plt.show()
-        print("static rendering (no live Jupyter frontend); losses:", format_losses(rep))
+        print("static figure (its sliders need this cell run in JupyterLab); losses:", format_losses(rep))
         return None
     return LiveExplorer(gt, image, K, grid, seed)
 

@@ -49,14 +49,13 @@ def test_explorer_static_and_live(monkeypatch):
     gt, image, K = explorer_inputs()
     assert widgets.explorer(gt, image, K, grid=4, live=False) is None
     ex = widgets.explorer(gt, image, K, grid=4, live=True)
-    sliders = list(ex.ui.children[0].children)
-    assert [s.description for s in sliders] == list(widgets.PERTURBATIONS)
-    values = ex.ui.children[1].children[2]
+    grid, buttons = ex.ui.children[0].children  # the controls: sliders, then reset, status and losses
+    assert [s.description for s in grid.children] == list(widgets.PERTURBATIONS)
+    values = buttons.children[2]
     assert "depth 0.0000" in values.value
-    bundle = ex._repr_mimebundle_()  # displayed as the widgets; a PNG and a text where their models are gone
+    bundle = ex._repr_mimebundle_()  # the widgets, and a line of text where widgets cannot show
     assert bundle["application/vnd.jupyter.widget-view+json"]["model_id"] == ex.ui.model_id
-    assert base64.b64decode(bundle["image/png"]) == bytes(ex.image_widget.value)
-    assert "live Jupyter kernel" in bundle["text/plain"]
+    assert "image/png" not in bundle and "live Jupyter kernel" in bundle["text/plain"]
     monkeypatch.setenv("GEODEPTH_LITE_WIDGETS", "static")
     assert widgets.has_live_frontend() is False
     with pytest.raises(ValueError, match="loss must be"):
@@ -228,3 +227,49 @@ def test_loss_report_searches_the_ground_truth_field_once(monkeypatch):
     assert math.isclose(rep["sdf"], float(losses.sdf_loss(t(pred), t(gt), torch.as_tensor(K), (5, 5, 5))),
                         rel_tol=1e-12)
     assert rep2["sdf"] > 0
+
+
+def test_the_cell_shows_a_static_figure_beside_the_widgets_for_when_the_kernel_is_gone():
+    from IPython.core.interactiveshell import InteractiveShell
+
+    gt, image, K = explorer_inputs()
+    ex = widgets.LiveExplorer(gt, image, K, grid=4, background=False)
+    ex.sliders["offset"].value = 0.5
+    shown = []
+    InteractiveShell.instance().display_pub.publish = lambda data, **kw: shown.append(data)
+    try:
+        ex._ipython_display_()
+    finally:
+        InteractiveShell.clear_instance()
+    assert [sorted(d) for d in shown] == [["text/html", "text/plain"],
+                                          ["application/vnd.jupyter.widget-view+json", "text/plain"]]
+    static = shown[0]["text/html"]  # the figure the widgets show now, the "re-run this cell" line and the styles
+    png = static.split('src="data:image/png;base64,', 1)[1].split('"', 1)[0]
+    assert base64.b64decode(png) == bytes(ex.image_widget.value)
+    assert 'class="geodepth-explorer-static"' in static and "re-run this cell" in static
+    assert ".jupyter-widgets-disconnected .geodepth-explorer-controls { display: none; }" in static
+    # the classes the styles rely on: the sliders' box hides and the dead-kernel line shows
+    controls, dead, figure = ex.ui.children
+    assert "geodepth-explorer" in ex.ui._dom_classes and "geodepth-explorer-controls" in controls._dom_classes
+    assert "geodepth-explorer-dead" in dead._dom_classes and "re-run this cell" in dead.value
+    assert figure is ex.image_widget and ex.sliders["blur"] in controls.children[0].children
+
+
+def test_colour_bars_of_the_clipped_panels_have_arrows_and_say_the_range():
+    gt, image, K = explorer_inputs()
+    fig, _ = widgets.draw(gt, image, K, {"scale": 1.5}, grid=4)
+    bars = widgets.ExplorerFigure.CLIPPED
+    fig_bars = {i: cb for i, cb in _colourbars(fig).items()}
+    for i, cb in fig_bars.items():
+        assert (cb.extend == "both") == (i in bars), i
+    lo, hi = float(gt.min()), float(gt.max())
+    assert fig_bars[2].ax.get_ylabel() == f"clipped to {lo:.3g}..{hi:.3g}"
+    assert fig_bars[8].ax.get_ylabel().startswith("clipped to \u00b1")
+    assert float(np.max(widgets.perturb(gt, scale=1.5))) > hi  # the prediction really goes beyond the range
+
+
+def _colourbars(fig):
+    """{panel index: colour bar} of an explorer figure (the panels are its first ten axes)."""
+    panels = fig.axes[:10]
+    return {panels.index(im.colorbar.mappable.axes): im.colorbar for ax in panels for im in ax.images
+            if im.colorbar is not None}
