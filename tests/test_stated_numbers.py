@@ -34,8 +34,6 @@ NUMBER_WORDS = {w: i for i, w in enumerate(
 
 # notebooks other lessons own; what they state is mended there (issue 34, "numbers that agree")
 PENDING = {
-    "03_losses_explained": "issue 34, 'numbers that agree': notebook 03's Time line (run and reading time) "
-                           "is mended with notebook 03's other items",
 }
 
 
@@ -240,8 +238,6 @@ FINDINGS_HEADINGS = ("## What we found", "## Both studies in plain words")
 STATED_NUMBER = re.compile(r"(?<![\w.])\d+\.\d+|(?<![\w.])\d+(?=%)")  # decimals and percentages
 PRINTED_NUMBER = re.compile(r"\d+(?:\.\d+)?")
 FINDINGS_PENDING = {
-    "03_losses_explained": "issue 34, 'numbers that agree': notebook 03's findings state loss values that no cell "
-                           "above prints; mended with notebook 03's other items",
 }
 
 
