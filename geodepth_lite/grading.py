@@ -177,7 +177,7 @@ def forbid(*targets, task: str, namespace: dict | None = None) -> Iterator[None]
 def _shell():
     """The running IPython shell, or None outside a kernel."""
     try:
-        from IPython import get_ipython
+        from IPython import get_ipython  # optional: only a kernel has it, and the package imports without it
     except ImportError:  # pragma: no cover - IPython comes with Jupyter
         return None
     return get_ipython()
