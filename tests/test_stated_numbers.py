@@ -287,3 +287,17 @@ def test_the_findings_check_can_fail():
     assert findings_problems(later) == ["states 0.094, which no cell above prints"]
     not_last = [ok[0], ok[1], cell("markdown", "## The record"), ok[2]]
     assert findings_problems(not_last) == ["the lesson closes with '## The record', not its findings"]
+
+
+def test_the_cold_test_run_is_stated_from_its_record():
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / "cold_test_run.json").read_text())
+    figures = [f"{rec['pytest_s'] / 60:.1f} min", f"({rec['pytest_s']:.0f} s)", f"{rec['ci_run_s'] / 60:.1f} min",
+               f"{rec['passed']} passed, {rec['skipped']} skipped"]
+    timings = " ".join((ROOT / "docs" / "timings.md").read_text().split())
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert all(f in timings for f in figures), figures
+    assert f"{rec['pytest_s'] / 60:.1f} min cold" in readme
+    # the check can fail: the former figure is not the record's
+    assert f"{rec['pytest_s'] / 60:.1f} min cold" not in readme.replace("42.6 min cold", "35 min cold")
