@@ -72,6 +72,8 @@ SOLUTION_TAG = "geodepth-solution"  # the tag a staged notebook's solution cells
 BUILD_TIMEOUT_S = 900
 MAX_PAGE_JSON_BYTES = 64 * 2**20
 STATIC = "_static"
+INLINE_TAGS = {"strong": "strong", "emphasis": "em", "underline": "u", "delete": "del", "superscript": "sup",
+               "subscript": "sub", "span": "span"}  # MyST node type -> HTML element
 PLOTLY_JS = "plotly.min.js"  # drawn by the 3D views (notebook 07), from the plotly package
 SOURCE = "source"
 
@@ -573,6 +575,8 @@ class Renderer:
 
     def node(self, n: dict) -> str:
         t = n.get("type", "")
+        if t in INLINE_TAGS:  # phrasing nodes that map to one HTML element around their children
+            return f"<{INLINE_TAGS[t]}>{self.children(n)}</{INLINE_TAGS[t]}>"
         fn = getattr(self, "n_" + t, None)
         if fn is not None:
             return fn(n)
@@ -682,27 +686,6 @@ class Renderer:
 
     def n_text(self, n):
         return html.escape(n.get("value", ""), quote=False)
-
-    def n_strong(self, n):
-        return f"<strong>{self.children(n)}</strong>"
-
-    def n_emphasis(self, n):
-        return f"<em>{self.children(n)}</em>"
-
-    def n_underline(self, n):
-        return f"<u>{self.children(n)}</u>"
-
-    def n_delete(self, n):
-        return f"<del>{self.children(n)}</del>"
-
-    def n_superscript(self, n):
-        return f"<sup>{self.children(n)}</sup>"
-
-    def n_subscript(self, n):
-        return f"<sub>{self.children(n)}</sub>"
-
-    def n_span(self, n):
-        return f"<span>{self.children(n)}</span>"
 
     def n_break(self, n):
         return "<br>"
