@@ -320,3 +320,23 @@ def disagreements(fam: list[dict]) -> list[str]:
 def claims(fam: list[dict]) -> list[str]:
     """The verdict of each test of :func:`family` as a sentence."""
     return [f"{PRIMARY}, {tbl.METRIC_LABELS[t['metric']]}: {t['label']} -> {t['verdict']}" for t in fam]
+
+
+def exploratory_vs_first(tables1: dict, tables2: dict, case: int = 4, metric: str = "rmse",
+                         set_name: str = PRIMARY, level: float = 0.95) -> dict:
+    """An exploratory comparison the plan did not register: arm A's ``case`` against the first study's
+    silog ``case``, paired by seed. d_s = r_s(second study) - r_s(first study), each r_s in percent of the
+    first study's silog Case 1 at seed s (points). Returns "values", "mean", "p" (paired t-test),
+    "low"/"high" (the Student-t interval at ``level``, no multiplicity correction) and "seeds"."""
+    ref = _run_values(tables1, REFERENCE, metric, set_name)
+    first = _run_values(tables1, ("silog", case), metric, set_name)
+    second = _run_values(tables2, ("silog", case), metric, set_name)
+    seeds = sorted(set(ref) & set(first) & set(second))
+    if not seeds:
+        raise KeyError(f"Case {case} {metric} on the {set_name}: no seed with runs in both studies")
+    r1 = np.array([first[s] / ref[s] - 1 for s in seeds]) * 100
+    r2 = np.array([second[s] / ref[s] - 1 for s in seeds]) * 100
+    d = r2 - r1
+    mean, low, high = ablation.t_interval(d, level)
+    return {"seeds": seeds, "values": d.tolist(), "mean": mean, "p": study.paired_t_p(d), "low": low, "high": high,
+            "level": level}
