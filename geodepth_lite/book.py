@@ -37,6 +37,7 @@ import contextlib
 import functools
 import hashlib
 import html
+import html.parser
 import importlib.util
 import json
 import os
@@ -521,6 +522,111 @@ def split_folds(code: str) -> list[tuple[str, int, int]]:
     return [(k, a, b) for k, a, b in out if b > a or k != "code"]
 
 
+# --------------------------------------------------------------------------- HTML the book did not write
+
+SAFE_TAGS = frozenset("a abbr b blockquote br caption code col colgroup dd del details div dl dt em figcaption figure "
+                      "h1 h2 h3 h4 h5 h6 hr i img ins kbd li mark ol p pre q s samp small span strong sub summary sup "
+                      "table tbody td tfoot th thead tr tt u ul var".split())
+VOID_TAGS = frozenset({"br", "col", "hr", "img"})
+# elements whose content is dropped with them: scripts, styles, embedded documents, SVG and MathML (their
+# own attributes and elements run script), and those a browser reads as raw text (noscript, textarea, ...)
+DROPPED_TAGS = frozenset("script style template iframe frameset object applet svg math noscript noembed noframes "
+                         "textarea title xmp plaintext select head audio video canvas".split())
+SAFE_ATTRS = {"class": r"[\w -]{0,200}", "title": r"[^\x00]{0,500}", "alt": r"[^\x00]{0,500}",
+              "align": r"left|right|center|justify", "valign": r"top|middle|bottom|baseline",
+              "colspan": r"\d{1,4}", "rowspan": r"\d{1,4}", "span": r"\d{1,4}", "start": r"-?\d{1,9}",
+              "width": r"\d{1,5}%?", "height": r"\d{1,5}%?", "border": r"\d{1,3}",
+              "scope": r"row|col|rowgroup|colgroup"}
+URL_ATTRS = {"a": "href", "img": "src"}
+LINK_SCHEMES = ("http", "https", "mailto")
+IMAGE_DATA = re.compile(r"^data:image/(?:png|jpeg|gif|webp);base64,[a-z0-9+/=]+$")
+
+
+def safe_url(url: str, image: bool = False) -> str | None:
+    """``url`` where following it runs no script: a relative URL, http(s) or mailto (an image: http(s) or a
+    base64 PNG/JPEG/GIF/WebP data URL); None for javascript:, vbscript:, other data: URLs and the like.
+    The scheme is read as a browser reads it: control characters and white space anywhere are ignored."""
+    squeezed = re.sub(r"[\x00-\x20\x7f]+", "", url).lower()
+    m = re.match(r"^([a-z][a-z0-9+.\-]*):", squeezed)
+    if m is None:
+        return None if squeezed.startswith(("\\", "/\\")) else url.strip()
+    if image:
+        return url.strip() if m.group(1) in ("http", "https") or IMAGE_DATA.match(squeezed) else None
+    return url.strip() if m.group(1) in LINK_SCHEMES else None
+
+
+class _Sanitiser(html.parser.HTMLParser):
+    """Re-writes HTML keeping only :data:`SAFE_TAGS` with :data:`SAFE_ATTRS` (values matched whole) and safe
+    URLs; every text is escaped again, so the output holds no markup but what this class writes."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.out: list[str] = []
+        self.open: list[str] = []
+        self.dropping = 0  # depth inside DROPPED_TAGS
+
+    def handle_starttag(self, tag, attrs):
+        if tag in DROPPED_TAGS:
+            self.dropping += tag not in VOID_TAGS
+            return
+        if self.dropping or tag not in SAFE_TAGS:
+            return
+        kept = []
+        for name, value in attrs:
+            value = "" if value is None else value
+            if URL_ATTRS.get(tag) == name:
+                value = safe_url(value, image=tag == "img")
+            elif name not in SAFE_ATTRS or not re.fullmatch(SAFE_ATTRS[name], value):
+                value = None
+            if value is not None:
+                kept.append(f' {name}="{html.escape(value)}"')
+        if tag == "a":
+            kept.append(' rel="noopener noreferrer nofollow"')
+        self.out.append(f"<{tag}{''.join(kept)}>")
+        if tag not in VOID_TAGS:
+            self.open.append(tag)
+
+    def handle_startendtag(self, tag, attrs):
+        self.handle_starttag(tag, attrs)
+        if tag not in VOID_TAGS and tag not in DROPPED_TAGS:
+            self.handle_endtag(tag)
+        elif tag in DROPPED_TAGS and tag not in VOID_TAGS:
+            self.dropping -= 1
+
+    def handle_endtag(self, tag):
+        if tag in DROPPED_TAGS:
+            self.dropping = max(self.dropping - 1, 0)
+        elif not self.dropping and tag in self.open:
+            while self.open:
+                last = self.open.pop()
+                self.out.append(f"</{last}>")
+                if last == tag:
+                    break
+
+    def handle_data(self, data):
+        if not self.dropping:
+            self.out.append(html.escape(data, quote=False))
+
+    def result(self) -> str:
+        self.close()
+        return "".join(self.out) + "".join(f"</{t}>" for t in reversed(self.open))
+
+
+def sanitise_html(doc: str) -> str:
+    """HTML a notebook output (or a page's raw HTML) holds, with everything that can run script taken out:
+    see :class:`_Sanitiser`. Tables, text formatting, links and data-URL images stay."""
+    parser = _Sanitiser()
+    parser.feed(doc)
+    return parser.result()
+
+
+def framed_html(doc: str) -> str:
+    """An HTML output that is a whole document or carries script, shown in an iframe that the browser
+    sandboxes fully (``sandbox=""``: no script, no same origin, no forms, no pop-ups, no top navigation)."""
+    return (f'<iframe class="output-html" sandbox="" srcdoc="{html.escape(doc)}" style="width:100%;height:520px;'
+            f'border:1px solid #d9dee7" loading="eager"></iframe>')
+
+
 # --------------------------------------------------------------------------- rendering MyST content
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")
@@ -665,9 +771,8 @@ class Renderer:
         if "text/html" in data:
             doc = self.output_text(data["text/html"])
             if "<script" in doc.lower() or "<html" in doc.lower():
-                return (f'<iframe class="output-html" srcdoc="{html.escape(doc)}" style="width:100%;height:520px;'
-                        f'border:1px solid #d9dee7" loading="eager"></iframe>')
-            return f'<div class="output-html">{doc}</div>'
+                return framed_html(doc)
+            return f'<div class="output-html">{sanitise_html(doc)}</div>'
         if "application/vnd.jupyter.widget-view+json" in data:
             return ('<p class="widget-note"><em>An interactive widget: run the notebook in JupyterLab to use '
                     'it.</em></p>')
@@ -744,8 +849,8 @@ class Renderer:
 
     def href(self, url: str) -> str | None:
         """A page's link as a link of the site, or None where it points at a file the site does not hold."""
-        if re.match(r"^[a-z][a-z0-9+.-]*:", url):
-            return url  # http(s), mailto
+        if re.match(r"^[a-z][a-z0-9+.-]*:", re.sub(r"[\x00-\x20\x7f]+", "", url).lower()):
+            return safe_url(url)  # http(s), mailto; None (named, not linked) for javascript: and the like
         if url.startswith("#"):
             return url
         if url.startswith("/"):
@@ -792,7 +897,7 @@ class Renderer:
                f'{"".join(self.node(c) for c in rest)}</div>'
 
     def n_html(self, n):
-        return n.get("value", "")  # raw HTML the project's own markdown holds
+        return sanitise_html(str(n.get("value", "")))  # raw HTML in markdown: kept only where it runs no script
 
     def n_footnoteReference(self, n):
         ident = html.escape(str(n.get("identifier", "")))

@@ -8,6 +8,7 @@ The browser test skips, saying why, where chromium, Playwright, Node.js or jupyt
 with GEODEPTH_REQUIRE_BROWSER=1 it fails instead."""
 
 import functools
+import html
 import http.server
 import io
 import json
@@ -291,6 +292,111 @@ def test_katex_tarball_is_checked_and_bounded(tmp_path):
     assert not (tmp_path / "evil.css").exists()
 
 
+# --------------------------------------------------------------------------- HTML the book did not write
+
+VECTORS = [  # classic ways to run script through HTML that passes for harmless
+    '<img src=x onerror="alert(1)">',
+    '<IMG SRC=x OnError=alert(1)//>',
+    "<script>alert(1)</script>",
+    "<scr<script>ipt>alert(1)</script>",
+    '<svg onload="alert(1)"><circle r="1"/></svg>',
+    '<svg><script>alert(1)</script></svg>',
+    '<a href="javascript:alert(1)">x</a>',
+    '<a href="jav&#x09;ascript:alert(1)">x</a>',
+    '<a href=" &#14;javascript:alert(1)">x</a>',
+    '<a href="JaVaScRiPt&colon;alert(1)">x</a>',
+    '<a href="data:text/html;base64,PHNjcmlwdD5hbGVydCgxKTwvc2NyaXB0Pg==">x</a>',
+    '<img src="data:image/svg+xml;base64,PHN2ZyBvbmxvYWQ9YWxlcnQoMSk+">',
+    '<div style="width: expression(alert(1))">x</div>',
+    '<div style="background:url(javascript:alert(1))">x</div>',
+    "<style>@import 'javascript:alert(1)';</style>",
+    '<table><tr><td background="javascript:alert(1)">x</td></tr></table>',
+    '<noscript><p title="</noscript><img src=x onerror=alert(1)>"></noscript>',
+    '<iframe src="javascript:alert(1)"></iframe>',
+    '<object data="javascript:alert(1)"></object><embed src="javascript:alert(1)">',
+    '<math><mtext><table><mglyph><style><img src=x onerror=alert(1)>',
+    '<details open ontoggle="alert(1)">x</details>',
+    '<form><button formaction="javascript:alert(1)">x</button></form>',
+    '<meta http-equiv="refresh" content="0;url=javascript:alert(1)">',
+    '<base href="javascript:alert(1)//">',
+]
+
+
+def _script_risks(doc: str) -> list[str]:
+    """What in ``doc`` can run script when a browser shows it: event handlers, style, script-bearing elements,
+    URLs of a scheme other than http(s)/mailto (data: images of a raster type excepted)."""
+    from html.parser import HTMLParser
+
+    risks = []
+
+    class Finder(HTMLParser):
+        def handle_starttag(self, tag, attrs):
+            if tag in ("script", "style", "svg", "math", "iframe", "object", "embed", "meta", "base", "form",
+                       "button", "noscript"):
+                risks.append(tag)
+            for name, value in attrs:
+                squeezed = re.sub(r"[\x00-\x20]+", "", value or "").lower()
+                if name.startswith("on") or name == "style":
+                    risks.append(name)
+                elif re.match(r"^[a-z][a-z0-9+.-]*:", squeezed) and not re.match(
+                        r"^(https?:|mailto:|data:image/(png|jpeg|gif|webp);base64,)", squeezed):
+                    risks.append(f"{name}={squeezed[:20]}")
+
+    Finder(convert_charrefs=True).feed(doc)
+    return risks + (["<script"] if "<script" in doc.lower() else [])
+
+
+def test_sanitiser_removes_every_classic_vector():
+    for vector in VECTORS:
+        assert _script_risks(vector), vector  # the check sees the danger in the raw vector ...
+        clean = book.sanitise_html(vector)
+        assert not _script_risks(clean), (vector, clean)  # ... and none is left after sanitising
+    # what outputs need stays: a pandas-like table, text formatting, a link, a raster data-URL image
+    table = ('<table border="1" class="dataframe"><thead><tr><th>a</th></tr></thead><tbody><tr><td colspan="2">'
+             '1 &lt; 2</td></tr></tbody></table><b>bold</b> <a href="https://example.org/x?a=1&amp;b=2">l</a>'
+             '<img src="data:image/png;base64,iVBORw0KGgo=" alt="fig">')
+    clean = book.sanitise_html(table)
+    assert clean == table.replace('">l</a>', '" rel="noopener noreferrer nofollow">l</a>')
+    assert book.sanitise_html("<p>open <b>bold") == "<p>open <b>bold</b></p>"  # closed, whole HTML
+    # a value that breaks out of its quotes where it is written back unescaped: it stays one value
+    breaking = '<a title=\'x" onmouseover="alert(1)\'>z</a>'
+    assert _script_risks('<a title="x" onmouseover="alert(1)">z</a>') == ["onmouseover"]  # written back naively
+    assert book.sanitise_html(breaking).startswith('<a title="x&quot; onmouseover=&quot;alert(1)"')
+    assert not _script_risks(book.sanitise_html(breaking))
+
+
+def test_a_planted_sanitiser_defect_is_caught():
+    """The check of the test above fails on a sanitiser that keeps event handlers (a defect planted here)."""
+    leaky = book._Sanitiser.handle_starttag
+
+    def keeps_handlers(self, tag, attrs):
+        leaky(self, tag, attrs)
+        if tag in book.SAFE_TAGS and self.out and attrs:
+            self.out[-1] = self.out[-1][:-1] + "".join(f' {k}="{v}"' for k, v in attrs if k.startswith("on")) + ">"
+
+    book._Sanitiser.handle_starttag = keeps_handlers
+    try:
+        assert _script_risks(book.sanitise_html(VECTORS[0])) == ["onerror"]
+    finally:
+        book._Sanitiser.handle_starttag = leaky
+
+
+def test_html_outputs_are_sanitised_or_sandboxed(tmp_path):
+    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    inline = r.output({"output_type": "display_data",
+                       "data": {"text/html": {"content": '<img src=x onerror="alert(1)"><table><tr><td>t</td></tr>'
+                                                         "</table>"}}})
+    assert "onerror" not in inline and "<td>t</td>" in inline
+    framed = r.output({"output_type": "display_data",
+                       "data": {"text/html": {"content": "<p>x</p><script>alert(1)</script>"}}})
+    assert framed.startswith('<iframe class="output-html" sandbox="" srcdoc="') and "<script" not in framed
+    assert "allow-" not in framed  # no permission at all: no script, no same origin
+    assert "onerror" not in r.n_html({"value": '<img src=y onerror="alert(1)">'})
+    assert "<a" not in r.n_link({"url": "javascript:alert(1)", "children": [{"type": "text", "value": "x"}]})
+    assert "<a" not in r.n_link({"url": " java\tscript:alert(1)", "children": []})
+    assert r.n_link({"url": "https://example.org", "children": []}).startswith('<a href="https://example.org"')
+
+
 # --------------------------------------------------------------------------- the real book in a browser
 
 
@@ -471,3 +577,102 @@ def test_interactive_3d_views_are_drawn(browsed):
     for name, n in stored.items():
         e = report[summary["lesson_pages"][name]]
         assert e["views_3d"] == n and e.get("views_3d_drawn", 0) == n, (name, n, e["views_3d"])
+
+
+# --------------------------------------------------------------------------- planted HTML in a browser
+
+PAYLOAD = "window.__planted = (window.__planted || 0) + 1; new Image().src = '/ran-{0}'; alert('{0}');"
+
+
+def _planted_notebook(folder: Path) -> Path:
+    """A notebook whose outputs (and one markdown cell) carry script in the ways an output can: each payload,
+    if it runs, sets a global, asks the server for /ran-<name> and opens a dialog."""
+    def html_output(doc):
+        return {"output_type": "display_data", "metadata": {}, "data": {"text/html": doc, "text/plain": "x"}}
+
+    outputs = [
+        html_output(f'<img src="x" onerror="{PAYLOAD.format("onerror")}"><table><tr><td>planted table</td></tr>'
+                    "</table>"),
+        html_output(f"<p>framed output</p><script>{PAYLOAD.format('script')}</script>"),
+        html_output(f'<svg onload="{PAYLOAD.format("svg")}"></svg><a href="javascript:{PAYLOAD.format("href")}">'
+                    "planted link</a>"),
+    ]
+    cells = [{"cell_type": "markdown", "metadata": {},
+              "source": f'# Planted\n\n<img src="y" onerror="{PAYLOAD.format("markdown")}">\n'},
+             {"cell_type": "code", "metadata": {}, "execution_count": 1, "source": "show()", "outputs": outputs}]
+    nb = folder / "00_planted.ipynb"
+    nb.write_text(json.dumps({"cells": cells, "metadata": {}, "nbformat": 4, "nbformat_minor": 5}))
+    return nb
+
+
+CONTROL = ("<!DOCTYPE html><html><body><img src=\"x\" onerror=\"{0}\">"
+           "<iframe srcdoc=\"<script>{1}</script>\"></iframe></body></html>")
+
+
+@pytest.fixture(scope="module")
+def planted_site(tmp_path_factory):
+    """A book of one notebook with planted HTML outputs, built by jupyter-book, served with every request
+    recorded; and a control page (the same payloads unescaped) that shows the payloads do run unguarded."""
+    missing = _browser_missing()
+    if missing:
+        if os.environ.get(REQUIRE_ENV, "") not in ("", "0"):
+            pytest.fail(f"{REQUIRE_ENV}=1, but the browser test cannot run: {missing}")
+        pytest.skip(f"browser test: {missing}")
+    tmp = tmp_path_factory.mktemp("planted")
+    with pytest.MonkeyPatch.context() as mp:
+        _few_modules(mp)
+        out = tmp / "site"
+        summary = book.build(out, notebooks=[_planted_notebook(tmp)], docs=[], readme=None, katex=False,
+                             log=lambda m: None)
+    control = html.escape(PAYLOAD.format("control-script"))
+    (tmp / "control.html").write_text(CONTROL.format(html.escape(PAYLOAD.format("control-onerror")), control))
+    requests = []
+
+    class Recording(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            requests.append(self.path)
+            super().do_GET()
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Recording, directory=str(tmp)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{server.server_port}", summary, requests
+    server.shutdown()
+    server.server_close()
+
+
+def _open_and_watch(base: str, rel: str, requests: list) -> dict:
+    """Open ``rel`` in chromium, click every link, wait, and report what ran: dialogs, the global, /ran-* requests."""
+    from playwright.sync_api import sync_playwright
+
+    requests.clear()
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page()
+        dialogs = []
+        page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
+        page.goto(f"{base}/{rel}", wait_until="load")
+        page.wait_for_timeout(1500)
+        for link in page.locator("main a").all():
+            if "planted" in (link.inner_text() or ""):
+                link.click()
+        page.wait_for_timeout(500)
+        seen = {"dialogs": dialogs, "global": page.evaluate("() => window.__planted === undefined ? null : 1"),
+                "frames": page.evaluate(
+                    "() => [...document.querySelectorAll('iframe')].map(f => f.getAttribute('sandbox'))"),
+                "text": page.evaluate("() => document.body.innerText"),
+                "ran": sorted({r for r in requests if r.startswith("/ran-")})}
+        browser.close()
+    return seen
+
+
+def test_planted_html_in_outputs_cannot_run_script(planted_site):
+    base, summary, requests = planted_site
+    control = _open_and_watch(base, "control.html", requests)  # the watch sees a payload that runs
+    assert control["ran"] == ["/ran-control-onerror", "/ran-control-script"] and control["dialogs"], control
+    seen = _open_and_watch(base, "site/" + summary["lesson_pages"]["00_planted.ipynb"], requests)
+    assert seen["ran"] == [] and seen["dialogs"] == [] and seen["global"] is None, seen
+    assert seen["frames"] == [""]  # the output with a script: in an iframe sandboxed of every permission
+    assert "planted table" in seen["text"] and "planted link" in seen["text"]  # the harmless part is shown
