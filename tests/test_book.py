@@ -15,6 +15,7 @@ import json
 import os
 import re
 import subprocess
+import sys
 import tarfile
 import threading
 from pathlib import Path
@@ -266,6 +267,166 @@ def test_failed_build_leaves_no_site(tmp_path, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == [book.MARKER]
 
 
+def _fake_build(tmp_path, monkeypatch, pages=("index", "lesson")):
+    """``book.build`` with a one-notebook MyST build of ``pages`` written by the test (no Node.js)."""
+    _few_modules(monkeypatch)
+    monkeypatch.setattr(book, "check_node", lambda path=None: "node")
+    monkeypatch.setattr(book, "check_jupyter_book", lambda: None)
+    nb = tmp_path / "nbs" / "lesson.ipynb"
+    if not nb.exists():
+        _lesson_nb(tmp_path)
+
+    real_build = book.build
+
+    def build(out, **kw):
+        content = {slug: LESSON if slug == "lesson" else {"type": "root", "children": []} for slug in pages}
+        monkeypatch.setattr(book, "run_myst", _fake_myst(content))
+        return real_build(out, notebooks=[nb], docs=[], readme=None, katex=False, log=lambda m: None)
+    return build
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_rebuild_keeps_the_users_files_and_removes_only_its_own(tmp_path, monkeypatch, capsys):
+    build = _fake_build(tmp_path, monkeypatch, pages=("index", "lesson", "extra"))
+    out = tmp_path / "site"
+    build(out)
+    marker = book.read_marker(out)
+    assert marker["complete"] is True and marker["files"]["lesson.html"] == book.file_sha256(out / "lesson.html")
+    assert set(marker["files"]) == {p for p in _tree(out) if p != book.MARKER}  # every file it wrote, no other
+    (out / "CNAME").write_text("book.example.org\n")
+    (out / "my_slides").mkdir()
+    (out / "my_slides" / "week1.pdf").write_bytes(b"%PDF-1.4 slides")
+    (out / "_static" / "custom.css").write_text("body{}")  # the user's file in a folder of the book's
+    mine = {k: v for k, v in _tree(out).items() if k in ("CNAME", "my_slides/week1.pdf", "_static/custom.css")}
+    build = _fake_build(tmp_path, monkeypatch, pages=("index", "lesson"))  # the new site has no extra page
+    build(out)
+    after = _tree(out)
+    assert {k: after.get(k) for k in mine} == mine  # kept, byte for byte
+    assert "extra.html" not in after and "lesson.html" in after  # its own old page removed
+    assert book.read_marker(out)["complete"] is True and not any(p.name.startswith(book.NEW_DIR) for p in
+                                                                 out.iterdir())
+    # a page of the book's that the user changed is theirs now: refused with one line, nothing changed
+    (out / "lesson.html").write_text("my notes on the lesson")
+    before = _tree(out)
+    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    assert cli.main(["book", "--out", str(out)]) == 2
+    one_line_error(capsys, str(out / "lesson.html"), "did not write it")
+    assert _tree(out) == before
+
+
+def test_a_forged_marker_grants_nothing(tmp_path, monkeypatch):
+    build = _fake_build(tmp_path, monkeypatch)
+    outside = tmp_path / "outside.txt"
+    outside.write_text("not the book's")
+    digest = book.file_sha256(outside)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "book.css").write_text("mine")
+    forged = [{"complete": True}, {"complete": True, "files": {"thesis.tex": None}},
+              {"complete": True, "files": {"../outside.txt": digest, "_static/../../outside.txt": digest}},
+              {"complete": True, "files": {"_static/book.css": book.file_sha256(elsewhere / "book.css")}}]
+    for k, marker in enumerate(forged):
+        folder = tmp_path / f"forged{k}"
+        folder.mkdir()
+        (folder / "thesis.tex").write_text("\\documentclass{article} my thesis")
+        if marker.get("files", {}).get("thesis.tex", 1) is None:
+            marker["files"]["thesis.tex"] = book.file_sha256(folder / "thesis.tex")  # the right hash, even
+        if k == 3:
+            (folder / "_static").symlink_to(elsewhere, target_is_directory=True)
+        (folder / book.MARKER).write_text(json.dumps(marker))
+        before = _tree(folder)
+        try:
+            build(folder)
+        except OSError as exc:  # a link in the way of the site: refused
+            assert k == 3 and "_static" in str(exc)
+        after = _tree(folder)
+        assert {p: after.get(p) for p in before if p != book.MARKER} == {
+            p: v for p, v in before.items() if p != book.MARKER}, k
+        assert outside.read_text() == "not the book's" and (elsewhere / "book.css").read_text() == "mine"
+    # a marker naming the user's page with a hash that is not its own: the page is in the way, refused
+    folder = tmp_path / "forged_page"
+    folder.mkdir()
+    (folder / "index.html").write_text("my home page")
+    (folder / book.MARKER).write_text(json.dumps({"complete": True, "files": {"index.html": "0" * 64}}))
+    with pytest.raises(OSError, match="index.html is in the way"):
+        build(folder)
+    assert (folder / "index.html").read_text() == "my home page"
+
+
+def test_the_forged_marker_check_fails_on_a_book_that_trusts_its_marker(tmp_path, monkeypatch):
+    """The planted defect: owned_files taking every name the marker lists. The check above would see
+    thesis.tex go."""
+    build = _fake_build(tmp_path, monkeypatch)
+    folder = tmp_path / "forged"
+    folder.mkdir()
+    (folder / "thesis.tex").write_text("my thesis")
+    (folder / book.MARKER).write_text(json.dumps({"complete": True, "files": {"thesis.tex": "0" * 64}}))
+    monkeypatch.setattr(book, "owned_files", lambda out, marker: dict(marker["files"]))
+    monkeypatch.setattr(book, "_remove_owned", lambda out, rel, digest: (Path(out) / rel).unlink())
+    build(folder)
+    assert not (folder / "thesis.tex").exists()
+
+
+def test_staging_left_by_a_killed_build_is_removed_by_the_next(tmp_path, monkeypatch):
+    """kill -9 of a build while it renders leaves its MyST project in the temporary folder and its half
+    site in the output folder; the next build removes both (their process is gone) and nothing else."""
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    out = tmp_path / "site"
+    script = f"""
+import sys, tempfile, time
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+tempfile.tempdir = {str(temp)!r}
+import pytest
+import test_book
+from geodepth_lite import book
+mp = pytest.MonkeyPatch()
+build = test_book._fake_build(__import__("pathlib").Path({str(tmp_path)!r}), mp)
+mp.setattr(book.Site, "render_sources", lambda self: (print("rendering", flush=True), time.sleep(300)))
+build(__import__("pathlib").Path({str(out)!r}))
+"""
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(Path(book.ROOT))})
+    try:
+        assert proc.stdout.readline().strip() == "rendering"
+    finally:
+        proc.kill()  # SIGKILL: no clean-up runs
+        proc.wait()
+    left = [p.name for p in temp.iterdir()] + [p.name for p in out.iterdir()]
+    assert f"{book.NEW_DIR}-{proc.pid}" in left and any(n.startswith(f"geodepth-book-{proc.pid}-") for n in left)
+    alive = temp / f"geodepth-book-{os.getppid()}-abc123"  # a live process's: kept
+    alive.mkdir()
+    (temp / "geodepth-book-notes").mkdir()  # not a staging name: kept
+    monkeypatch.setattr(book.tempfile, "tempdir", str(temp))
+    _fake_build(tmp_path, monkeypatch)(out)
+    assert sorted(p.name for p in temp.iterdir()) == sorted([alive.name, "geodepth-book-notes"])
+    assert not any(p.name.startswith(book.NEW_DIR) for p in out.iterdir())
+    assert book.read_marker(out)["complete"] is True
+
+
+def test_a_full_disk_names_the_file_and_keeps_the_old_site(tmp_path, monkeypatch, capsys):
+    build = _fake_build(tmp_path, monkeypatch)
+    out = tmp_path / "site"
+    build(out)
+    before = _tree(out)
+    real_write = Path.write_bytes
+
+    def full(self, data):
+        if self.name == "lesson.html":
+            raise OSError(28, "No space left on device")  # as the kernel reports it: no file named
+        return real_write(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    assert cli.main(["book", "--out", str(out)]) == 2
+    line = one_line_error(capsys, "no space left on device", "lesson.html")
+    assert re.search(r"cannot write \S*/\.geodepth-book-new-\d+/lesson\.html: no space left on device$", line)
+    assert _tree(out) == before and not any(p.name.startswith(book.NEW_DIR) for p in out.iterdir())
+
+
 def test_katex_tarball_is_checked_and_bounded(tmp_path):
     cache = tmp_path / "katex.tgz"
     cache.write_bytes(b"not the package")
@@ -436,6 +597,16 @@ def served_book(tmp_path_factory):
     yield out, f"http://127.0.0.1:{server.server_port}", summary
     server.shutdown()
     server.server_close()
+
+
+def test_the_real_books_marker_lists_every_file_it_wrote(served_book):
+    """Every file of the built site is recorded with its SHA-256 under a name the book owns, so a rebuild
+    can replace each one and nothing else."""
+    out, _, _ = served_book
+    files = book.read_marker(out)["files"]
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()} - {book.MARKER}
+    assert set(files) == on_disk and len(files) > 20
+    assert book.owned_files(out, book.read_marker(out)) == files  # every hash matches, every name is the book's
 
 
 def _notebook_facts():
