@@ -28,6 +28,7 @@ from __future__ import annotations
 import inspect
 import json
 import os
+import stat
 import subprocess
 from pathlib import Path
 
@@ -114,8 +115,9 @@ class TrackedLessons:
 def _holds_solutions(path: Path) -> bool:
     """Whether the notebook ``path`` has a code cell with a :data:`SOLUTION_MARKER` line."""
     try:
-        if path.stat().st_size > MAX_NOTEBOOK_BYTES:
-            return False
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_NOTEBOOK_BYTES:
+            return False  # a FIFO in a lesson's place would block the first read, and the server with it
         cells = json.loads(path.read_bytes()).get("cells", [])
     except (OSError, ValueError, AttributeError):
         return False

@@ -8,6 +8,7 @@ import json
 import os
 import secrets
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -170,6 +171,26 @@ def test_the_guard_fails_when_a_verb_is_left_unguarded(tmp_path):
     cm.rename_file = rename_file  # the planted defect
     cm.rename("notebooks/lesson.ipynb", "notebooks/away.ipynb")
     assert not (repo / "notebooks" / "lesson.ipynb").exists()
+
+
+def test_a_fifo_in_a_lessons_place_does_not_hang_the_server(tmp_path):
+    """A FIFO where a tracked lesson was (made by hand in the work tree) is not read: the guard's check for
+    solutions answers at once, instead of blocking the Jupyter server on its first read."""
+    repo = checkout(tmp_path)
+    (repo / "notebooks" / "lesson.ipynb").unlink()
+    os.mkfifo(repo / "notebooks" / "lesson.ipynb")
+
+    def hung(*_):
+        raise AssertionError("the guard blocked on the FIFO")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(10)
+    try:
+        assert lesson_guard._holds_solutions(repo / "notebooks" / "lesson.ipynb") is False
+        assert lesson_guard.TrackedLessons().is_lesson(repo / "notebooks" / "lesson.ipynb") is False
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
 
 
 # --------------------------------------------------------------------------- a real Jupyter server
