@@ -37,11 +37,13 @@ import contextlib
 import functools
 import hashlib
 import html
+import html.parser
 import importlib.util
 import json
 import os
 import re
 import shutil
+import stat
 import subprocess
 import sys
 import tarfile
@@ -62,8 +64,12 @@ ROOT = PACKAGE_DIR.parent
 NOTEBOOK_DIR = ROOT / "notebooks"
 DOCS_DIR = ROOT / "docs"
 README = ROOT / "README.md"
-MARKER = ".geodepth-book.json"  # the output folder's marker: written by this command, and whether complete
-NEW_DIR = ".geodepth-book-new"  # the site being built, inside the output folder until it is complete
+MARKER = ".geodepth-book.json"  # the output folder's marker: whether complete, and the files it wrote (SHA-256)
+NEW_DIR = ".geodepth-book-new"  # + "-<pid>": the site being built, inside the output folder until it is complete
+STAGING = re.compile(r"^\.geodepth-book-new-(\d+)$")
+TEMP_STAGING = re.compile(r"^geodepth-(?:book|katex)-(\d+)-[A-Za-z0-9_]+$")  # MyST projects in the temp folder
+BOOK_PATH = re.compile(r"^(?:[\w.-]+\.html|\.nojekyll|source/[\w.-]+\.html|_static(?:/[\w.-]+)+)$")  # what it writes
+WRITTEN_BY = "python -m geodepth_lite book"
 NODE_MIN = 18  # Jupyter Book 2 runs on Node.js 18 or newer
 KATEX_VERSION = "0.15.6"  # the KaTeX that jupyter-book 2.1.7 (mystmd 1.11) typesets with
 KATEX_INTEGRITY = ("sha512-UpzJy4yrnqnhXvRPhjEuLA4lcPn6eRngixW7Q3TJErjg3Aw2PuLFBzTkdUb89UtumxjhHTqL3a5GDGETMSwgJA==")
@@ -176,9 +182,15 @@ def check_jupyter_book() -> None:
 # --------------------------------------------------------------------------- the output folder
 
 
+def _reserved(name: str) -> bool:
+    """The names of the output folder that are the command's own: its marker, lock and staging folders."""
+    return name in (MARKER, utils.LOCK_NAME) or STAGING.match(name) is not None
+
+
 def check_out(out: Path) -> None:
     """Refuse an output folder the book must not write into: a file, a folder holding files git tracks,
-    or a folder that is not empty and was not written by this command (no marker)."""
+    or a folder that is not empty and was not written by this command (no marker). A folder with a
+    marker is checked file by file when the new site is ready (:func:`_publish`)."""
     out = Path(out)
     if os.path.lexists(out) and not out.is_dir():
         raise utils.FileProblem(f"cannot write the book into {out}: a file of that name exists; choose a "
@@ -189,17 +201,18 @@ def check_out(out: Path) -> None:
     if tracked:
         raise utils.FileProblem(f"cannot write the book into {out}: it holds {len(tracked)} file(s) of the "
                                 f"checkout tracked by git (first {tracked[0]}); choose a new or empty folder", out)
-    present = sorted(p.name for p in out.iterdir() if p.name not in (utils.LOCK_NAME, NEW_DIR))
-    if present and MARKER not in present:
+    present = sorted(p.name for p in out.iterdir() if not _reserved(p.name))
+    if present and not os.path.lexists(out / MARKER):
         raise utils.FileProblem(f"cannot write the book into {out}: the folder holds files the book command "
                                 f"did not write (first {present[0]}); choose a new or empty folder", out)
 
 
 def read_marker(out: Path) -> dict | None:
-    """The output folder's marker (``{"complete": bool, ...}``), or None where there is none."""
+    """The output folder's marker (``{"complete": bool, "files": {path: sha256}, ...}``), or None where
+    there is none (or it is not a regular file of at most 1 MB holding a JSON object)."""
     path = Path(out) / MARKER
     try:
-        if path.stat().st_size > 2**20:
+        if not stat.S_ISREG(path.lstat().st_mode) or path.stat().st_size > 2**20:
             return None
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -207,36 +220,172 @@ def read_marker(out: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path)
-    else:
-        path.unlink(missing_ok=True)
+def file_sha256(path: Path) -> str | None:
+    """The SHA-256 of ``path`` where it is a regular file (a link is not followed); None otherwise."""
+    try:
+        if not stat.S_ISREG(path.lstat().st_mode):
+            return None
+        digest = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(2**20), b""):
+                digest.update(chunk)
+    except OSError:
+        return None
+    return digest.hexdigest()
 
 
-def _publish(out: Path, new: Path, summary: dict) -> None:
-    """Replace the site in ``out`` with the complete one in ``new`` (a folder inside ``out``).
+def _in_folder(out: Path, rel: str) -> Path | None:
+    """``out / rel`` for a path the book writes (:data:`BOOK_PATH`) whose folders on the way are real
+    folders (no link) or missing; None otherwise."""
+    parts = rel.split("/") if isinstance(rel, str) else []
+    if not BOOK_PATH.match(rel or "") or any(p in ("", ".", "..") for p in parts):
+        return None
+    folder = Path(out)
+    for part in parts[:-1]:
+        folder = folder / part
+        if os.path.lexists(folder) and (folder.is_symlink() or not folder.is_dir()):
+            return None
+    return Path(out, *parts)
 
-    The marker says "incomplete" from before the first old file goes until after the last new one is
-    in, so that a site cut off half way is never taken as complete."""
-    utils.write_json_atomic(out / MARKER, {"complete": False, "written_by": "python -m geodepth_lite book"})
-    for entry in out.iterdir():
-        if entry.name not in (MARKER, utils.LOCK_NAME, NEW_DIR):
-            _remove(entry)
-    for entry in sorted(new.iterdir()):
-        os.replace(entry, out / entry.name)
-    new.rmdir()
-    utils.write_json_atomic(out / MARKER, {"complete": True, "written_by": "python -m geodepth_lite book",
+
+def owned_files(out: Path, marker: dict | None) -> dict[str, str]:
+    """The files in ``out`` the book wrote: recorded in its marker (``files``, or ``previous`` while a
+    new site replaces an old one) and holding now exactly what was recorded. A file the marker does not
+    name, one changed since, one of a name the book never writes, and anything a forged marker names
+    otherwise are not the book's."""
+    recorded: dict[str, set[str]] = {}
+    for key in ("previous", "files"):
+        files = (marker or {}).get(key)
+        for rel, digest in files.items() if isinstance(files, dict) else ():
+            if isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{64}", digest):
+                recorded.setdefault(rel, set()).add(digest)
+    owned = {}
+    for rel, digests in recorded.items():
+        path = _in_folder(out, rel)
+        digest = file_sha256(path) if path is not None else None
+        if digest in digests:
+            owned[rel] = digest
+    return owned
+
+
+def _remove_owned(out: Path, rel: str, digest: str) -> None:
+    """Delete ``out/rel`` if it still holds ``digest``, then the folders on its way that it left empty."""
+    path = _in_folder(out, rel)
+    if path is None or file_sha256(path) != digest:
+        return
+    path.unlink()
+    for folder in path.parents:
+        if folder == Path(out) or Path(out) not in folder.parents:
+            break
+        try:
+            folder.rmdir()
+        except OSError:  # not empty: holds someone's files
+            break
+
+
+def _check_free(out: Path, new_files: dict[str, str], owned: dict[str, str]) -> None:
+    """Refuse, before anything is changed, a new site that would overwrite a file (or a folder) the
+    book did not write."""
+    for rel in sorted(new_files):
+        parts = rel.split("/")
+        for k in range(1, len(parts) + 1):
+            sub, path = "/".join(parts[:k]), Path(out, *parts[:k])
+            if not os.path.lexists(path) or sub in owned:
+                break
+            if k < len(parts) and path.is_dir() and not path.is_symlink():
+                continue
+            raise utils.FileProblem(f"cannot write the book into {out}: {path} is in the way, and the book "
+                                    "command did not write it (or it was changed since); move it away, or choose "
+                                    "a new or empty folder", path)
+
+
+def _plan(out: Path, new: Path) -> tuple[dict[str, str], dict[str, str]]:
+    """(the files of the old site the book wrote, the files of the new site), each path -> SHA-256; a
+    :class:`utils.FileProblem` where a new file would overwrite one the book did not write."""
+    owned = owned_files(out, read_marker(out))
+    new_files = {p.relative_to(new).as_posix(): file_sha256(p) for p in sorted(new.rglob("*")) if p.is_file()}
+    odd = [rel for rel in new_files if not BOOK_PATH.match(rel)]
+    if odd:  # a rebuild would not know it as the book's own: never publish it
+        raise BookError(f"cannot publish the book: it wrote {odd[0]}, a name outside the site's layout")
+    _check_free(out, new_files, owned)
+    return owned, new_files
+
+
+def _publish(out: Path, new: Path, owned: dict[str, str], new_files: dict[str, str], summary: dict) -> None:
+    """Replace the site in ``out`` with the complete one in ``new`` (a folder inside ``out``), file by file.
+
+    Only files the book wrote are removed or replaced (``owned``, from :func:`_plan`); any other file
+    stays. The marker says "incomplete", and names the old files and the new ones, from before the
+    first old file goes until after the last new one is in, so that a site cut off half way is never
+    taken as complete and its files are still known to be the book's."""
+    utils.write_json_atomic(out / MARKER, {"complete": False, "written_by": WRITTEN_BY, "files": new_files,
+                                           "previous": owned})
+    for rel in sorted(set(owned) - set(new_files)):
+        _remove_owned(out, rel, owned[rel])
+    for rel in sorted(new_files):
+        target = Path(out, *rel.split("/"))
+        utils.make_dir(target.parent)  # an old file of the book's in the way is gone already
+        with _writing(target):
+            os.replace(new / rel, target)
+    shutil.rmtree(new)  # only its emptied folders are left
+    utils.write_json_atomic(out / MARKER, {"complete": True, "written_by": WRITTEN_BY, "files": new_files,
                                            **summary})
 
 
 def _clear_site(out: Path) -> None:
-    """After a failed publish: leave no site files, only the marker that says incomplete."""
-    utils.write_json_atomic(out / MARKER, {"complete": False, "written_by": "python -m geodepth_lite book"})
-    for entry in out.iterdir():
-        if entry.name not in (MARKER, utils.LOCK_NAME):
-            with contextlib.suppress(OSError):
-                _remove(entry)
+    """After a failed publish: remove the book's files (old and new, as the marker names them), every
+    other file left as it is; then the marker says incomplete and names no file."""
+    for rel, digest in owned_files(out, read_marker(out)).items():
+        with contextlib.suppress(OSError):
+            _remove_owned(out, rel, digest)
+    utils.write_json_atomic(out / MARKER, {"complete": False, "written_by": WRITTEN_BY, "files": {}})
+
+
+@contextlib.contextmanager
+def _writing(path: Path):
+    """Any OSError of the block (a full disk: ``[Errno 28]`` names no file) as a FileProblem naming ``path``."""
+    try:
+        yield
+    except utils.FileProblem:
+        raise
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot write {path}: {utils.os_reason(exc)}", path) from exc
+
+
+def write_file(path: Path, data: str | bytes) -> None:
+    """Write ``data`` (text as UTF-8) to ``path``; a failure names the file."""
+    with _writing(path):
+        Path(path).write_bytes(data.encode("utf-8") if isinstance(data, str) else data)
+
+
+def copy_file(src: Path, dst: Path) -> None:
+    """Copy ``src`` to ``dst``; a failure names both files."""
+    try:
+        shutil.copyfile(src, dst)
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot copy {src} to {dst}: {utils.os_reason(exc)}", dst) from exc
+
+
+def remove_stale_staging(folder: Path, pattern: re.Pattern = TEMP_STAGING) -> list[Path]:
+    """Remove the staging folders in ``folder`` (named ``...-<pid>-...`` by ``pattern``) that a book
+    command killed before it could clean up left behind: those of this user whose process is gone."""
+    removed = []
+    try:
+        entries = sorted(Path(folder).iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m is None or int(m.group(1)) == os.getpid() or utils.pid_alive(int(m.group(1))):
+            continue
+        try:
+            st = entry.lstat()
+        except OSError:
+            continue
+        if stat.S_ISDIR(st.st_mode) and st.st_uid == getattr(os, "getuid", lambda: st.st_uid)():
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+    return removed
 
 
 # --------------------------------------------------------------------------- staging the MyST project
@@ -262,13 +411,12 @@ def tag_solutions(nb: dict) -> dict:
 def stage(project: Path, notebooks: list[Path], docs: list[Path], readme: Path | None) -> None:
     """Write the MyST project to build into ``project``: index.md (the README), notebooks/ (tagged
     copies), docs/, myst.yml with the table of contents, and the local site template."""
-    (project / "notebooks").mkdir(parents=True)
-    (project / "docs").mkdir()
-    (project / "_template").mkdir()
+    for folder in ("notebooks", "docs", "_template"):
+        utils.make_dir(project / folder)
     if readme is not None:
-        shutil.copyfile(readme, project / "index.md")
+        copy_file(readme, project / "index.md")
     else:
-        (project / "index.md").write_text("# geodepth-lite\n\nThe lessons of the workbook, in order.\n")
+        write_file(project / "index.md", "# geodepth-lite\n\nThe lessons of the workbook, in order.\n")
     lines = ["version: 1", "project:", "  title: geodepth-lite", "  toc:", "    - file: index.md"]
     if notebooks:
         lines += ["    - title: Lessons", "      children:"]
@@ -277,18 +425,17 @@ def stage(project: Path, notebooks: list[Path], docs: list[Path], readme: Path |
             data = json.loads(nb.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise BookError(f"cannot read {nb}: {exc}") from None
-        (project / "notebooks" / nb.name).write_text(json.dumps(tag_solutions(data), indent=1, ensure_ascii=False),
-                                                     encoding="utf-8")
+        write_file(project / "notebooks" / nb.name, json.dumps(tag_solutions(data), indent=1, ensure_ascii=False))
         lines.append(f"        - file: notebooks/{nb.name}")
     if docs:
         lines += ["    - title: Reference", "      children:"]
     for doc in docs:
-        shutil.copyfile(doc, project / "docs" / doc.name)
+        copy_file(doc, project / "docs" / doc.name)
         lines.append(f"        - file: docs/{doc.name}")
     lines += ["site:", "  title: geodepth-lite", "  template: ./_template", ""]
-    (project / "myst.yml").write_text("\n".join(lines))
+    write_file(project / "myst.yml", "\n".join(lines))
     # a local site template: MyST takes its options from it instead of asking its template service
-    (project / "_template" / "template.yml").write_text(
+    write_file(project / "_template" / "template.yml",
         "myst: v1\nkind: site\ntitle: geodepth-lite static book (rendered by geodepth_lite.book)\n")
 
 
@@ -521,6 +668,111 @@ def split_folds(code: str) -> list[tuple[str, int, int]]:
     return [(k, a, b) for k, a, b in out if b > a or k != "code"]
 
 
+# --------------------------------------------------------------------------- HTML the book did not write
+
+SAFE_TAGS = frozenset("a abbr b blockquote br caption code col colgroup dd del details div dl dt em figcaption figure "
+                      "h1 h2 h3 h4 h5 h6 hr i img ins kbd li mark ol p pre q s samp small span strong sub summary sup "
+                      "table tbody td tfoot th thead tr tt u ul var".split())
+VOID_TAGS = frozenset({"br", "col", "hr", "img"})
+# elements whose content is dropped with them: scripts, styles, embedded documents, SVG and MathML (their
+# own attributes and elements run script), and those a browser reads as raw text (noscript, textarea, ...)
+DROPPED_TAGS = frozenset("script style template iframe frameset object applet svg math noscript noembed noframes "
+                         "textarea title xmp plaintext select head audio video canvas".split())
+SAFE_ATTRS = {"class": r"[\w -]{0,200}", "title": r"[^\x00]{0,500}", "alt": r"[^\x00]{0,500}",
+              "align": r"left|right|center|justify", "valign": r"top|middle|bottom|baseline",
+              "colspan": r"\d{1,4}", "rowspan": r"\d{1,4}", "span": r"\d{1,4}", "start": r"-?\d{1,9}",
+              "width": r"\d{1,5}%?", "height": r"\d{1,5}%?", "border": r"\d{1,3}",
+              "scope": r"row|col|rowgroup|colgroup"}
+URL_ATTRS = {"a": "href", "img": "src"}
+LINK_SCHEMES = ("http", "https", "mailto")
+IMAGE_DATA = re.compile(r"^data:image/(?:png|jpeg|gif|webp);base64,[a-z0-9+/=]+$")
+
+
+def safe_url(url: str, image: bool = False) -> str | None:
+    """``url`` where following it runs no script: a relative URL, http(s) or mailto (an image: http(s) or a
+    base64 PNG/JPEG/GIF/WebP data URL); None for javascript:, vbscript:, other data: URLs and the like.
+    The scheme is read as a browser reads it: control characters and white space anywhere are ignored."""
+    squeezed = re.sub(r"[\x00-\x20\x7f]+", "", url).lower()
+    m = re.match(r"^([a-z][a-z0-9+.\-]*):", squeezed)
+    if m is None:
+        return None if squeezed.startswith(("\\", "/\\")) else url.strip()
+    if image:
+        return url.strip() if m.group(1) in ("http", "https") or IMAGE_DATA.match(squeezed) else None
+    return url.strip() if m.group(1) in LINK_SCHEMES else None
+
+
+class _Sanitiser(html.parser.HTMLParser):
+    """Re-writes HTML keeping only :data:`SAFE_TAGS` with :data:`SAFE_ATTRS` (values matched whole) and safe
+    URLs; every text is escaped again, so the output holds no markup but what this class writes."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.out: list[str] = []
+        self.open: list[str] = []
+        self.dropping = 0  # depth inside DROPPED_TAGS
+
+    def handle_starttag(self, tag, attrs):
+        if tag in DROPPED_TAGS:
+            self.dropping += tag not in VOID_TAGS
+            return
+        if self.dropping or tag not in SAFE_TAGS:
+            return
+        kept = []
+        for name, value in attrs:
+            value = "" if value is None else value
+            if URL_ATTRS.get(tag) == name:
+                value = safe_url(value, image=tag == "img")
+            elif name not in SAFE_ATTRS or not re.fullmatch(SAFE_ATTRS[name], value):
+                value = None
+            if value is not None:
+                kept.append(f' {name}="{html.escape(value)}"')
+        if tag == "a":
+            kept.append(' rel="noopener noreferrer nofollow"')
+        self.out.append(f"<{tag}{''.join(kept)}>")
+        if tag not in VOID_TAGS:
+            self.open.append(tag)
+
+    def handle_startendtag(self, tag, attrs):
+        self.handle_starttag(tag, attrs)
+        if tag not in VOID_TAGS and tag not in DROPPED_TAGS:
+            self.handle_endtag(tag)
+        elif tag in DROPPED_TAGS and tag not in VOID_TAGS:
+            self.dropping -= 1
+
+    def handle_endtag(self, tag):
+        if tag in DROPPED_TAGS:
+            self.dropping = max(self.dropping - 1, 0)
+        elif not self.dropping and tag in self.open:
+            while self.open:
+                last = self.open.pop()
+                self.out.append(f"</{last}>")
+                if last == tag:
+                    break
+
+    def handle_data(self, data):
+        if not self.dropping:
+            self.out.append(html.escape(data, quote=False))
+
+    def result(self) -> str:
+        self.close()
+        return "".join(self.out) + "".join(f"</{t}>" for t in reversed(self.open))
+
+
+def sanitise_html(doc: str) -> str:
+    """HTML a notebook output (or a page's raw HTML) holds, with everything that can run script taken out:
+    see :class:`_Sanitiser`. Tables, text formatting, links and data-URL images stay."""
+    parser = _Sanitiser()
+    parser.feed(doc)
+    return parser.result()
+
+
+def framed_html(doc: str) -> str:
+    """An HTML output that is a whole document or carries script, shown in an iframe that the browser
+    sandboxes fully (``sandbox=""``: no script, no same origin, no forms, no pop-ups, no top navigation)."""
+    return (f'<iframe class="output-html" sandbox="" srcdoc="{html.escape(doc)}" style="width:100%;height:520px;'
+            f'border:1px solid #d9dee7" loading="eager"></iframe>')
+
+
 # --------------------------------------------------------------------------- rendering MyST content
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]")
@@ -665,9 +917,8 @@ class Renderer:
         if "text/html" in data:
             doc = self.output_text(data["text/html"])
             if "<script" in doc.lower() or "<html" in doc.lower():
-                return (f'<iframe class="output-html" srcdoc="{html.escape(doc)}" style="width:100%;height:520px;'
-                        f'border:1px solid #d9dee7" loading="eager"></iframe>')
-            return f'<div class="output-html">{doc}</div>'
+                return framed_html(doc)
+            return f'<div class="output-html">{sanitise_html(doc)}</div>'
         if "application/vnd.jupyter.widget-view+json" in data:
             return ('<p class="widget-note"><em>An interactive widget: run the notebook in JupyterLab to use '
                     'it.</em></p>')
@@ -744,8 +995,8 @@ class Renderer:
 
     def href(self, url: str) -> str | None:
         """A page's link as a link of the site, or None where it points at a file the site does not hold."""
-        if re.match(r"^[a-z][a-z0-9+.-]*:", url):
-            return url  # http(s), mailto
+        if re.match(r"^[a-z][a-z0-9+.-]*:", re.sub(r"[\x00-\x20\x7f]+", "", url).lower()):
+            return safe_url(url)  # http(s), mailto; None (named, not linked) for javascript: and the like
         if url.startswith("#"):
             return url
         if url.startswith("/"):
@@ -792,7 +1043,7 @@ class Renderer:
                f'{"".join(self.node(c) for c in rest)}</div>'
 
     def n_html(self, n):
-        return n.get("value", "")  # raw HTML the project's own markdown holds
+        return sanitise_html(str(n.get("value", "")))  # raw HTML in markdown: kept only where it runs no script
 
     def n_footnoteReference(self, n):
         ident = html.escape(str(n.get("identifier", "")))
@@ -843,7 +1094,7 @@ class Site:
             target = self.dest / STATIC / "img" / path
             if not target.exists():
                 utils.make_dir(target.parent)
-                target.write_bytes(raw)
+                write_file(target, raw)
             return f"{STATIC}/img/{path}"
         src = utils.inside_folder(self.build / "public", path) if path else None
         if src is None or not src.is_file():
@@ -851,7 +1102,7 @@ class Site:
         target = self.dest / STATIC / "img" / src.name
         if src.name not in self.images:
             utils.make_dir(target.parent)
-            shutil.copyfile(src, target)
+            copy_file(src, target)
             self.images.add(src.name)
         return f"{STATIC}/img/{src.name}"
 
@@ -893,7 +1144,7 @@ class Site:
                f'<main>{body}</main></div>{scripts}</body></html>\n')
         target = self.dest / rel
         utils.make_dir(target.parent)
-        target.write_text(doc, encoding="utf-8")
+        write_file(target, doc)
 
     def render_pages(self) -> list[str]:
         pages = [p for p in self.nav if p.get("slug")]
@@ -973,13 +1224,16 @@ class Site:
 
     def write_static(self, katex_dir: Path | None) -> None:
         static = utils.make_dir(self.dest / STATIC)
-        (static / "book.css").write_text(CSS + ("" if katex_dir else MATHML_CSS))
-        (static / "pygments.css").write_text(HtmlFormatter(style="default").get_style_defs("pre"))
+        write_file(static / "book.css", CSS + ("" if katex_dir else MATHML_CSS))
+        write_file(static / "pygments.css", HtmlFormatter(style="default").get_style_defs("pre"))
         if katex_dir:
-            shutil.copytree(katex_dir, static / "katex")
+            for src in sorted(p for p in katex_dir.rglob("*") if p.is_file()):
+                target = static / "katex" / src.relative_to(katex_dir)
+                utils.make_dir(target.parent)
+                copy_file(src, target)
         plotly_js = plotly_js_file()
         if plotly_js is not None:
-            shutil.copyfile(plotly_js, static / PLOTLY_JS)
+            copy_file(plotly_js, static / PLOTLY_JS)
 
 
 def plotly_js_file() -> Path | None:
@@ -1010,7 +1264,7 @@ def fetch_katex(cache: Path, npm: str | None = None) -> tuple[Path | None, str]:
     npm = npm or shutil.which("npm")
     if npm is None:
         return None, "npm is not on PATH"
-    with tempfile.TemporaryDirectory(prefix="geodepth-katex-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"geodepth-katex-{os.getpid()}-") as tmp:
         try:
             done = subprocess.run([npm, "pack", f"katex@{KATEX_VERSION}", "--pack-destination", tmp, "--silent"],
                                   capture_output=True, text=True, timeout=300, cwd=tmp, stdin=subprocess.DEVNULL)
@@ -1046,7 +1300,7 @@ def extract_katex(tgz: Path, dest: Path) -> Path:
             src = tar.extractfile(member)
             if src is None:
                 continue
-            (dest / m.group(1)).write_bytes(src.read(2 * 2**20))
+            write_file(dest / m.group(1), src.read(2 * 2**20))
             n += 1
     if not (dest / "katex.min.css").is_file() or n < 2:
         raise BookError(f"cannot read {tgz}: it holds no katex.min.css with fonts")
@@ -1075,20 +1329,23 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
     created = utils.missing_dirs(out)
     utils.check_output_dir(out)
     lock = utils.FolderLock(out, "book folder", remove_file=True)
-    new = out / NEW_DIR
+    new = out / f"{NEW_DIR}-{os.getpid()}"
     publishing = False
     try:
         lock.acquire()
         check_out(out)  # again, under the lock
+        remove_stale_staging(out, STAGING)  # what a killed build left, here and in the temporary folder
+        remove_stale_staging(Path(tempfile.gettempdir()))
         if new.exists():
-            _remove(new)
+            shutil.rmtree(new)
         summary = _make_site(new, notebooks, docs, readme, katex, log)
+        owned, new_files = _plan(out, new)
         publishing = True
-        _publish(out, new, summary)
+        _publish(out, new, owned, new_files, summary)
     except BaseException:
         with contextlib.suppress(OSError):
             if new.exists():
-                _remove(new)
+                shutil.rmtree(new)
             if publishing:
                 _clear_site(out)
         lock.release()
@@ -1102,7 +1359,7 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
 def _make_site(new: Path, notebooks: list[Path], docs: list[Path], readme: Path | None, katex: bool,
                log) -> dict:
     """Stage, build with MyST and render the whole site into ``new``; returns the summary."""
-    with tempfile.TemporaryDirectory(prefix="geodepth-book-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"geodepth-book-{os.getpid()}-") as tmp:
         project = Path(tmp, "project")
         stage(project, notebooks, docs, readme)
         log(f"book: jupyter-book build --site ({len(notebooks)} notebooks, {len(docs)} docs)")
@@ -1128,7 +1385,7 @@ def _make_site(new: Path, notebooks: list[Path], docs: list[Path], readme: Path 
         site.write_static(katex_dir)
         pages = site.render_pages()
         sources = site.render_sources()
-        (new / ".nojekyll").write_text("")
+        write_file(new / ".nojekyll", "")
     return {"pages": pages, "source_pages": len(sources), "figures": len(site.images),
             "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks], "lesson_pages": lesson_pages}
 

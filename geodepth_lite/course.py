@@ -28,6 +28,7 @@ import math
 import os
 import re
 import shutil
+import stat
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -298,12 +299,31 @@ def _returned_notebooks(subs: Path, course: Path, names: list[str]) -> tuple[lis
             if path.name not in expected:
                 skipped.append(path)
                 continue
+            if not path.is_file():  # checked by stat, not by opening: a FIFO would block the first read
+                raise utils.FileProblem(f"cannot collect {path}: not a regular file (a FIFO, socket or device "
+                                        "named like a notebook is refused)", path)
             exercises.read_notebook(path, solutions=False)  # bounded, JSON, cells intact
             target = course / "submitted" / student_dir.name / expected[path.name] / path.name
             if any(t == target for _, t in pairs):
                 raise utils.FileProblem(f"cannot collect {path}: {student_dir.name} returned {path.name} twice", path)
             pairs.append((path, target))
     return pairs, skipped
+
+
+def _read_regular(path: Path) -> bytes:
+    """The bytes of ``path``, opened without following a link and without blocking (O_NONBLOCK), and
+    read only if it is a regular file: a file swapped for a FIFO after the checks cannot hang collect."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags)
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise utils.FileProblem(f"cannot collect {path}: not a regular file", path)
+            return f.read()
+    except utils.FileProblem:
+        raise
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot collect {path}: {utils.os_reason(exc)}", path) from exc
 
 
 def collect(course: Path, submissions: Path) -> dict:
@@ -319,14 +339,14 @@ def collect(course: Path, submissions: Path) -> dict:
         new = []
         for src, target in pairs:
             if target.exists():
-                if target.read_bytes() != src.read_bytes():
+                if _read_regular(target) != _read_regular(src):
                     raise utils.FileProblem(f"cannot collect {src}: {target} already holds a different copy "
                                             "(nothing was collected; remove that copy by hand to replace it)", src)
                 continue
             new.append((src, target))
         stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f UTC")
         for src, target in new:
-            utils.write_bytes_atomic(target, src.read_bytes())
+            utils.write_bytes_atomic(target, _read_regular(src))
             if not (target.parent / "timestamp.txt").exists():
                 utils.write_bytes_atomic(target.parent / "timestamp.txt", (stamp + "\n").encode())
     return {"collected": [t for _, t in new], "already": len(pairs) - len(new), "skipped": skipped}

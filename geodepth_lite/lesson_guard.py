@@ -6,7 +6,12 @@ Run All rewrites the committed file even if the student never saves. With it, th
 reports every notebook that git tracks under ``notebooks/`` of a geodepth-lite checkout as not
 writable (``"writable": false`` in the contents model): JupyterLab then never autosaves it, and
 File > Save Notebook As... keeps the student's work in a copy of their own (an untracked file,
-writable as usual). A save to a lesson notebook is refused with a message that says so.
+writable as usual). Every verb of the contents API that would change a lesson is refused with a
+message that says so (HTTP 403): a save (PUT, also in chunks), a delete (DELETE), a rename away
+or onto its name (PATCH), a copy onto its name, and the restore of a checkpoint over it (POST
+``.../checkpoints/<id>``); so is a delete or rename of a folder that holds a lesson. The guard sits
+in the contents manager's own methods (``save``, ``delete_file``, ``rename_file``,
+``restore_checkpoint``), which every route of the API and every other caller goes through.
 
 A student edition (``course edition``: the released notebooks, without solutions, that students
 fill in and hand back under the same name) is left alone even when it is kept in git: the guard
@@ -23,6 +28,7 @@ from __future__ import annotations
 import inspect
 import json
 import os
+import stat
 import subprocess
 from pathlib import Path
 
@@ -33,8 +39,10 @@ PACKAGE_MARKER = ("geodepth_lite", "lesson_guard.py")  # what makes a git work t
 EDIT_ENV = "GEODEPTH_LITE_EDIT_LESSONS"  # "1": lessons stay writable (authors)
 SOLUTION_MARKER = "### BEGIN SOLUTION"  # nbgrader's; a line of a code cell in the solved lessons only
 MAX_NOTEBOOK_BYTES = 256 * 2**20  # larger files are not read for the marker
-SAVE_REFUSED = ("{path} is a lesson notebook of this checkout (tracked by git) and opens read-only, so that running "
-                "it never rewrites the lesson: keep your work with File > Save Notebook As... under another name")
+REFUSED = ("cannot {verb} {path}: {what} a lesson notebook of this checkout (tracked by git), which opens "
+           "read-only so that running it never rewrites the lesson: keep your work with File > Save Notebook As... "
+           "under another name")
+SKIP_DIRS = ("node_modules", "__pycache__")  # never searched for checkouts (nor are hidden folders)
 
 
 class TrackedLessons:
@@ -86,12 +94,30 @@ class TrackedLessons:
         rel = file.relative_to(top).as_posix()
         return rel.startswith(LESSON_DIR + "/") and rel in self._lessons(top)
 
+    def holds_lesson(self, folder: str | os.PathLike) -> bool:
+        """True if the folder ``folder`` holds a lesson notebook (at any depth): a checkout's
+        ``notebooks/``, the checkout itself, or a folder above one or more checkouts."""
+        folder = Path(os.path.realpath(folder))
+        if not folder.is_dir():
+            return False
+        top = self._top(folder)
+        if top is not None:
+            return any(folder in (top / rel).parents for rel in self._lessons(top))
+        for here, dirs, _ in os.walk(folder):  # above any checkout: find the checkouts below
+            here = Path(here)
+            if (here / ".git").exists():
+                if self._top(here) == here and self._lessons(here):
+                    return True
+            dirs[:] = [d for d in dirs if not d.startswith(".") and d not in SKIP_DIRS]
+        return False
+
 
 def _holds_solutions(path: Path) -> bool:
     """Whether the notebook ``path`` has a code cell with a :data:`SOLUTION_MARKER` line."""
     try:
-        if path.stat().st_size > MAX_NOTEBOOK_BYTES:
-            return False
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_NOTEBOOK_BYTES:
+            return False  # a FIFO in a lesson's place would block the first read, and the server with it
         cells = json.loads(path.read_bytes()).get("cells", [])
     except (OSError, ValueError, AttributeError):
         return False
@@ -103,42 +129,61 @@ def _holds_solutions(path: Path) -> bool:
     return False
 
 
+def _refusal(lessons: TrackedLessons, root: str, verb: str, *paths: str) -> HTTPError | None:
+    """The HTTP 403 for ``verb`` on API ``paths`` where one is, or holds, a lesson notebook; else None."""
+    for path in paths:
+        file = os.path.join(root, path.strip("/"))
+        what = "it is" if lessons.is_lesson(file) else "it holds" if lessons.holds_lesson(file) else ""
+        if what:
+            return HTTPError(403, REFUSED.format(verb=verb, path=path.strip("/"), what=what))
+    return None
+
+
 def guard(contents_manager, lessons: TrackedLessons | None = None) -> None:
     """Make ``contents_manager`` (a Jupyter server's, sync or async) report lesson notebooks as not
-    writable, in their own models and in directory listings, and refuse to save them."""
+    writable, in their own models and in directory listings, and refuse every change to them: save,
+    delete, rename (away or onto), copy onto, checkpoint restore."""
     lessons = lessons or TrackedLessons()
-    get, save = contents_manager.get, contents_manager.save
-
-    def is_lesson(path: str) -> bool:
-        return lessons.is_lesson(os.path.join(contents_manager.root_dir, path.strip("/")))
+    cm = contents_manager
+    checks = {  # method -> (verb, which arguments are API paths that must not be, or hold, a lesson)
+        "save": ("save", lambda model, path, *a, **k: [path]),
+        "delete_file": ("delete", lambda path, *a, **k: [path]),
+        "rename_file": ("rename", lambda old_path, new_path, *a, **k: [old_path, new_path]),
+        "restore_checkpoint": ("restore a checkpoint over", lambda checkpoint_id, path, *a, **k: [path]),
+    }
 
     def mark(model: dict) -> dict:
-        if model.get("type") == "notebook" and is_lesson(model["path"]):
+        if model.get("type") == "notebook" and lessons.is_lesson(os.path.join(cm.root_dir, model["path"])):
             model["writable"] = False
         for child in model.get("content") or () if model.get("type") == "directory" else ():
             mark(child)
         return model
 
-    def refuse(path: str) -> None:
-        if is_lesson(path):
-            raise HTTPError(403, SAVE_REFUSED.format(path=path.strip("/")))
+    def wrap(method, verb, paths):
+        if inspect.iscoroutinefunction(method):
+            async def guarded(*args, **kwargs):
+                refused = _refusal(lessons, cm.root_dir, verb, *paths(*args, **kwargs))
+                if refused is not None:
+                    raise refused
+                return await method(*args, **kwargs)
+        else:
+            def guarded(*args, **kwargs):
+                refused = _refusal(lessons, cm.root_dir, verb, *paths(*args, **kwargs))
+                if refused is not None:
+                    raise refused
+                return method(*args, **kwargs)
+        return guarded
 
+    get = cm.get
     if inspect.iscoroutinefunction(get):
         async def guarded_get(path, *args, **kwargs):
             return mark(await get(path, *args, **kwargs))
-
-        async def guarded_save(model, path, *args, **kwargs):
-            refuse(path)
-            return await save(model, path, *args, **kwargs)
     else:
         def guarded_get(path, *args, **kwargs):
             return mark(get(path, *args, **kwargs))
-
-        def guarded_save(model, path, *args, **kwargs):
-            refuse(path)
-            return save(model, path, *args, **kwargs)
-
-    contents_manager.get, contents_manager.save = guarded_get, guarded_save
+    cm.get = guarded_get
+    for name, (verb, paths) in checks.items():
+        setattr(cm, name, wrap(getattr(cm, name), verb, paths))
 
 
 def _jupyter_server_extension_points():

@@ -8,12 +8,14 @@ The browser test skips, saying why, where chromium, Playwright, Node.js or jupyt
 with GEODEPTH_REQUIRE_BROWSER=1 it fails instead."""
 
 import functools
+import html
 import http.server
 import io
 import json
 import os
 import re
 import subprocess
+import sys
 import tarfile
 import threading
 from pathlib import Path
@@ -265,6 +267,166 @@ def test_failed_build_leaves_no_site(tmp_path, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == [book.MARKER]
 
 
+def _fake_build(tmp_path, monkeypatch, pages=("index", "lesson")):
+    """``book.build`` with a one-notebook MyST build of ``pages`` written by the test (no Node.js)."""
+    _few_modules(monkeypatch)
+    monkeypatch.setattr(book, "check_node", lambda path=None: "node")
+    monkeypatch.setattr(book, "check_jupyter_book", lambda: None)
+    nb = tmp_path / "nbs" / "lesson.ipynb"
+    if not nb.exists():
+        _lesson_nb(tmp_path)
+
+    real_build = book.build
+
+    def build(out, **kw):
+        content = {slug: LESSON if slug == "lesson" else {"type": "root", "children": []} for slug in pages}
+        monkeypatch.setattr(book, "run_myst", _fake_myst(content))
+        return real_build(out, notebooks=[nb], docs=[], readme=None, katex=False, log=lambda m: None)
+    return build
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_rebuild_keeps_the_users_files_and_removes_only_its_own(tmp_path, monkeypatch, capsys):
+    build = _fake_build(tmp_path, monkeypatch, pages=("index", "lesson", "extra"))
+    out = tmp_path / "site"
+    build(out)
+    marker = book.read_marker(out)
+    assert marker["complete"] is True and marker["files"]["lesson.html"] == book.file_sha256(out / "lesson.html")
+    assert set(marker["files"]) == {p for p in _tree(out) if p != book.MARKER}  # every file it wrote, no other
+    (out / "CNAME").write_text("book.example.org\n")
+    (out / "my_slides").mkdir()
+    (out / "my_slides" / "week1.pdf").write_bytes(b"%PDF-1.4 slides")
+    (out / "_static" / "custom.css").write_text("body{}")  # the user's file in a folder of the book's
+    mine = {k: v for k, v in _tree(out).items() if k in ("CNAME", "my_slides/week1.pdf", "_static/custom.css")}
+    build = _fake_build(tmp_path, monkeypatch, pages=("index", "lesson"))  # the new site has no extra page
+    build(out)
+    after = _tree(out)
+    assert {k: after.get(k) for k in mine} == mine  # kept, byte for byte
+    assert "extra.html" not in after and "lesson.html" in after  # its own old page removed
+    assert book.read_marker(out)["complete"] is True and not any(p.name.startswith(book.NEW_DIR) for p in
+                                                                 out.iterdir())
+    # a page of the book's that the user changed is theirs now: refused with one line, nothing changed
+    (out / "lesson.html").write_text("my notes on the lesson")
+    before = _tree(out)
+    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    assert cli.main(["book", "--out", str(out)]) == 2
+    one_line_error(capsys, str(out / "lesson.html"), "did not write it")
+    assert _tree(out) == before
+
+
+def test_a_forged_marker_grants_nothing(tmp_path, monkeypatch):
+    build = _fake_build(tmp_path, monkeypatch)
+    outside = tmp_path / "outside.txt"
+    outside.write_text("not the book's")
+    digest = book.file_sha256(outside)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "book.css").write_text("mine")
+    forged = [{"complete": True}, {"complete": True, "files": {"thesis.tex": None}},
+              {"complete": True, "files": {"../outside.txt": digest, "_static/../../outside.txt": digest}},
+              {"complete": True, "files": {"_static/book.css": book.file_sha256(elsewhere / "book.css")}}]
+    for k, marker in enumerate(forged):
+        folder = tmp_path / f"forged{k}"
+        folder.mkdir()
+        (folder / "thesis.tex").write_text("\\documentclass{article} my thesis")
+        if marker.get("files", {}).get("thesis.tex", 1) is None:
+            marker["files"]["thesis.tex"] = book.file_sha256(folder / "thesis.tex")  # the right hash, even
+        if k == 3:
+            (folder / "_static").symlink_to(elsewhere, target_is_directory=True)
+        (folder / book.MARKER).write_text(json.dumps(marker))
+        before = _tree(folder)
+        try:
+            build(folder)
+        except OSError as exc:  # a link in the way of the site: refused
+            assert k == 3 and "_static" in str(exc)
+        after = _tree(folder)
+        assert {p: after.get(p) for p in before if p != book.MARKER} == {
+            p: v for p, v in before.items() if p != book.MARKER}, k
+        assert outside.read_text() == "not the book's" and (elsewhere / "book.css").read_text() == "mine"
+    # a marker naming the user's page with a hash that is not its own: the page is in the way, refused
+    folder = tmp_path / "forged_page"
+    folder.mkdir()
+    (folder / "index.html").write_text("my home page")
+    (folder / book.MARKER).write_text(json.dumps({"complete": True, "files": {"index.html": "0" * 64}}))
+    with pytest.raises(OSError, match="index.html is in the way"):
+        build(folder)
+    assert (folder / "index.html").read_text() == "my home page"
+
+
+def test_the_forged_marker_check_fails_on_a_book_that_trusts_its_marker(tmp_path, monkeypatch):
+    """The planted defect: owned_files taking every name the marker lists. The check above would see
+    thesis.tex go."""
+    build = _fake_build(tmp_path, monkeypatch)
+    folder = tmp_path / "forged"
+    folder.mkdir()
+    (folder / "thesis.tex").write_text("my thesis")
+    (folder / book.MARKER).write_text(json.dumps({"complete": True, "files": {"thesis.tex": "0" * 64}}))
+    monkeypatch.setattr(book, "owned_files", lambda out, marker: dict(marker["files"]))
+    monkeypatch.setattr(book, "_remove_owned", lambda out, rel, digest: (Path(out) / rel).unlink())
+    build(folder)
+    assert not (folder / "thesis.tex").exists()
+
+
+def test_staging_left_by_a_killed_build_is_removed_by_the_next(tmp_path, monkeypatch):
+    """kill -9 of a build while it renders leaves its MyST project in the temporary folder and its half
+    site in the output folder; the next build removes both (their process is gone) and nothing else."""
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    out = tmp_path / "site"
+    script = f"""
+import sys, tempfile, time
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+tempfile.tempdir = {str(temp)!r}
+import pytest
+import test_book
+from geodepth_lite import book
+mp = pytest.MonkeyPatch()
+build = test_book._fake_build(__import__("pathlib").Path({str(tmp_path)!r}), mp)
+mp.setattr(book.Site, "render_sources", lambda self: (print("rendering", flush=True), time.sleep(300)))
+build(__import__("pathlib").Path({str(out)!r}))
+"""
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(Path(book.ROOT))})
+    try:
+        assert proc.stdout.readline().strip() == "rendering"
+    finally:
+        proc.kill()  # SIGKILL: no clean-up runs
+        proc.wait()
+    left = [p.name for p in temp.iterdir()] + [p.name for p in out.iterdir()]
+    assert f"{book.NEW_DIR}-{proc.pid}" in left and any(n.startswith(f"geodepth-book-{proc.pid}-") for n in left)
+    alive = temp / f"geodepth-book-{os.getppid()}-abc123"  # a live process's: kept
+    alive.mkdir()
+    (temp / "geodepth-book-notes").mkdir()  # not a staging name: kept
+    monkeypatch.setattr(book.tempfile, "tempdir", str(temp))
+    _fake_build(tmp_path, monkeypatch)(out)
+    assert sorted(p.name for p in temp.iterdir()) == sorted([alive.name, "geodepth-book-notes"])
+    assert not any(p.name.startswith(book.NEW_DIR) for p in out.iterdir())
+    assert book.read_marker(out)["complete"] is True
+
+
+def test_a_full_disk_names_the_file_and_keeps_the_old_site(tmp_path, monkeypatch, capsys):
+    build = _fake_build(tmp_path, monkeypatch)
+    out = tmp_path / "site"
+    build(out)
+    before = _tree(out)
+    real_write = Path.write_bytes
+
+    def full(self, data):
+        if self.name == "lesson.html":
+            raise OSError(28, "No space left on device")  # as the kernel reports it: no file named
+        return real_write(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    assert cli.main(["book", "--out", str(out)]) == 2
+    line = one_line_error(capsys, "no space left on device", "lesson.html")
+    assert re.search(r"cannot write \S*/\.geodepth-book-new-\d+/lesson\.html: no space left on device$", line)
+    assert _tree(out) == before and not any(p.name.startswith(book.NEW_DIR) for p in out.iterdir())
+
+
 def test_katex_tarball_is_checked_and_bounded(tmp_path):
     cache = tmp_path / "katex.tgz"
     cache.write_bytes(b"not the package")
@@ -289,6 +451,111 @@ def test_katex_tarball_is_checked_and_bounded(tmp_path):
     found = sorted(p.relative_to(dest).as_posix() for p in dest.rglob("*") if p.is_file())
     assert found == ["fonts/KaTeX_Main-Regular.woff2", "katex.min.css"]
     assert not (tmp_path / "evil.css").exists()
+
+
+# --------------------------------------------------------------------------- HTML the book did not write
+
+VECTORS = [  # classic ways to run script through HTML that passes for harmless
+    '<img src=x onerror="alert(1)">',
+    '<IMG SRC=x OnError=alert(1)//>',
+    "<script>alert(1)</script>",
+    "<scr<script>ipt>alert(1)</script>",
+    '<svg onload="alert(1)"><circle r="1"/></svg>',
+    '<svg><script>alert(1)</script></svg>',
+    '<a href="javascript:alert(1)">x</a>',
+    '<a href="jav&#x09;ascript:alert(1)">x</a>',
+    '<a href=" &#14;javascript:alert(1)">x</a>',
+    '<a href="JaVaScRiPt&colon;alert(1)">x</a>',
+    '<a href="data:text/html;base64,PHNjcmlwdD5hbGVydCgxKTwvc2NyaXB0Pg==">x</a>',
+    '<img src="data:image/svg+xml;base64,PHN2ZyBvbmxvYWQ9YWxlcnQoMSk+">',
+    '<div style="width: expression(alert(1))">x</div>',
+    '<div style="background:url(javascript:alert(1))">x</div>',
+    "<style>@import 'javascript:alert(1)';</style>",
+    '<table><tr><td background="javascript:alert(1)">x</td></tr></table>',
+    '<noscript><p title="</noscript><img src=x onerror=alert(1)>"></noscript>',
+    '<iframe src="javascript:alert(1)"></iframe>',
+    '<object data="javascript:alert(1)"></object><embed src="javascript:alert(1)">',
+    '<math><mtext><table><mglyph><style><img src=x onerror=alert(1)>',
+    '<details open ontoggle="alert(1)">x</details>',
+    '<form><button formaction="javascript:alert(1)">x</button></form>',
+    '<meta http-equiv="refresh" content="0;url=javascript:alert(1)">',
+    '<base href="javascript:alert(1)//">',
+]
+
+
+def _script_risks(doc: str) -> list[str]:
+    """What in ``doc`` can run script when a browser shows it: event handlers, style, script-bearing elements,
+    URLs of a scheme other than http(s)/mailto (data: images of a raster type excepted)."""
+    from html.parser import HTMLParser
+
+    risks = []
+
+    class Finder(HTMLParser):
+        def handle_starttag(self, tag, attrs):
+            if tag in ("script", "style", "svg", "math", "iframe", "object", "embed", "meta", "base", "form",
+                       "button", "noscript"):
+                risks.append(tag)
+            for name, value in attrs:
+                squeezed = re.sub(r"[\x00-\x20]+", "", value or "").lower()
+                if name.startswith("on") or name == "style":
+                    risks.append(name)
+                elif re.match(r"^[a-z][a-z0-9+.-]*:", squeezed) and not re.match(
+                        r"^(https?:|mailto:|data:image/(png|jpeg|gif|webp);base64,)", squeezed):
+                    risks.append(f"{name}={squeezed[:20]}")
+
+    Finder(convert_charrefs=True).feed(doc)
+    return risks + (["<script"] if "<script" in doc.lower() else [])
+
+
+def test_sanitiser_removes_every_classic_vector():
+    for vector in VECTORS:
+        assert _script_risks(vector), vector  # the check sees the danger in the raw vector ...
+        clean = book.sanitise_html(vector)
+        assert not _script_risks(clean), (vector, clean)  # ... and none is left after sanitising
+    # what outputs need stays: a pandas-like table, text formatting, a link, a raster data-URL image
+    table = ('<table border="1" class="dataframe"><thead><tr><th>a</th></tr></thead><tbody><tr><td colspan="2">'
+             '1 &lt; 2</td></tr></tbody></table><b>bold</b> <a href="https://example.org/x?a=1&amp;b=2">l</a>'
+             '<img src="data:image/png;base64,iVBORw0KGgo=" alt="fig">')
+    clean = book.sanitise_html(table)
+    assert clean == table.replace('">l</a>', '" rel="noopener noreferrer nofollow">l</a>')
+    assert book.sanitise_html("<p>open <b>bold") == "<p>open <b>bold</b></p>"  # closed, whole HTML
+    # a value that breaks out of its quotes where it is written back unescaped: it stays one value
+    breaking = '<a title=\'x" onmouseover="alert(1)\'>z</a>'
+    assert _script_risks('<a title="x" onmouseover="alert(1)">z</a>') == ["onmouseover"]  # written back naively
+    assert book.sanitise_html(breaking).startswith('<a title="x&quot; onmouseover=&quot;alert(1)"')
+    assert not _script_risks(book.sanitise_html(breaking))
+
+
+def test_a_planted_sanitiser_defect_is_caught():
+    """The check of the test above fails on a sanitiser that keeps event handlers (a defect planted here)."""
+    leaky = book._Sanitiser.handle_starttag
+
+    def keeps_handlers(self, tag, attrs):
+        leaky(self, tag, attrs)
+        if tag in book.SAFE_TAGS and self.out and attrs:
+            self.out[-1] = self.out[-1][:-1] + "".join(f' {k}="{v}"' for k, v in attrs if k.startswith("on")) + ">"
+
+    book._Sanitiser.handle_starttag = keeps_handlers
+    try:
+        assert _script_risks(book.sanitise_html(VECTORS[0])) == ["onerror"]
+    finally:
+        book._Sanitiser.handle_starttag = leaky
+
+
+def test_html_outputs_are_sanitised_or_sandboxed(tmp_path):
+    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    inline = r.output({"output_type": "display_data",
+                       "data": {"text/html": {"content": '<img src=x onerror="alert(1)"><table><tr><td>t</td></tr>'
+                                                         "</table>"}}})
+    assert "onerror" not in inline and "<td>t</td>" in inline
+    framed = r.output({"output_type": "display_data",
+                       "data": {"text/html": {"content": "<p>x</p><script>alert(1)</script>"}}})
+    assert framed.startswith('<iframe class="output-html" sandbox="" srcdoc="') and "<script" not in framed
+    assert "allow-" not in framed  # no permission at all: no script, no same origin
+    assert "onerror" not in r.n_html({"value": '<img src=y onerror="alert(1)">'})
+    assert "<a" not in r.n_link({"url": "javascript:alert(1)", "children": [{"type": "text", "value": "x"}]})
+    assert "<a" not in r.n_link({"url": " java\tscript:alert(1)", "children": []})
+    assert r.n_link({"url": "https://example.org", "children": []}).startswith('<a href="https://example.org"')
 
 
 # --------------------------------------------------------------------------- the real book in a browser
@@ -330,6 +597,16 @@ def served_book(tmp_path_factory):
     yield out, f"http://127.0.0.1:{server.server_port}", summary
     server.shutdown()
     server.server_close()
+
+
+def test_the_real_books_marker_lists_every_file_it_wrote(served_book):
+    """Every file of the built site is recorded with its SHA-256 under a name the book owns, so a rebuild
+    can replace each one and nothing else."""
+    out, _, _ = served_book
+    files = book.read_marker(out)["files"]
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()} - {book.MARKER}
+    assert set(files) == on_disk and len(files) > 20
+    assert book.owned_files(out, book.read_marker(out)) == files  # every hash matches, every name is the book's
 
 
 def _notebook_facts():
@@ -471,3 +748,102 @@ def test_interactive_3d_views_are_drawn(browsed):
     for name, n in stored.items():
         e = report[summary["lesson_pages"][name]]
         assert e["views_3d"] == n and e.get("views_3d_drawn", 0) == n, (name, n, e["views_3d"])
+
+
+# --------------------------------------------------------------------------- planted HTML in a browser
+
+PAYLOAD = "window.__planted = (window.__planted || 0) + 1; new Image().src = '/ran-{0}'; alert('{0}');"
+
+
+def _planted_notebook(folder: Path) -> Path:
+    """A notebook whose outputs (and one markdown cell) carry script in the ways an output can: each payload,
+    if it runs, sets a global, asks the server for /ran-<name> and opens a dialog."""
+    def html_output(doc):
+        return {"output_type": "display_data", "metadata": {}, "data": {"text/html": doc, "text/plain": "x"}}
+
+    outputs = [
+        html_output(f'<img src="x" onerror="{PAYLOAD.format("onerror")}"><table><tr><td>planted table</td></tr>'
+                    "</table>"),
+        html_output(f"<p>framed output</p><script>{PAYLOAD.format('script')}</script>"),
+        html_output(f'<svg onload="{PAYLOAD.format("svg")}"></svg><a href="javascript:{PAYLOAD.format("href")}">'
+                    "planted link</a>"),
+    ]
+    cells = [{"cell_type": "markdown", "metadata": {},
+              "source": f'# Planted\n\n<img src="y" onerror="{PAYLOAD.format("markdown")}">\n'},
+             {"cell_type": "code", "metadata": {}, "execution_count": 1, "source": "show()", "outputs": outputs}]
+    nb = folder / "00_planted.ipynb"
+    nb.write_text(json.dumps({"cells": cells, "metadata": {}, "nbformat": 4, "nbformat_minor": 5}))
+    return nb
+
+
+CONTROL = ("<!DOCTYPE html><html><body><img src=\"x\" onerror=\"{0}\">"
+           "<iframe srcdoc=\"<script>{1}</script>\"></iframe></body></html>")
+
+
+@pytest.fixture(scope="module")
+def planted_site(tmp_path_factory):
+    """A book of one notebook with planted HTML outputs, built by jupyter-book, served with every request
+    recorded; and a control page (the same payloads unescaped) that shows the payloads do run unguarded."""
+    missing = _browser_missing()
+    if missing:
+        if os.environ.get(REQUIRE_ENV, "") not in ("", "0"):
+            pytest.fail(f"{REQUIRE_ENV}=1, but the browser test cannot run: {missing}")
+        pytest.skip(f"browser test: {missing}")
+    tmp = tmp_path_factory.mktemp("planted")
+    with pytest.MonkeyPatch.context() as mp:
+        _few_modules(mp)
+        out = tmp / "site"
+        summary = book.build(out, notebooks=[_planted_notebook(tmp)], docs=[], readme=None, katex=False,
+                             log=lambda m: None)
+    control = html.escape(PAYLOAD.format("control-script"))
+    (tmp / "control.html").write_text(CONTROL.format(html.escape(PAYLOAD.format("control-onerror")), control))
+    requests = []
+
+    class Recording(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            requests.append(self.path)
+            super().do_GET()
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Recording, directory=str(tmp)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{server.server_port}", summary, requests
+    server.shutdown()
+    server.server_close()
+
+
+def _open_and_watch(base: str, rel: str, requests: list) -> dict:
+    """Open ``rel`` in chromium, click every link, wait, and report what ran: dialogs, the global, /ran-* requests."""
+    from playwright.sync_api import sync_playwright
+
+    requests.clear()
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page()
+        dialogs = []
+        page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
+        page.goto(f"{base}/{rel}", wait_until="load")
+        page.wait_for_timeout(1500)
+        for link in page.locator("main a").all():
+            if "planted" in (link.inner_text() or ""):
+                link.click()
+        page.wait_for_timeout(500)
+        seen = {"dialogs": dialogs, "global": page.evaluate("() => window.__planted === undefined ? null : 1"),
+                "frames": page.evaluate(
+                    "() => [...document.querySelectorAll('iframe')].map(f => f.getAttribute('sandbox'))"),
+                "text": page.evaluate("() => document.body.innerText"),
+                "ran": sorted({r for r in requests if r.startswith("/ran-")})}
+        browser.close()
+    return seen
+
+
+def test_planted_html_in_outputs_cannot_run_script(planted_site):
+    base, summary, requests = planted_site
+    control = _open_and_watch(base, "control.html", requests)  # the watch sees a payload that runs
+    assert control["ran"] == ["/ran-control-onerror", "/ran-control-script"] and control["dialogs"], control
+    seen = _open_and_watch(base, "site/" + summary["lesson_pages"]["00_planted.ipynb"], requests)
+    assert seen["ran"] == [] and seen["dialogs"] == [] and seen["global"] is None, seen
+    assert seen["frames"] == [""]  # the output with a script: in an iframe sandboxed of every permission
+    assert "planted table" in seen["text"] and "planted link" in seen["text"]  # the harmless part is shown

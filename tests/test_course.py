@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import zipfile
@@ -20,7 +21,7 @@ from pathlib import Path
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import cli, course, exercises
+from geodepth_lite import cli, course, exercises, utils
 
 TINY = "99_tiny"
 
@@ -187,6 +188,32 @@ def test_collect_refuses_with_one_line_naming_the_file(tiny_course, tmp_path, ca
     assert cli.main(["course", "collect", str(subs), "--course", target]) == 2
     one_line_error(capsys, str(named))
     assert not (tiny_course / "submitted").exists()
+
+
+def test_collect_refuses_a_fifo_named_like_a_notebook_without_hanging(tiny_course, tmp_path, capsys):
+    """A FIFO (as a tar archive can deliver one) named like a returned notebook: one line naming it, exit 2,
+    nothing collected, the course lock released; an alarm turns a hang into a failure."""
+    subs = _submissions(tmp_path, {f"ana/{TINY}.ipynb": (tmp_path / f"{TINY}.ipynb").read_bytes()})
+    (subs / "bo").mkdir()
+    fifo = subs / "bo" / f"{TINY}.ipynb"
+    os.mkfifo(fifo)
+
+    def hung(*_):
+        raise TimeoutError("collect blocked on the FIFO")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(15)
+    try:
+        assert cli.main(["course", "collect", str(subs), "--course", str(tiny_course)]) == 2
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    one_line_error(capsys, str(fifo), "not a regular file")
+    assert not (tiny_course / "submitted").exists() and not (tiny_course / utils.LOCK_NAME).exists()
+    with course.course_lock(tiny_course):  # free again: the next action is not told the course is busy
+        pass
+    with pytest.raises(utils.FileProblem, match="not a regular file"):  # swapped for a FIFO after the checks
+        course._read_regular(fifo)
 
 
 # ----------------------------------------------------------------------------------------- the round trip
