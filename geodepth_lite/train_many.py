@@ -77,6 +77,8 @@ class Run:
     started: float = 0.0
     ended: float = 0.0
     status: str = "waiting"
+    started_at: float = 0.0  # wall-clock times (time.time()) of the start and end
+    ended_at: float = 0.0
     rows: list[dict] = field(default_factory=list)
 
     @property
@@ -189,7 +191,7 @@ def _start(run: Run, say) -> None:
     with open(run.log_path, "ab") as log:  # the child holds its own descriptor
         run.proc = subprocess.Popen([sys.executable, "-c", TRAIN_MAIN, *run.argv], stdout=log,
                                     stderr=subprocess.STDOUT, env=child_env(), start_new_session=True)
-    run.started, run.status = time.perf_counter(), "running"
+    run.started, run.started_at, run.status = time.perf_counter(), time.time(), "running"
     say(f"{run.name}: started (process {run.proc.pid}) -> {run.folder}")
 
 
@@ -211,7 +213,7 @@ def _poll(run: Run, say) -> bool:
     code = run.proc.poll()
     if code is None:
         return False
-    run.ended = time.perf_counter()
+    run.ended, run.ended_at = time.perf_counter(), time.time()
     if code == 0:
         run.status = "completed"
     else:
@@ -233,7 +235,7 @@ def _stop(run: Run, why: str, say) -> None:
         except ProcessLookupError:
             pass
     run.rows = _read_rows(run)
-    run.ended, run.status = time.perf_counter(), why
+    run.ended, run.ended_at, run.status = time.perf_counter(), time.time(), why
     say(f"{run.name}: {why}")
 
 
@@ -268,6 +270,7 @@ def run_summary(run: Run) -> dict:
     keep = ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_total", "val_rmse", "val_abs_rel")
     return {"case": run.case, "seed": run.seed, "folder": str(run.folder), "config_hash": run.config_hash,
             "status": run.status, "seconds": round(max(run.ended - run.started, 0.0), 2),
+            "started_at": round(run.started_at, 2), "ended_at": round(run.ended_at, 2),
             "epochs": [{k: r[k] for k in keep if k in r} for r in run.rows]}
 
 
