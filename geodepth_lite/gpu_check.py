@@ -339,10 +339,12 @@ def _claim_out(out: Path) -> None:
 
 def _step(report: dict, key: str, fn, save) -> dict:
     """``report[key] = fn()``, or the failure as its status; recorded (``save``) either way."""
+    t0 = time.perf_counter()
     try:
         report[key] = fn()
     except Exception as exc:  # recorded, and the next step still runs
         report[key] = {**report.get(key, {}), "status": f"failed: {type(exc).__name__}: {exc}"}
+    report.setdefault("step_s", {})[key] = round(time.perf_counter() - t0, 1)
     save()
     return report[key]
 
@@ -439,8 +441,8 @@ def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) ->
     print(f"gpu-check: paper profile run {run['status']}, {len(run.get('epochs', []))} epochs", flush=True)
     ckpt = work / "full" / "case4_seed0" / "checkpoint.pt"
     _step(report, "paper_test", lambda: test_split_scores(ckpt, root, dev), save)
-    _step(report, "sdf_share", lambda: sdf_step_share(dev, root, size, 4 if tiny else 20, 6 if tiny else 32,
-                                                      3 if tiny else args.repeats), save)
+    _step(report, "sdf_share", lambda: sdf_step_share(dev, root, size, 2 if tiny else 20, 6 if tiny else 32,
+                                                      1 if tiny else args.repeats), save)
     ks = ["1", "2"] if tiny else ["1", "2", "4", "8"]
     frames = ["--train-frames", "8", "--val-frames", "2"] if tiny else [
         "--train-frames", str(args.many_frames), "--val-frames", "20"]
