@@ -53,7 +53,21 @@ from pathlib import Path
 import numpy
 import torch
 
-from geodepth_lite import analytic, camera, inference, losses, sdf, utils
+from geodepth_lite import (
+    analytic,
+    camera,
+    checkpoint,
+    config,
+    datasets,
+    evaluate,
+    inference,
+    losses,
+    manifest,
+    sdf,
+    train,
+    train_many,
+    utils,
+)
 from geodepth_lite.model import DepthNet
 
 MARKER = ".gpu-check"
@@ -316,9 +330,7 @@ def _full_lines(report: dict) -> list[str]:
         lines.append(f"| SDF loss share of a training step | {sh['status']} |")
     many = report.get("many_runs", {})
     if "levels" in many:
-        from geodepth_lite.train_many import throughput_markdown
-
-        lines += ["", *throughput_markdown(many).strip().splitlines()[2:]]
+        lines += ["", *train_many.throughput_markdown(many).strip().splitlines()[2:]]
     elif many:
         lines.append(f"| further runs together | {many['status']} |")
     return lines
@@ -405,15 +417,11 @@ def _scenario_data(dev, work: Path, counts: dict, size: int, tiny: bool) -> Path
 def _paper_counts(tiny: bool) -> dict:
     if tiny:
         return {"train": 12, "val": 4, "test": 4}
-    from geodepth_lite import manifest
-
     return {k: int(v) for k, v in manifest.load_manifest("scenario_paper")["splits"].items()}
 
 
 def _train_many(argv: list[str]) -> int:
     """``python -m geodepth_lite train-many`` with ``argv``, in this process (its runs in their own)."""
-    from geodepth_lite import train_many
-
     parser = argparse.ArgumentParser(prog="train-many")
     train_many.add_arguments_train_many(parser)
     return train_many.run_train_many(parser.parse_args(argv))
@@ -468,8 +476,6 @@ def paper_run(out: Path, argv: list[str], seconds: float, run: dict) -> dict:
 def test_split_scores(ckpt: Path, root: Path, dev) -> dict:
     """The trained model's Abs Rel and RMSE on the TEST split, beside the shading prior's and a
     constant depth's on the same frames (``evaluate``'s metrics, median scaling)."""
-    from geodepth_lite import checkpoint, evaluate
-
     if not ckpt.is_file():
         return {"status": "not run: the run wrote no checkpoint (no epoch finished)"}
     ds = evaluate.open_eval_dataset(str(root), split="test")
@@ -487,8 +493,6 @@ def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: i
     Adam step) on one batch of the training frames: 1 - (Case 2 step) / (Case 4 step), Case 2 being
     Case 4 without the SDF term; with the ground-truth fields searched anew (the first epoch) and
     taken from the cache (every later epoch)."""
-    from geodepth_lite import config, datasets, train
-
     ds = datasets.load_split(root, "train", size, limit=batch)
     data = inference.to_device(inference.collate([ds[i] for i in range(len(ds))]), dev)
     steps = {}
