@@ -20,9 +20,13 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import multiprocessing
+import os
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import torch
 
@@ -91,25 +95,35 @@ def stacked(k: int, dev, image, steps: int, repeats: int) -> float:
     return _timed(step, dev, steps, repeats)
 
 
-def _process_worker(args) -> float:
-    dev_name, size, batch, threads, steps, repeats, start = args
-    torch.set_num_threads(threads)
-    dev = torch.device(dev_name)
-    image = torch.rand(batch, 3, size, size, device=dev)
+def _worker(a: argparse.Namespace) -> int:
+    """One of the K processes (``--worker FOLDER``): warm up, say so, wait for the others, time."""
+    torch.set_num_threads(a.threads)
+    dev = torch.device(a.device)
+    image = torch.rand(a.batch, 3, a.size, a.size, device=dev)
     fn = _step_fn(_models(1, dev)[0], image)
     fn()
-    start.wait()  # every process begins its timed rounds together
-    return _timed(fn, dev, steps, repeats)
+    folder = Path(a.worker)
+    (folder / f"ready-{os.getpid()}").touch()
+    while not (folder / "go").exists():  # every process begins its timed rounds together
+        time.sleep(0.01)
+    print(json.dumps({"step_s": _timed(fn, dev, a.steps, a.repeats)}))
+    return 0
 
 
-def processes(k: int, dev, size: int, batch: int, threads: int, steps: int, repeats: int) -> float:
+def processes(k: int, a: argparse.Namespace) -> float:
     """Seconds per step of all K models: the slowest process's step time (they run side by side)."""
-    ctx = multiprocessing.get_context("spawn")
-    with ctx.Manager() as manager:
-        start = manager.Barrier(k)
-        with ctx.Pool(k) as pool:
-            per = pool.map(_process_worker, [(str(dev), size, batch, threads, steps, repeats, start)] * k)
-    return max(per)
+    with tempfile.TemporaryDirectory() as folder:
+        argv = [sys.executable, __file__, "--worker", folder, "--device", a.device, "--size", str(a.size),
+                "--batch", str(a.batch), "--threads", str(a.threads), "--steps", str(a.steps),
+                "--repeats", str(a.repeats)]
+        procs = [subprocess.Popen(argv, stdout=subprocess.PIPE, text=True) for _ in range(k)]
+        while len(list(Path(folder).glob("ready-*"))) < k and all(p.poll() is None for p in procs):
+            time.sleep(0.05)
+        (Path(folder) / "go").touch()
+        outs = [p.communicate()[0] for p in procs]
+    if any(p.returncode for p in procs):
+        raise RuntimeError(f"a worker process failed: exit codes {[p.returncode for p in procs]}")
+    return max(json.loads(o.strip().splitlines()[-1])["step_s"] for o in outs)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -122,7 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.worker:
+        return _worker(a)
     dev, k = torch.device(a.device), a.runs
     image = torch.rand(a.batch, 3, a.size, a.size, device=dev)
     torch.set_num_threads(a.threads)
@@ -131,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(a.threads * k)  # one process given the threads that K processes use together
     stack = stacked(k, dev, image, a.steps, a.repeats)
     torch.set_num_threads(a.threads)
-    procs = processes(k, dev, a.size, a.batch, a.threads, a.steps, a.repeats)
+    procs = processes(k, a)
     res = {"device": str(dev), "size": a.size, "batch": a.batch, "runs": k, "threads": a.threads,
            "one_step_s": one, "sequential_s": seq, "stacked_s": stack, "processes_s": procs}
     print(f"{k} runs, {a.size} px, batch {a.batch}, {dev}; steps/s of all runs together (speedup over one run):")
