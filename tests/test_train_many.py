@@ -142,3 +142,20 @@ def test_default_concurrency_fills_the_cores_at_the_profiles_threads():
     assert train_many.default_concurrency(cpu, {"threads": 1}, 1) == 1
     assert train_many.default_concurrency(cpu, {"threads": None}, 8) == 1
     assert train_many.default_concurrency(torch.device("cuda"), {"threads": None}, 20) == 8
+
+
+def test_resume_continues_an_interrupted_run(tiny_root, tmp_path, capsys):
+    from geodepth_lite import train
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / train_many.MARKER).write_text("")
+    cfg = config.make_config("smoke", 4, 0, dataset=str(tiny_root), image_size=32, epochs=2)
+    train.fit(cfg, out / "case4_seed0", progress=False, stop_after=1)  # stopped after epoch 1 of 2
+    argv = ["train-many", *_settings(tiny_root), "--epochs", "2", "--out", str(out)]
+    assert cli.main(argv) == 2 and "--resume" in capsys.readouterr().err  # not overwritten unasked
+    assert _weights(out / "case4_seed0")["epoch"] == 1
+    assert cli.main([*argv, "--resume"]) == 0
+    ckpt = _weights(out / "case4_seed0")
+    assert ckpt["epoch"] == 2 and ckpt["complete"] and [r["epoch"] for r in ckpt["history"]] == [1, 2]
+    assert "resuming" in (out / "logs" / "case4_seed0.txt").read_text()
