@@ -84,10 +84,11 @@ def add_arguments_gpu_check(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-pytest", action="store_true", help="skip the CUDA tests")
     parser.add_argument("--full", action="store_true",
                         help="also train the paper profile itself: 18 epochs over 3600 + 900 analytic frames")
-    parser.add_argument("--full-timeout", type=int, default=420,
-                        help="seconds allowed to the --full run, data included (default 420)")
-    parser.add_argument("--many-timeout", type=int, default=240,
-                        help="seconds allowed to --full's further runs trained together (default 240)")
+    parser.add_argument("--full-timeout", type=int, default=300,
+                        help="seconds allowed to the --full run, data included (default 300)")
+    parser.add_argument("--many-timeout", type=int, default=150,
+                        help="seconds allowed to --full's further runs trained together (default 150; with the "
+                             "defaults the whole check stays within 10 minutes)")
     parser.add_argument("--many-frames", type=int, default=400,
                         help="training frames of each further run of --full (one epoch; default 400)")
     parser.add_argument("--step-timeout", type=int, default=200,
