@@ -71,6 +71,7 @@ from geodepth_lite import (
 from geodepth_lite.model import DepthNet
 
 MARKER = ".gpu-check"
+EPOCH_KEYS = ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse", "val_abs_rel")
 PAPER_TRAIN, PAPER_VAL, PAPER_EPOCHS = 3600, 900, 18  # the paper split and epochs (config "paper")
 
 
@@ -240,8 +241,7 @@ def time_training(dev, work: Path, frames: int, epochs: int | None, size: int, t
            "seconds": round(time.perf_counter() - t0, 1)}
     log = run / "log.json"
     rows = json.loads(log.read_text())["epochs"] if log.is_file() else []
-    res["epochs"] = [{k: r[k] for k in ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse",
-                                        "val_abs_rel") if k in r} for r in rows]
+    res["epochs"] = [{k: r[k] for k in EPOCH_KEYS if k in r} for r in rows]
     if rows:
         res["prediction"] = predict_paper_time(rows, frames, n_val)
     return res
@@ -421,11 +421,11 @@ def _paper_counts(tiny: bool) -> dict:
     return {k: int(v) for k, v in manifest.load_manifest("scenario_paper")["splits"].items()}
 
 
-def _train_many(argv: list[str]) -> int:
+def _train_many(argv: list[str], on_line=None) -> int:
     """``python -m geodepth_lite train-many`` with ``argv``, in this process (its runs in their own)."""
     parser = argparse.ArgumentParser(prog="train-many")
     train_many.add_arguments_train_many(parser)
-    return train_many.run_train_many(parser.parse_args(argv))
+    return train_many.run_train_many(parser.parse_args(argv), on_line)
 
 
 def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) -> None:
@@ -446,7 +446,7 @@ def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) ->
     sizes = ["--image-size", "32", "--batch-size", "4", "--epochs", "2"] if tiny else []
     common = ["--profile", "paper", "--cases", "4", "--dataset", str(root), "--device", str(dev), "--no-progress"]
     left = args.full_timeout - run["data_s"]
-    run = _step(report, "paper_run", lambda: paper_run(work / "full", common + sizes, left, run), save)
+    run = _step(report, "paper_run", lambda: paper_run(work / "full", common + sizes, left, run, save), save)
     print(f"gpu-check: paper profile run {run['status']}, {len(run.get('epochs', []))} epochs", flush=True)
     ckpt = work / "full" / "case4_seed0" / "checkpoint.pt"
     _step(report, "paper_test", lambda: test_split_scores(ckpt, root, dev), save)
@@ -459,12 +459,22 @@ def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) ->
                                                  ks, args.many_timeout), save)
 
 
-def paper_run(out: Path, argv: list[str], seconds: float, run: dict) -> dict:
+def paper_run(out: Path, argv: list[str], seconds: float, run: dict, save) -> dict:
     """Case 4, seed 0 of the paper profile through ``train-many``, stopped after ``seconds``."""
     if seconds < 1:
         return {**run, "status": f"not run: the data took the whole --full-timeout ({run['data_s']:.0f} s)"}
     t0 = time.perf_counter()
-    code = _train_many([*argv, "--seeds", "0", "--out", str(out), "--time-limit", str(seconds)])
+    def on_line(text: str) -> None:  # each finished epoch recorded at once (the check may be cut off)
+        if ": epoch " in text:
+            try:
+                rows = checkpoint.read_log(folder)
+            except (OSError, ValueError):  # the next epoch's line tries again
+                return
+            run.update(status="training", epochs=[{k: r[k] for k in EPOCH_KEYS if k in r} for r in rows])
+            save()
+
+    folder = out / "case4_seed0"
+    code = _train_many([*argv, "--seeds", "0", "--out", str(out), "--time-limit", str(seconds)], on_line)
     group = json.loads((out / "train_many.json").read_text())
     one = group["runs"][0]
     res = {**run, "status": one["status"], "exit": code, "seconds": round(time.perf_counter() - t0, 1),

@@ -274,9 +274,11 @@ def run_summary(run: Run) -> dict:
             "epochs": [{k: r[k] for k in keep if k in r} for r in run.rows]}
 
 
-def _say(t0: float):
+def _say(t0: float, on_line=None):
     def say(text: str) -> None:
         print(f"train-many [{time.perf_counter() - t0:7.1f} s] {text}", flush=True)
+        if on_line is not None:
+            on_line(text)
 
     return say
 
@@ -293,7 +295,9 @@ def _check_numbers(args: argparse.Namespace) -> None:
             raise ValueError("--throughput measures fresh runs: it does not take --resume")
 
 
-def run_train_many(args: argparse.Namespace) -> int:
+def run_train_many(args: argparse.Namespace, on_line=None) -> int:
+    """The command; ``on_line``: also called with each progress line (``gpu-check`` records its run's
+    epochs as they end)."""
     dev = check_device(args.device)
     _check_numbers(args)
     out = Path(args.out)
@@ -301,7 +305,7 @@ def run_train_many(args: argparse.Namespace) -> int:
     created = utils.missing_dirs(out)
     try:
         with utils.FolderLock(out, "train-many folder", remove_file=True):
-            say = _say(time.perf_counter())
+            say = _say(time.perf_counter(), on_line)
             if args.throughput:
                 record = throughput(args, out, dev, say)
             else:
