@@ -375,7 +375,8 @@ def level_row(k: int, runs: list[Run], wall: float, steps: int, frames: int) -> 
 
 def throughput(args: argparse.Namespace, out: Path, dev: torch.device, say) -> dict:
     """K runs together for each K of ``--throughput`` (seeds 0..K-1 of the first case), each K after
-    the last has ended; a K is not started when the time left cannot hold it at one run's pace."""
+    the last has ended; a K is not started when the time left cannot hold it (the previous K's wall
+    time times K over that K: as if no run overlapped another)."""
     ks = sorted(set(args.throughput) | {1})  # the speedups are over one run alone
     plans = {k: plan_runs(args, out / "throughput" / f"k{k}", [(args.cases[0], s) for s in range(k)]) for k in ks}
     cfg = plans[ks[-1]][1][0]
