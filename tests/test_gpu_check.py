@@ -150,3 +150,18 @@ def test_the_stated_gpu_figures_come_from_the_committed_record():
         assert missing(text) == [], f"{name} does not state the record's {missing(text)}"
     # the check can fail: a text whose total disagrees with the record is caught
     assert missing(texts["README.md"].replace("11.7 min", "12.1 min")) == ["total"]
+
+
+def test_a_paper_run_cut_off_by_its_time_limit_is_recorded(tmp_path, monkeypatch):
+    """--full-timeout reached: the run is stopped (or not started when the data took the time), the
+    record says so, and the test-split step says why it has no model."""
+    monkeypatch.setattr(gpu_check, "sdf_step_share", lambda *a, **k: {"status": "left out in this test"})
+    monkeypatch.setattr(gpu_check, "many_runs", lambda *a, **k: {"status": "left out in this test"})
+    out = tmp_path / "o"
+    assert cli.main(["gpu-check", "--device", "cpu", "--tiny", "--full", "--no-pytest", "--full-timeout", "3",
+                     "--out", str(out)]) == 0
+    rep = json.loads((out / "gpu_check.json").read_text())
+    status = rep["paper_run"]["status"]
+    assert status.startswith(("stopped at the time limit of", "not run: the data took the whole --full-timeout"))
+    assert rep["paper_run"]["epochs"] == [] and rep["paper_test"]["status"].startswith("not run: ")
+    assert status in (out / "gpu_check.md").read_text()
