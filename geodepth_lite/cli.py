@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("geodepth_lite.synth", "generate a synthetic RGB-depth dataset from a manifest"),
     "verify": ("geodepth_lite.integrity", "check a generated dataset against its checksums"),
     "train": ("geodepth_lite.train_cli", "train the depth network (a profile, or your own settings)"),
+    "train-many": ("geodepth_lite.train_many", "train several cases or seeds at once on one device, one process each"),
     "evaluate": ("geodepth_lite.evaluate_cli", "evaluate a checkpoint with the seven depth metrics"),
     "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
     "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
@@ -43,7 +44,8 @@ class UserError(Exception):
     """An error in what the user asked for; printed as one line, exit status 2."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
+    """The parser of every subcommand, or of ``commands`` alone (only their modules are imported)."""
     parser = argparse.ArgumentParser(
         prog="python -m geodepth_lite",
         description="geodepth-lite: reproduce Yang et al. (2023), geometry-aware depth in monocular endoscopy.",
@@ -52,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"show the full traceback of an error (also: {DEBUG_ENV}=1)")
     sub = parser.add_subparsers(dest="command", metavar="<command>")
     for name, (module_name, help_text) in COMMANDS.items():
+        if commands is not None and name not in commands:
+            continue
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help=f"show the full traceback of an error (also: {DEBUG_ENV}=1)")
@@ -83,8 +87,10 @@ def error_line(exc: BaseException) -> str:
     return " ".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: list[str] | None = None, commands: tuple[str, ...] | None = None) -> int:
+    """Runs one subcommand; ``commands``: the ones this call knows (all by default; ``train-many``
+    starts each run as ``main(argv, commands=("train",))``, which imports ``train``'s modules alone)."""
+    parser = build_parser(commands)
     args = parser.parse_args(argv)
     debug = args.debug or os.environ.get(DEBUG_ENV, "") not in ("", "0")
     if args.command is None:

@@ -13,12 +13,25 @@ temporary folder. Steps, each timed and recorded even when one fails:
    loss forward and backward, and DepthNet's forward and backward (autocast) at the same batch;
 4. the paper profile (Case 4) for ``--epochs`` epochs on an analytic dataset of ``--frames``
    training frames, each epoch's time from the run's log; from these, the predicted time of 18
-   epochs over the paper split (3600 training and 900 validation frames);
-5. with ``--full``, the paper profile itself: Case 4, seed 0, its 18 epochs over an analytic split
-   of the paper's size (3600 + 900 frames at 320 px), within ``--full-timeout`` seconds; every
-   finished epoch is recorded even when the run is stopped at that limit.
+   epochs over the paper split (3600 training and 900 validation frames); with ``--full`` this step
+   gives way to the paper profile's own run, whose epochs give the prediction;
+5. with ``--full``, the paper's recipe end to end (:func:`full_check`): the data of the paper
+   manifest's split sizes (3600 / 900 / 300 frames at 320 px) made on the device's machine by ONE
+   function, :func:`_scenario_data` (analytic frames for now; a renderer on the device would take
+   its place there alone); one paper-profile run, Case 4, seed 0, its 18 epochs through
+   ``train-many`` within ``--full-timeout`` seconds (every finished epoch recorded even when it is
+   stopped at that limit); that run's TEST Abs Rel and RMSE beside the shading prior's and a
+   constant depth's on the same test frames; its time per epoch; the SDF loss's share of a
+   training step (a Case 4 step against a Case 2 step on the same batch, first epoch and later);
+   then as many further runs as fit in ``--many-timeout`` seconds, trained together by
+   ``train-many --throughput 1 2 4 8`` (one epoch of ``--many-frames`` frames each), with its
+   table of K runs against one run's time.
 
-It writes ``gpu_check.json`` and ``gpu_check.md`` into ``--out``, locked while it runs; it refuses
+The CUDA tests' status says "passed" only where some test ran and none failed; where every one
+skipped (no CUDA device) it says "skipped (no CUDA)".
+
+It writes ``gpu_check.json`` and ``gpu_check.md`` into ``--out`` after every step (so a step that
+fails or times out is recorded, and the ones before it stay), locked while it runs; it refuses
 a non-empty folder it did not write (its marker ``.gpu-check`` says it did). ``--device cpu
 --tiny`` is a dry run of the same steps at toy sizes (the test suite runs it).
 """
@@ -29,7 +42,7 @@ import argparse
 import json
 import os
 import platform
-import shutil
+import re
 import statistics
 import subprocess
 import sys
@@ -40,10 +53,25 @@ from pathlib import Path
 import numpy
 import torch
 
-from geodepth_lite import analytic, camera, inference, losses, sdf, utils
+from geodepth_lite import (
+    analytic,
+    camera,
+    checkpoint,
+    config,
+    datasets,
+    evaluate,
+    inference,
+    losses,
+    manifest,
+    sdf,
+    train,
+    train_many,
+    utils,
+)
 from geodepth_lite.model import DepthNet
 
 MARKER = ".gpu-check"
+EPOCH_KEYS = ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse", "val_abs_rel")
 PAPER_TRAIN, PAPER_VAL, PAPER_EPOCHS = 3600, 900, 18  # the paper split and epochs (config "paper")
 
 
@@ -57,8 +85,13 @@ def add_arguments_gpu_check(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-pytest", action="store_true", help="skip the CUDA tests")
     parser.add_argument("--full", action="store_true",
                         help="also train the paper profile itself: 18 epochs over 3600 + 900 analytic frames")
-    parser.add_argument("--full-timeout", type=int, default=420,
-                        help="seconds allowed to the --full run, data included (default 420)")
+    parser.add_argument("--full-timeout", type=int, default=300,
+                        help="seconds allowed to the --full run, data included (default 300)")
+    parser.add_argument("--many-timeout", type=int, default=150,
+                        help="seconds allowed to --full's further runs trained together (default 150; with the "
+                             "defaults the whole check stays within 10 minutes)")
+    parser.add_argument("--many-frames", type=int, default=400,
+                        help="training frames of each further run of --full (one epoch; default 400)")
     parser.add_argument("--step-timeout", type=int, default=200,
                         help="seconds allowed to the CUDA tests and to training, each (default 200: the whole "
                              "check stays within 10 minutes)")
@@ -79,6 +112,22 @@ def _median_time(fn, dev, repeats: int) -> float:
         _sync(dev)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def _paired_medians(fns: list, dev, repeats: int) -> list[float]:
+    """The median time of each of ``fns``, timed in turn within each repeat (so that a change of
+    the machine's load falls on all of them alike), after one warm-up call of each."""
+    for fn in fns:
+        fn()
+    times: list[list[float]] = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, got in zip(fns, times):
+            _sync(dev)
+            t0 = time.perf_counter()
+            fn()
+            _sync(dev)
+            got.append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times]
 
 
 def check_environment(dev) -> dict:
@@ -107,13 +156,28 @@ def run_cuda_tests(timeout: int) -> dict:
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=tests.parents[1],
-                              env=dict(os.environ, PYTHONPATH=str(tests.parents[1])))
+                              env=dict(os.environ, PYTHONPATH=str(tests.parents[1]) + os.pathsep
+                                       + os.environ.get("PYTHONPATH", "")))
     except subprocess.TimeoutExpired:
         return {"status": f"timed out after {timeout} s", "seconds": timeout}
     lines = [ln for ln in proc.stdout.strip().splitlines() if ln.strip()]
-    return {"status": "passed" if proc.returncode == 0 else f"failed (exit {proc.returncode})",
-            "summary": lines[-1] if lines else "", "tail": "\n".join(lines[-15:]),
-            "seconds": round(time.perf_counter() - t0, 1)}
+    summary = lines[-1] if lines else ""
+    return {"status": cuda_test_status(proc.returncode, summary, torch.cuda.is_available()), "summary": summary,
+            "tail": "\n".join(lines[-15:]), "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def cuda_test_status(returncode: int, summary: str, cuda_available: bool) -> str:
+    """What pytest's exit status and last line say: "passed" only where some test passed and none
+    failed; every test skipped is "skipped (no CUDA)" (or "skipped", with a device), not a pass."""
+    counts = {word: int(n) for n, word in re.findall(r"(\d+) (passed|failed|skipped|errors?|deselected)", summary)}
+    failed = counts.get("failed", 0) + counts.get("error", 0) + counts.get("errors", 0)
+    if returncode not in (0, 5) or failed:
+        return f"failed (exit {returncode})"
+    if counts.get("passed", 0):
+        return "passed"
+    if counts.get("skipped", 0):
+        return "skipped (no CUDA)" if not cuda_available else "skipped (every test; see the summary)"
+    return "not run: no test was collected"
 
 
 def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
@@ -177,8 +241,7 @@ def time_training(dev, work: Path, frames: int, epochs: int | None, size: int, t
            "seconds": round(time.perf_counter() - t0, 1)}
     log = run / "log.json"
     rows = json.loads(log.read_text())["epochs"] if log.is_file() else []
-    res["epochs"] = [{k: r[k] for k in ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse",
-                                        "val_abs_rel") if k in r} for r in rows]
+    res["epochs"] = [{k: r[k] for k in EPOCH_KEYS if k in r} for r in rows]
     if rows:
         res["prediction"] = predict_paper_time(rows, frames, n_val)
     return res
@@ -227,20 +290,51 @@ def markdown(report: dict) -> str:
                      f"(first epoch {p['first_epoch_s']} s, later {p['later_epoch_s']} s; {p['basis']}) |")
     if tr.get("status", "completed") != "completed":
         lines.append(f"| training | {tr['status']} |")
-    full = report.get("paper_run")
-    if full:
-        done = full.get("epochs", [])
-        train_s = sum(r["epoch_s"] for r in done)
-        lines.append(f"| paper profile run, Case 4 seed 0, {full['train_frames']} + {full['val_frames']} frames | "
-                     f"{len(done)} of {full['epochs_asked']} epochs in {train_s:.0f} s ({train_s / 60:.1f} min; "
-                     f"data written in {full['data_s']:.0f} s); {full['status']} |")
-        if done:
-            last = done[-1]
-            lines.append(f"| paper profile run, last epoch | {last['epoch_s']:.1f} s, {last['train_frames_per_s']:.1f} "
-                         f"frames/s; val RMSE {last.get('val_rmse', float('nan')):.3f}, Abs Rel "
-                         f"{last.get('val_abs_rel', float('nan')):.4f} |")
+    lines += _full_lines(report)
     lines += ["", f"Total {report['seconds']:.0f} s."]
     return "\n".join(lines) + "\n"
+
+
+def _full_lines(report: dict) -> list[str]:
+    """The rows of ``--full``: the paper run, its test scores, the SDF share, the runs together."""
+    full, lines = report.get("paper_run"), []
+    if not full:
+        return lines
+    done = full.get("epochs", [])
+    train_s = sum(r["epoch_s"] for r in done)
+    lines.append(f"| paper profile run, Case 4 seed 0, {full['train_frames']} + {full['val_frames']} frames | "
+                 f"{len(done)} of {full['epochs_asked']} epochs in {train_s:.0f} s ({train_s / 60:.1f} min; "
+                 f"data made in {full.get('data_s', 0):.0f} s); {full['status']} |")
+    if done:
+        per = statistics.median(r["epoch_s"] for r in done[1:]) if len(done) > 1 else done[0]["epoch_s"]
+        last = done[-1]
+        lines.append(f"| paper profile run, time per epoch | first {done[0]['epoch_s']:.1f} s, later {per:.1f} s "
+                     f"(median); last {last['train_frames_per_s']:.1f} frames/s; val RMSE "
+                     f"{last.get('val_rmse', float('nan')):.3f}, Abs Rel {last.get('val_abs_rel', float('nan')):.4f} |")
+    if "prediction" in full:
+        p = full["prediction"]
+        lines.append(f"| paper profile, 18 epochs at the run's pace (3600 + 900 frames) | {p['total_min']} min "
+                     f"(first epoch {p['first_epoch_s']} s, later {p['later_epoch_s']} s; {p['basis']}) |")
+    t = report.get("paper_test", {})
+    if "model" in t:
+        lines.append(f"| TEST split, {t['frames']} frames (model after epoch {t['model_epoch']}): Abs Rel / RMSE | "
+                     + "; ".join(f"{name.replace('_', ' ')} {t[name]['abs_rel']:.4f} / {t[name]['rmse']:.3f}"
+                                 for name in ("model", "shading_prior", "constant")) + " |")
+    elif t:
+        lines.append(f"| TEST split scores | {t['status']} |")
+    sh = report.get("sdf_share", {})
+    if "share_first" in sh:
+        lines.append(f"| SDF loss share of a training step (batch {sh['batch']}, {sh['size']} px, {sh['grid']}^3) | "
+                     f"first epoch {100 * sh['share_first']:.1f} % ({1e3 * sh['case4_first_s']:.1f} ms a step), "
+                     f"later {100 * sh['share_later']:.1f} % ({1e3 * sh['case4_later_s']:.1f} ms a step) |")
+    elif sh:
+        lines.append(f"| SDF loss share of a training step | {sh['status']} |")
+    many = report.get("many_runs", {})
+    if "levels" in many:
+        lines += ["", *train_many.throughput_markdown(many).strip().splitlines()[2:]]
+    elif many:
+        lines.append(f"| further runs together | {many['status']} |")
+    return lines
 
 
 def _claim_out(out: Path) -> None:
@@ -256,8 +350,20 @@ def _claim_out(out: Path) -> None:
     (out / MARKER).write_text("written by python -m geodepth_lite gpu-check\n")
 
 
+def _step(report: dict, key: str, fn, save) -> dict:
+    """``report[key] = fn()``, or the failure as its status; recorded (``save``) either way."""
+    t0 = time.perf_counter()
+    try:
+        report[key] = fn()
+    except Exception as exc:  # recorded, and the next step still runs
+        report[key] = {**report.get(key, {}), "status": f"failed: {type(exc).__name__}: {exc}"}
+    report.setdefault("step_s", {})[key] = round(time.perf_counter() - t0, 1)
+    save()
+    return report[key]
+
+
 def run_gpu_check(args: argparse.Namespace) -> int:
-    for name in ("epochs", "frames", "repeats", "step_timeout", "full_timeout"):
+    for name in ("epochs", "frames", "repeats", "step_timeout", "full_timeout", "many_timeout", "many_frames"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     dev = torch.device(args.device)
@@ -268,37 +374,170 @@ def run_gpu_check(args: argparse.Namespace) -> int:
     with utils.FolderLock(out, "gpu-check folder"):
         t0 = time.perf_counter()
         report = {"tiny": bool(args.tiny), "environment": check_environment(dev)}
+
+        def save():
+            report["seconds"] = round(time.perf_counter() - t0, 1)
+            utils.write_json_atomic(out / "gpu_check.json", report)
+            utils.write_bytes_atomic(out / "gpu_check.md", markdown(report).encode())
+
         size, batch, grid = (32, 2, 6) if args.tiny else (320, 20, 32)
         frames = min(args.frames, 8) if args.tiny else args.frames
-        report["cuda_tests"] = {"status": "skipped (--no-pytest)"} if args.no_pytest else run_cuda_tests(
-            args.step_timeout)
+        _step(report, "cuda_tests", lambda: {"status": "skipped (--no-pytest)"} if args.no_pytest
+              else run_cuda_tests(args.step_timeout), save)
         print(f"gpu-check: CUDA tests {report['cuda_tests']['status']}", flush=True)
-        try:
-            report["search"] = bench_search(dev, batch, size, grid, 1 if args.tiny else args.repeats)
-        except Exception as exc:  # recorded, and the next step still runs
-            report["search"] = {"status": f"failed: {type(exc).__name__}: {exc}"}
-        print(f"gpu-check: search {report['search'].get('search_batch_s', report['search'].get('status'))}",
-              flush=True)
-        work = Path(tempfile.mkdtemp(prefix="gpu-check-"))
-        try:
-            report["training"] = time_training(dev, work, frames, 2 if args.tiny else args.epochs, size, args.tiny,
-                                               args.step_timeout)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-        print(f"gpu-check: training {report['training']['status']}", flush=True)
-        if args.full:
-            work = Path(tempfile.mkdtemp(prefix="gpu-check-full-"))
-            try:
-                n_train, n_val = (12, 4) if args.tiny else (PAPER_TRAIN, PAPER_VAL)
-                report["paper_run"] = time_training(dev, work, n_train, 2 if args.tiny else None, size, args.tiny,
-                                                    args.full_timeout, n_val=n_val)
-            finally:
-                shutil.rmtree(work, ignore_errors=True)
-            print(f"gpu-check: paper profile run {report['paper_run']['status']}, "
-                  f"{len(report['paper_run']['epochs'])} epochs", flush=True)
-        report["seconds"] = round(time.perf_counter() - t0, 1)
-        utils.write_json_atomic(out / "gpu_check.json", report)
-        utils.write_bytes_atomic(out / "gpu_check.md", markdown(report).encode())
+        b = _step(report, "search", lambda: bench_search(dev, batch, size, grid, 1 if args.tiny else args.repeats),
+                  save)
+        print(f"gpu-check: search {b.get('search_batch_s', b.get('status'))}", flush=True)
+        if not args.full:  # --full trains the paper profile itself, and predicts from its epochs
+            with tempfile.TemporaryDirectory(prefix="gpu-check-") as work:
+                _step(report, "training", lambda: time_training(dev, Path(work), frames, 2 if args.tiny
+                                                                else args.epochs, size, args.tiny, args.step_timeout),
+                      save)
+            print(f"gpu-check: training {report['training']['status']}", flush=True)
+        else:
+            with tempfile.TemporaryDirectory(prefix="gpu-check-full-") as work:
+                full_check(dev, Path(work), args, report, save)
+        save()
     print(markdown(report))
     print(f"gpu-check: wrote {out / 'gpu_check.json'} and {out / 'gpu_check.md'}")
     return 0
+
+
+# --------------------------------------------------------------------------- --full
+
+
+def _scenario_data(dev, work: Path, counts: dict, size: int, tiny: bool) -> Path:
+    """The data of ``--full``: the paper manifest's splits (``counts``) at ``size`` px, made on this
+    machine into ``work``; returns the dataset folder. The one place that makes them: analytic lumen,
+    wall and close-up views, written by every CPU core (``dev`` and ``tiny`` are for a renderer on
+    the device, which would take this function's place)."""
+    del dev, tiny  # the analytic frames are drawn on the CPU at any size
+    return analytic.write_dataset(work, counts, size=size, workers=os.cpu_count() or 1)
+
+
+def _paper_counts(tiny: bool) -> dict:
+    if tiny:
+        return {"train": 12, "val": 4, "test": 4}
+    return {k: int(v) for k, v in manifest.load_manifest("scenario_paper")["splits"].items()}
+
+
+def _train_many(argv: list[str], on_line=None) -> int:
+    """``python -m geodepth_lite train-many`` with ``argv``, in this process (its runs in their own)."""
+    parser = argparse.ArgumentParser(prog="train-many")
+    train_many.add_arguments_train_many(parser)
+    return train_many.run_train_many(parser.parse_args(argv), on_line)
+
+
+def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) -> None:
+    """The paper's recipe end to end (module docstring, step 5); each part recorded as it ends."""
+    tiny, size = args.tiny, 32 if args.tiny else 320
+    counts = _paper_counts(tiny)
+    run = report["paper_run"] = {"status": "making the data", "train_frames": counts["train"],
+                                 "val_frames": counts["val"], "test_frames": counts.get("test", 0),
+                                 "epochs_asked": 2 if tiny else PAPER_EPOCHS, "epochs": []}
+    t0 = time.perf_counter()
+    root = _step(report, "paper_data", lambda: {"root": str(_scenario_data(dev, work / "data", counts, size, tiny)),
+                                                "seconds": round(time.perf_counter() - t0, 1)}, save)
+    run["data_s"] = root.get("seconds", round(time.perf_counter() - t0, 1))
+    if "root" not in root:
+        run["status"] = f"not run: {root['status']}"
+        return save()
+    root = Path(root["root"])
+    sizes = ["--image-size", "32", "--batch-size", "4", "--epochs", "2"] if tiny else []
+    common = ["--profile", "paper", "--cases", "4", "--dataset", str(root), "--device", str(dev), "--no-progress"]
+    left = args.full_timeout - run["data_s"]
+    run = _step(report, "paper_run", lambda: paper_run(work / "full", common + sizes, left, run, save), save)
+    print(f"gpu-check: paper profile run {run['status']}, {len(run.get('epochs', []))} epochs", flush=True)
+    ckpt = work / "full" / "case4_seed0" / "checkpoint.pt"
+    _step(report, "paper_test", lambda: test_split_scores(ckpt, root, dev), save)
+    _step(report, "sdf_share", lambda: sdf_step_share(dev, root, size, 2 if tiny else 20, 6 if tiny else 32,
+                                                      1 if tiny else args.repeats), save)
+    ks = ["1", "2"] if tiny else ["1", "2", "4", "8"]
+    frames = ["--train-frames", "8", "--val-frames", "2"] if tiny else [
+        "--train-frames", str(args.many_frames), "--val-frames", "20"]
+    _step(report, "many_runs", lambda: many_runs(work / "many", common + sizes[:4] + ["--epochs", "1"] + frames,
+                                                 ks, args.many_timeout), save)
+
+
+def paper_run(out: Path, argv: list[str], seconds: float, run: dict, save) -> dict:
+    """Case 4, seed 0 of the paper profile through ``train-many``, stopped after ``seconds``."""
+    if seconds < 1:
+        return {**run, "status": f"not run: the data took the whole --full-timeout ({run['data_s']:.0f} s)"}
+    t0 = time.perf_counter()
+    def on_line(text: str) -> None:  # each finished epoch recorded at once (the check may be cut off)
+        if ": epoch " in text:
+            try:
+                rows = checkpoint.read_log(folder)
+            except (OSError, ValueError):  # the next epoch's line tries again
+                return
+            run.update(status="training", epochs=[{k: r[k] for k in EPOCH_KEYS if k in r} for r in rows])
+            save()
+
+    folder = out / "case4_seed0"
+    code = _train_many([*argv, "--seeds", "0", "--out", str(out), "--time-limit", str(seconds)], on_line)
+    group = json.loads((out / "train_many.json").read_text())
+    one = group["runs"][0]
+    res = {**run, "status": one["status"], "exit": code, "seconds": round(time.perf_counter() - t0, 1),
+           "epochs": one["epochs"], "config_hash": one["config_hash"]}
+    if one["epochs"]:
+        res["prediction"] = predict_paper_time(one["epochs"], run["train_frames"], run["val_frames"])
+    return res
+
+
+def test_split_scores(ckpt: Path, root: Path, dev) -> dict:
+    """The trained model's Abs Rel and RMSE on the TEST split, beside the shading prior's and a
+    constant depth's on the same frames (``evaluate``'s metrics, median scaling)."""
+    if not ckpt.is_file():
+        return {"status": "not run: the run wrote no checkpoint (no epoch finished)"}
+    ds = evaluate.open_eval_dataset(str(root), split="test")
+    base = evaluate.evaluate_baselines(ds, None, names=["shading_prior", "constant"])
+    model, cfg = checkpoint.load_model(ckpt, dev)
+    res = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"], error_maps=0)
+    rows = {"model": res["overall"], **{name: b["overall"] for name, b in base.items()}}
+    epoch = int(checkpoint.read_checkpoint(ckpt)["epoch"])
+    return {"status": "completed", "frames": res["n"], "model_epoch": epoch,
+            **{name: {"abs_rel": r["abs_rel"], "rmse": r["rmse"]} for name, r in rows.items()}}
+
+
+def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: int) -> dict:
+    """The SDF loss's share of a paper-profile training step (forward, every loss term, backward,
+    Adam step) on one batch of the training frames: 1 - (Case 2 step) / (Case 4 step), Case 2 being
+    Case 4 without the SDF term; with the ground-truth fields searched anew (the first epoch) and
+    taken from the cache (every later epoch)."""
+    ds = datasets.load_split(root, "train", size, limit=batch)
+    data = inference.to_device(inference.collate([ds[i] for i in range(len(ds))]), dev)
+    steps = {}
+    for case in (4, 2):
+        cfg = config.make_config("paper", case, 0, image_size=size, batch_size=batch)
+        cfg["sdf_grid"] = grid
+        torch.manual_seed(0)
+        net = DepthNet().to(dev).train()
+        opt = torch.optim.Adam(net.parameters(), lr=cfg["lr"])
+
+        def step(cfg=cfg, net=net, opt=opt):
+            opt.zero_grad(set_to_none=True)
+            with inference.autocast(dev):
+                pred = net(data["image"])
+            train.compute_losses(pred, data, cfg)[0].backward()
+            opt.step()
+
+        steps[case] = step
+    cache = sdf.GT_FIELD_CACHE
+    saved, cache.max_bytes = cache.max_bytes, 0  # every field searched anew: the first epoch
+    try:
+        first = _paired_medians([steps[4], steps[2]], dev, repeats)
+    finally:
+        cache.max_bytes = saved
+    later = _paired_medians([steps[4], steps[2]], dev, repeats)  # the warm-up fills the cache
+    times = {"case4_first_s": first[0], "case2_first_s": first[1], "case4_later_s": later[0],
+             "case2_later_s": later[1]}
+    return {"status": "completed", "batch": len(ds), "size": size, "grid": grid, **times,
+            "share_first": 1 - times["case2_first_s"] / times["case4_first_s"],
+            "share_later": 1 - times["case2_later_s"] / times["case4_later_s"]}
+
+
+def many_runs(out: Path, argv: list[str], ks: list[str], seconds: float) -> dict:
+    """Further runs of the paper profile trained together (``train-many --throughput``), as many K
+    as fit in ``seconds``; its table is the record."""
+    _train_many([*argv, "--out", str(out), "--throughput", *ks, "--time-limit", str(seconds)])
+    return {"status": "completed", **json.loads((out / "throughput.json").read_text())}

@@ -23,6 +23,19 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
                         help="where checkpoint.pt and log.csv/log.json go "
                              "(default runs/<profile>/train/case<c>_seed<s>)")
     parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --run-dir")
+    add_setting_arguments(parser)
+
+
+# the training settings both train and train-many take: (flag, make_config key)
+SETTING_FLAGS = (("--epochs", "epochs"), ("--batch-size", "batch_size"), ("--lr", "lr"),
+                 ("--lr-schedule", "lr_schedule"), ("--image-size", "image_size"),
+                 ("--border-weight", "border_weight"), ("--input-pad", "input_pad"), ("--augment", "augment"),
+                 ("--dataset", "dataset"), ("--encoder-weights", "encoder_weights"),
+                 ("--train-frames", "train_frames"), ("--val-frames", "val_frames"))
+
+
+def add_setting_arguments(parser: argparse.ArgumentParser) -> None:
+    """The training settings and run options ``train`` and ``train-many`` share."""
     parser.add_argument("--epochs", type=int, default=None, help="override the profile's epochs")
     parser.add_argument("--batch-size", type=int, default=None, help="override the profile's batch size")
     parser.add_argument("--lr", type=float, default=None, help="override the profile's learning rate")
@@ -39,6 +52,10 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default=None, help="manifest name or dataset directory (default: the profile's)")
     parser.add_argument("--encoder-weights", default=None,
                         help="torchvision-style resnet18 ImageNet state dict (.pth) for the encoder")
+    parser.add_argument("--train-frames", type=int, default=None,
+                        help="train on N evenly spaced training frames (default: the profile's)")
+    parser.add_argument("--val-frames", type=int, default=None,
+                        help="validate on N evenly spaced validation frames (default: the profile's)")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: CUDA when available)")
     parser.add_argument("--num-workers", type=int, default=None, help="DataLoader workers (default: 0 when cached)")
     parser.add_argument("--no-cache", action="store_true",
@@ -48,12 +65,18 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
                         help="skip checking the dataset against its checksums.sha256 before training")
 
 
+def setting_overrides(args: argparse.Namespace) -> dict:
+    """The settings given on the command line, as ``config.make_config`` overrides (a frame limit
+    left out keeps the profile's, where None would mean every frame)."""
+    out = {key: getattr(args, key) for _, key in SETTING_FLAGS}
+    for key in ("train_frames", "val_frames"):
+        if out[key] is None:
+            del out[key]
+    return out
+
+
 def run_train(args: argparse.Namespace) -> int:
-    cfg = config.make_config(args.profile, args.case, args.seed, epochs=args.epochs, batch_size=args.batch_size,
-                             lr=args.lr, lr_schedule=args.lr_schedule, image_size=args.image_size,
-                             border_weight=args.border_weight, input_pad=args.input_pad, augment=args.augment,
-                             dataset=args.dataset,
-                             encoder_weights=args.encoder_weights)
+    cfg = config.make_config(args.profile, args.case, args.seed, **setting_overrides(args))
     run_dir = (Path(args.run_dir) if args.run_dir
                else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}")
     if args.resume and not (run_dir / checkpoint.CHECKPOINT_NAME).is_file():

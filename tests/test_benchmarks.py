@@ -258,3 +258,14 @@ def test_bench_sdf_search_compares_the_device_search_with_cktree(tmp_path, capsy
     assert res["search_queries"] == 3 * 125 and res["search_agree"] == res["search_queries"]
     assert res["search_device_s"] > 0 and res["search_kdtree_s"] > 0 and res["search_brute_mm_s"] > 0
     assert "agreement with cKDTree" in capsys.readouterr().out
+
+
+def test_bench_many_runs_and_reports_the_four_ways(tmp_path, capsys):
+    out = tmp_path / "many.json"
+    main = load("bench_many.py")["main"]
+    assert main(["--size", "32", "--batch", "2", "--runs", "2", "--steps", "1", "--repeats", "1",
+                 "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert all(res[k] > 0 for k in ("one_step_s", "sequential_s", "stacked_s", "processes_s"))
+    said = capsys.readouterr().out
+    assert "one process, stacked (vmap" in said and "2 processes (1 thread each)" in said

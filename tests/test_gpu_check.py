@@ -1,6 +1,7 @@
 """``python -m geodepth_lite gpu-check``: its dry run (``--device cpu --tiny``) runs every step's glue here."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -12,38 +13,88 @@ from geodepth_lite import cli, gpu_check
 ROOT = Path(__file__).resolve().parents[1]
 
 # imports a GPU machine may lack: gpu-check and training must not need them
-HEAVY = ("matplotlib", "vtk", "vtkmodules", "imageio", "tifffile", "ipywidgets", "IPython", "pandas", "papermill",
-         "nbformat")
+HEAVY = ("matplotlib", "vtk", "vtkmodules", "pyvista", "imageio", "tifffile", "ipywidgets", "IPython", "pandas",
+         "papermill", "nbformat")
 
 
-def test_the_dry_run_writes_its_json_and_table_without_heavy_imports(tmp_path):
+def blocked_env(tmp_path: Path) -> dict:
+    """An environment in which HEAVY cannot be imported, in this process's children and theirs (a
+    ``sitecustomize`` on the import path marks each as missing, as Python does for a package that
+    is not installed: ``import`` fails, ``importlib.util.find_spec`` says None)."""
+    folder = tmp_path / "blocker"
+    folder.mkdir()
+    (folder / "sitecustomize.py").write_text(f"import sys\nfor name in {HEAVY!r}:\n    sys.modules[name] = None\n")
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(folder)]))
+
+
+def test_the_blocker_blocks(tmp_path):
+    """The blocked environment refuses what it names (else the dry run would prove nothing)."""
+    code = "import importlib.util as u, sys; print(u.find_spec('pyvista')); import matplotlib"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                          env=blocked_env(tmp_path))
+    assert proc.returncode == 1 and proc.stdout.strip() == "None"
+    assert "ModuleNotFoundError: import of matplotlib halted" in proc.stderr
+
+
+def test_the_full_dry_run_records_every_step_without_heavy_imports(tmp_path):
     out = tmp_path / "check"
-    blocker = (
-        "import sys, runpy\n"
-        "class Block:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        f"        if name.split('.')[0] in {HEAVY!r}:\n"
-        "            raise ImportError('not on the GPU machine: ' + name)\n"
-        "sys.meta_path.insert(0, Block())\n"
-        "sys.argv = ['geodepth_lite'] + sys.argv[1:]\n"
-        "runpy.run_module('geodepth_lite', run_name='__main__')\n"
-    )
-    proc = subprocess.run([sys.executable, "-c", blocker, "gpu-check", "--device", "cpu", "--tiny", "--full", "--out",
-                           str(out)], capture_output=True, text=True, timeout=170, cwd=ROOT)
+    proc = subprocess.run([sys.executable, "-m", "geodepth_lite", "gpu-check", "--device", "cpu", "--tiny", "--full",
+                           "--out", str(out)], capture_output=True, text=True, timeout=300, cwd=ROOT,
+                          env=blocked_env(tmp_path))
     assert proc.returncode == 0, proc.stderr[-3000:]
     rep = json.loads((out / "gpu_check.json").read_text())
     assert rep["tiny"] and rep["environment"]["device"] == "cpu"
     assert rep["search"]["agree"] == rep["search"]["queries"] > 0
-    assert rep["training"]["status"] == "completed" and len(rep["training"]["epochs"]) == 2
-    pred = rep["training"]["prediction"]
-    assert pred["total_s"] == pytest.approx(pred["first_epoch_s"] + 17 * pred["later_epoch_s"], abs=1.0)
-    assert rep["cuda_tests"]["status"] in ("passed", "not run: pytest is not installed")
-    full = rep["paper_run"]  # --full: the profile's own run, here at toy sizes
+    import torch
+
+    # every CUDA test skips here: recorded as such, never as "passed"
+    want = "skipped (no CUDA)" if not torch.cuda.is_available() else "passed"
+    assert rep["cuda_tests"]["status"] in (want, "not run: pytest is not installed")
+    full = rep["paper_run"]  # --full: the profile's own run, through train-many, here at toy sizes
     assert full["status"] == "completed" and (full["train_frames"], full["val_frames"]) == (12, 4)
     assert [r["epoch"] for r in full["epochs"]] == [1, 2] and all(r["val_rmse"] > 0 for r in full["epochs"])
+    pred = full["prediction"]
+    assert pred["total_s"] == pytest.approx(pred["first_epoch_s"] + 17 * pred["later_epoch_s"], abs=1.0)
+    test = rep["paper_test"]  # the TEST split: the model beside two baselines on the same frames
+    assert test["frames"] == 4 and test["model_epoch"] == 2
+    assert all(test[name]["abs_rel"] > 0 and test[name]["rmse"] > 0 for name in ("model", "shading_prior", "constant"))
+    share = rep["sdf_share"]
+    assert share["share_first"] == 1 - share["case2_first_s"] / share["case4_first_s"]
+    many = rep["many_runs"]  # the further runs, trained together
+    assert [lv["k"] for lv in many["levels"]] == [1, 2] and [lv["completed"] for lv in many["levels"]] == [1, 2]
+    assert many["levels"][0]["speedup_wall"] == 1.0 and many["levels"][1]["steps"] == 2 * many["steps_per_epoch"]
     table = (out / "gpu_check.md").read_text()
-    assert "| predicted paper profile" in table and "agrees with cKDTree" in table
     assert "| paper profile run, Case 4 seed 0, 12 + 4 frames | 2 of 2 epochs" in table
+    assert "agrees with cKDTree" in table
+    assert "| TEST split, 4 frames (model after epoch 2): Abs Rel / RMSE | model " in table
+    assert "| K runs together |" in table and "| 2 |" in table and "SDF loss share of a training step" in table
+
+
+def test_all_skipped_is_not_passed():
+    """pytest exits 0 when every test skips: the status tells that apart from a pass."""
+    status = gpu_check.cuda_test_status
+    assert status(0, "9 skipped in 6.75s", cuda_available=False) == "skipped (no CUDA)"
+    assert status(0, "9 passed in 30.1s", cuda_available=True) == "passed"
+    assert status(0, "8 passed, 1 skipped in 30.1s", cuda_available=True) == "passed"
+    assert status(1, "1 failed, 8 passed in 32.95s", cuda_available=True) == "failed (exit 1)"
+    assert status(5, "no tests ran in 0.01s", cuda_available=True) == "not run: no test was collected"
+    assert status(0, "9 skipped in 1s", cuda_available=True).startswith("skipped")
+
+
+def test_a_failing_step_is_recorded_and_the_rest_still_run(tmp_path, monkeypatch, capsys):
+    """The record is written after every step: a step that raises is kept with its reason, the
+    steps after it still run (here without --full, at toy sizes)."""
+
+    def broken(*a, **k):
+        raise RuntimeError("planted")
+
+    monkeypatch.setattr(gpu_check, "bench_search", broken)
+    monkeypatch.setattr(gpu_check, "time_training", lambda *a, **k: {"status": "completed", "epochs": []})
+    out = tmp_path / "o"
+    assert cli.main(["gpu-check", "--device", "cpu", "--tiny", "--no-pytest", "--out", str(out)]) == 0
+    rep = json.loads((out / "gpu_check.json").read_text())
+    assert rep["search"]["status"] == "failed: RuntimeError: planted" and rep["training"]["status"] == "completed"
+    assert "| nearest-point search | failed: RuntimeError: planted |" in (out / "gpu_check.md").read_text()
 
 
 def test_the_prediction_scales_measured_epochs_to_the_paper_split():
@@ -99,3 +150,18 @@ def test_the_stated_gpu_figures_come_from_the_committed_record():
         assert missing(text) == [], f"{name} does not state the record's {missing(text)}"
     # the check can fail: a text whose total disagrees with the record is caught
     assert missing(texts["README.md"].replace("11.7 min", "12.1 min")) == ["total"]
+
+
+def test_a_paper_run_cut_off_by_its_time_limit_is_recorded(tmp_path, monkeypatch):
+    """--full-timeout reached: the run is stopped (or not started when the data took the time), the
+    record says so, and the test-split step says why it has no model."""
+    monkeypatch.setattr(gpu_check, "sdf_step_share", lambda *a, **k: {"status": "left out in this test"})
+    monkeypatch.setattr(gpu_check, "many_runs", lambda *a, **k: {"status": "left out in this test"})
+    out = tmp_path / "o"
+    assert cli.main(["gpu-check", "--device", "cpu", "--tiny", "--full", "--no-pytest", "--full-timeout", "3",
+                     "--out", str(out)]) == 0
+    rep = json.loads((out / "gpu_check.json").read_text())
+    status = rep["paper_run"]["status"]
+    assert status.startswith(("stopped at the time limit of", "not run: the data took the whole --full-timeout"))
+    assert rep["paper_run"]["epochs"] == [] and rep["paper_test"]["status"].startswith("not run: ")
+    assert status in (out / "gpu_check.md").read_text()
