@@ -313,6 +313,7 @@ class LossInputs:
     border_weight: float = 0.0            # beta of border_weight_map in the depth term; 0 = all pixels alike
     sdf_sampling: str = "bbox"            # where the SDF samples lie (sdf.SDF_SAMPLINGS)
     sdf_sign: str = "view"                # the SDF sign rule (sdf.SIGN_RULES)
+    frame_ids: tuple | None = None        # one hashable id per frame keying cached ground-truth fields (None: content)
 
 
 def _depth_term(p: torch.Tensor, x: LossInputs) -> torch.Tensor:
@@ -339,7 +340,7 @@ LOSS_TERMS: dict[str, LossTerm] = {
     "grad": LossTerm(lambda p, x: gradient_loss(p, x.gt, x.mask), "lambda2", "Eq. 3"),
     "normal": LossTerm(lambda p, x: normal_loss(p, x.gt, x.mask), "lambda2", "Eq. 4"),
     "sdf": LossTerm(lambda p, x: sdf_loss(p, x.gt, x.K, x.sdf_grid, x.mask, sign_rule=x.sdf_sign,
-                                          sampling=x.sdf_sampling), "lambda3", "Eq. 10"),
+                                          sampling=x.sdf_sampling, frame_ids=x.frame_ids), "lambda3", "Eq. 10"),
 }
 
 
@@ -375,7 +376,7 @@ def group_weights(lambdas) -> dict[str, float]:
 
 def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID,
                depth_term: str = "l1", border_weight: float = 0.0, sdf_sampling: str = "bbox",
-               sdf_sign: str = "view"):
+               sdf_sign: str = "view", frame_ids=None):
     """L_total: each group's weight times the sum of its terms (``LOSS_TERMS``; Sec. 3.C, Eq. 11).
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats with
@@ -385,7 +386,9 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
     ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).
     ``sdf_sampling``, ``sdf_sign``: the SDF term's ``sampling`` and ``sign_rule`` (:func:`sdf_loss`;
-    "bbox" and "view" are the paper's).
+    "bbox" and "view" are the paper's). ``frame_ids``: one hashable id per frame, whose ground truth is
+    the same whenever the id is (no augmentation), to key the SDF term's cached ground-truth fields
+    without reading the frames (:func:`sdf_loss`); None keys them by content.
 
     Explained with its equation in notebook 04, "What the network minimises" (Eq. 11).
     """
@@ -393,7 +396,8 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
         raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
     check_sdf_options(sdf_sign, sdf_sampling)
     weights = group_weights(lambdas)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,
+                        None if frame_ids is None else tuple(frame_ids))
     zero = pred.sum() * 0.0
     t = {name: (term.fn(pred, inputs) if weights[term.group] else zero) for name, term in LOSS_TERMS.items()}
     loss = None
@@ -408,7 +412,7 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
 
 def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID, depth_term: str = "l1",
                         terms=None, border_weight: float = 0.0, sdf_sampling: str = "bbox",
-                        sdf_sign: str = "view") -> dict[str, float]:
+                        sdf_sign: str = "view", frame_ids=None) -> dict[str, float]:
     """||dL_term / dD_pred||_2 of each unweighted term at the network's output (a loss-balancing diagnostic).
 
     The network sees the losses only through this gradient on its output depth map, so the
@@ -419,7 +423,8 @@ def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID
     """
     check_sdf_options(sdf_sign, sdf_sampling)
     p = pred.detach().float().clone().requires_grad_(True)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,
+                        None if frame_ids is None else tuple(frame_ids))
     out = {}
     for name in term_names() if terms is None else terms:
         (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)
