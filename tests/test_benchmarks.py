@@ -33,6 +33,18 @@ def test_bench_sdf_runs_and_times_the_uncached_step_without_the_cache(tmp_path, 
     assert len(lookups) == 2 * 2
 
 
+def test_bench_sdf_compare_times_both_losses_on_the_same_batch(tmp_path, capsys):
+    out = tmp_path / "compare.json"
+    main = load("bench_sdf.py")["main"]
+    assert main(["--compare", "--batch", "3", "--size", "32", "--grid", "4", "--repeats", "1", "--data", "analytic",
+                 "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    for k in ("", "_cached", "_given"):
+        assert res[f"compare_ratio{k}"] == res[f"compare_ref{k}_s"] / res[f"compare_new{k}_s"] > 0
+        assert len(res["compare_times"][f"ref{k}"]) == len(res["compare_times"][f"new{k}"]) == 1
+    assert "per image (former)" in capsys.readouterr().out
+
+
 def test_bench_render_runs(capsys):
     main = load("bench_render.py")["main"]
     assert main(["--size", "32", "--frames", "1", "--repeats", "1"]) == 0
