@@ -21,7 +21,9 @@ This module holds what that term is built from, in three layers:
   Indices are searched without gradient; distances are then recomputed in torch from the
   nearest points, so gradients reach the prediction through them;
 - fields: phi of one point set at given queries (:func:`signed_distance`), and the fields of a
-  batch of predicted and ground-truth depth maps on the grid (:func:`sdf_fields`);
+  batch of predicted and ground-truth depth maps on the grid, image by image (:func:`sdf_fields`,
+  the reference) or as B x M tensors with no per-image loop (:func:`sdf_fields_batched`, what the
+  loss uses; the same numbers);
 - cache: ground-truth fields, which do not depend on the network, kept per frame
   (:class:`GTFieldCache`, :data:`GT_FIELD_CACHE`).
 
@@ -380,10 +382,13 @@ class GTFieldCache:
     900 validation frames take 4500 x 128 KiB = 562.5 MiB. The least recently used are dropped
     beyond ``max_bytes`` (1 GiB: about 8000 frames at 32^3); ``max_bytes = 0`` disables the cache.
 
-    The key is the frame's content, not its index in the dataset: augmentation (flips, crops, the
+    Keys (:func:`sdf_fields_batched`): the frame's content by default, or the frame's identity where
+    the caller names it (``frame_ids``: training without augmentation names the dataset, split,
+    size and index, :func:`geodepth_lite.train.batch_frame_ids`). Augmentation (flips, crops, the
     field-of-view border) changes a frame's ground truth from one epoch to the next, and train and
     validation frames share indices, so an index alone could return another map's field. Hashing
-    costs a copy of the depth map to the host and a BLAKE2b over it (400 KiB at 320x320).
+    the content costs a copy of the depth map to the host and a BLAKE2b over it (400 KiB at
+    320x320); an identity key costs neither.
     """
 
     def __init__(self, max_bytes: int = 2**30):
