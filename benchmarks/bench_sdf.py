@@ -218,26 +218,17 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     utils.seed_everything(seed)
     frames = load_batch(batch, size, dev, data)
     gt, K, image = frames["depth"], frames["K"], frames["image"]
-    if search_only:
-        res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "data": data,
-               "torch_threads": torch.get_num_threads(), "kdtree_workers": sdf.KDTREE_WORKERS}
-        res.update(run_search(search_inputs(gt, K, grid), repeats, bf_images, dev))
-        return res
+    if search_only or compare:
+        return run_apart(gt, K, grid, repeats, bf_images, dev, data, seed, compare)
     pred = fake_prediction(gt, seed)
     g3 = (grid, grid, grid)
     index = sdf.resolve_method("auto", dev)
-    if compare:
-        res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "data": data, "repeats": repeats,
-               "index_method": index, "torch_threads": torch.get_num_threads()}
-        res.update(run_compare(gt, K, pred, grid, repeats, dev, index))
-        return res
     res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "repeats": repeats,
            "index_method": index, "bf_images": bf_images, "torch_threads": torch.get_num_threads()}
     cache = sdf.GTFieldCache()
     # total_loss reads sdf.GT_FIELD_CACHE (sdf_loss's default argument, bound when losses is imported):
     # rebinding the name would not reach it, so the uncached step switches that object off instead
     gt_cache = sdf.GT_FIELD_CACHE
-
     model = opt = None
     if train_step:
         model = DepthNet().to(dev)
@@ -269,18 +260,38 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
             t["step"].append(_timed(lambda: train_once(False), dev))
             t["step_cached"].append(_timed(lambda: train_once(True), dev))
     med = {k: statistics.median(v) for k, v in t.items() if v}
-    res["sdf_s"], res["sdf_cached_s"] = med["sdf"], med["sdf_cached"]
-    res["brute_force_measured_s"] = med["bf"]
-    res["brute_force_s"] = med["bf"] * batch / bf_images
-    res["speedup_vs_brute_force"] = res["brute_force_s"] / res["sdf_s"]
+    res.update(sdf_s=med["sdf"], sdf_cached_s=med["sdf_cached"], brute_force_measured_s=med["bf"],
+               brute_force_s=med["bf"] * batch / bf_images, speedup_vs_brute_force=med["bf"] * batch / bf_images
+               / med["sdf"])
     if train_step:
-        res["train_step_s"], res["train_step_cached_s"] = med["step"], med["step_cached"]
-        res["sdf_fraction_of_step"] = res["sdf_s"] / res["train_step_s"]
-        res["sdf_cached_fraction_of_step"] = res["sdf_cached_s"] / res["train_step_cached_s"]
-        model.eval()
-        with torch.no_grad():
-            inf_t = [_timed(lambda: model(image), dev) for _ in range(repeats)]
-        res["inference_fps"] = batch / statistics.median(inf_t)
+        res.update(step_figures(res, med, model, image, repeats, dev))
+    return res
+
+
+def step_figures(res: dict, med: dict, model, image, repeats: int, dev) -> dict:
+    """The training step's medians, the SDF share of a step, and inference frames/s."""
+    out = {"train_step_s": med["step"], "train_step_cached_s": med["step_cached"],
+           "sdf_fraction_of_step": res["sdf_s"] / med["step"],
+           "sdf_cached_fraction_of_step": res["sdf_cached_s"] / med["step_cached"]}
+    model.eval()
+    with torch.no_grad():
+        inf_t = [_timed(lambda: model(image), dev) for _ in range(repeats)]
+    out["inference_fps"] = image.shape[0] / statistics.median(inf_t)
+    return out
+
+
+def run_apart(gt, K, grid: int, repeats: int, bf_images: int, dev, data: str, seed: int, compare: bool) -> dict:
+    """``--search`` (the nearest-point search alone) or ``--compare`` (the whole SDF loss, batched and per
+    image) on the batch ``gt``, ``K``."""
+    res = {"device": str(dev), "batch": gt.shape[0], "size": gt.shape[-1], "grid": grid, "data": data,
+           "torch_threads": torch.get_num_threads()}
+    if not compare:
+        res["kdtree_workers"] = sdf.KDTREE_WORKERS
+        res.update(run_search(search_inputs(gt, K, grid), repeats, bf_images, dev))
+        return res
+    index = sdf.resolve_method("auto", dev)
+    res.update(repeats=repeats, index_method=index)
+    res.update(run_compare(gt, K, fake_prediction(gt, seed), grid, repeats, dev, index))
     return res
 
 
