@@ -270,3 +270,28 @@ def test_bench_sdf_search_compares_the_device_search_with_cktree(tmp_path, capsy
     assert res["search_queries"] == 3 * 125 and res["search_agree"] == res["search_queries"]
     assert res["search_device_s"] > 0 and res["search_kdtree_s"] > 0 and res["search_brute_mm_s"] > 0
     assert "agreement with cKDTree" in capsys.readouterr().out
+
+
+def compare_table_rows(text: str) -> list:
+    """The (former s, batched s, ratio) of each row of the batched-vs-per-image SDF table in ``text``."""
+    import re
+
+    rows = re.findall(r"^\| [^|]+ \| ([\d.]+) s \| ([\d.]+) s \| ([\d.]+)x \|$", text, flags=re.M)
+    return [tuple(float(x) for x in r) for r in rows]
+
+
+def stated_compare_figures_hold(text: str, rec: dict) -> bool:
+    want = [(round(rec[f"compare_ref{k}_s"], 2), round(rec[f"compare_new{k}_s"], 2),
+             round(rec[f"compare_ratio{k}"], 2)) for k in ("", "_cached", "_given")]
+    return compare_table_rows(text) == want
+
+
+def test_the_docs_state_the_recorded_sdf_loss_comparison():
+    rec = json.loads((BENCHMARKS / "sdf_loss_compare_cpu.json").read_text())
+    text = (BENCHMARKS.parent / "docs" / "network_and_losses.md").read_text()
+    assert rec["batch"] == 20 and rec["size"] == 320 and rec["grid"] == 32 and rec["repeats"] >= 3
+    for k in ("", "_cached", "_given"):  # each median is the median of its recorded repeats
+        for side in ("ref", "new"):
+            assert rec[f"compare_{side}{k}_s"] == sorted(rec["compare_times"][f"{side}{k}"])[rec["repeats"] // 2]
+    assert stated_compare_figures_hold(text, rec)
+    assert not stated_compare_figures_hold(text.replace("| 1.99x |", "| 2.99x |"), rec)  # the check can fail
