@@ -20,7 +20,7 @@ of repeats, it times:
 
 6. ``--compare``: the whole SDF loss (forward and backward) of a batch, today's batched form
    (:func:`geodepth_lite.losses.sdf_loss`, fields as B x M tensors, ground-truth fields keyed by frame
-   id) beside the former image-by-image one (``losses._sdf_loss_reference``, content keys), on the same
+   id) beside the former image-by-image one (``losses.sdf_loss_reference``, content keys), on the same
    tensors: without the cache, with it warm, and with the nearest points given (all but the search),
    medians of interleaved repeats and their ratio.
 
@@ -165,7 +165,7 @@ def run_compare(gt, K, pred0, grid, repeats, dev, method) -> dict:
     def ref_given():
         sdf.nearest_indices_many = given
         try:
-            step(losses._sdf_loss_reference, cache=c_ref)
+            step(losses.sdf_loss_reference, cache=c_ref)
         finally:
             sdf.nearest_indices_many = _SEARCH_MANY
 
@@ -174,9 +174,9 @@ def run_compare(gt, K, pred0, grid, repeats, dev, method) -> dict:
         f = sdf.sdf_fields_batched(p, gt, K, g3, method=method, cache=c_new, frame_ids=ids, nearest=nearest)
         losses.sdf_loss_from_fields(f, p).backward()
 
-    runs = {"ref": lambda: step(losses._sdf_loss_reference, cache=None),
+    runs = {"ref": lambda: step(losses.sdf_loss_reference, cache=None),
             "new": lambda: step(losses.sdf_loss, cache=None),
-            "ref_cached": lambda: step(losses._sdf_loss_reference, cache=c_ref),
+            "ref_cached": lambda: step(losses.sdf_loss_reference, cache=c_ref),
             "new_cached": lambda: step(losses.sdf_loss, cache=c_new, frame_ids=ids),
             "ref_given": ref_given, "new_given": new_given}
     runs["ref_cached"]()  # fills c_ref

@@ -241,7 +241,7 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     are reused for frames seen before (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search),
     keyed by ``frame_ids`` (one hashable id per image) where given, by the frames' content otherwise.
     The fields are built for the whole batch at once (:func:`geodepth_lite.sdf.sdf_fields_batched`),
-    and the loss equals, bit for bit, its former image-by-image form (``_sdf_loss_reference``).
+    and the loss equals, bit for bit, its former image-by-image form (``sdf_loss_reference``).
 
     Two options, not the paper's (docs/network_and_losses.md, "Where the SDF samples lie"):
     ``sign_rule="masked"`` leaves out the points where the view rule does not apply in either
@@ -284,7 +284,7 @@ def sdf_loss_from_fields(f: dict, pred: torch.Tensor) -> torch.Tensor:
     return front.sum() / (h.sum() * err.shape[1]).clamp_min(1).to(err.dtype)
 
 
-def _sdf_loss_reference(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
+def sdf_loss_reference(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
                         cache: GTFieldCache | None = None, sign_rule: str = "view",
                         sampling: str = "bbox") -> torch.Tensor:
     """:func:`sdf_loss` image by image from :func:`geodepth_lite.sdf.sdf_fields` (the former code, kept as the

@@ -18,6 +18,7 @@ package: training validation, evaluation and the notebooks all call :func:`compu
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 EVAL_MIN_DEPTH = 1e-3  # ground truth at or below this is invalid (the protocol's lower cap, scene units)
 EVAL_MAX_DEPTH = 100.0  # ... and at or above this (public datasets use their own encoding's maximum)
@@ -132,8 +133,6 @@ def compute_depth_metrics(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_de
 def _masked_median(x, valid, n):
     """numpy's median of each row's valid entries (x, valid: N x P float64 / bool; n: N counts >= 1): the
     middle one, or the mean of the two middle ones."""
-    import torch
-
     s = torch.sort(torch.where(valid, x, torch.full_like(x, float("inf"))), dim=1).values
     lo = ((n - 1) // 2).clamp_min(0)[:, None]
     hi = (n // 2).clamp(max=x.shape[1] - 1)[:, None]
@@ -150,8 +149,6 @@ def frame_metrics_torch(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_dept
     median, or a non-positive depth after clamping)}. The same numbers as the numpy protocol up to the
     order of float64 sums.
     """
-    import torch
-
     p = pred.detach().reshape(pred.shape[0], -1).to(torch.float64)
     g = gt.detach().reshape(gt.shape[0], -1).to(device=p.device, dtype=torch.float64)
     if p.shape != g.shape:

@@ -185,7 +185,7 @@ def test_the_batched_search_and_loss_on_cuda_match_the_cpu_reference():
     out = {}
     for dev in ("cpu", "cuda"):
         p = pred.clone().to(dev).requires_grad_()
-        fn = losses._sdf_loss_reference if dev == "cpu" else losses.sdf_loss
+        fn = losses.sdf_loss_reference if dev == "cpu" else losses.sdf_loss
         loss = fn(p, d.to(dev), K.to(dev), 16, mask.to(dev), cache=None)
         loss.backward()
         out[dev] = (loss.detach().cpu(), p.grad.cpu())

@@ -1,5 +1,5 @@
 """The SDF loss built for the whole batch at once (``sdf.sdf_fields_batched``, ``losses.sdf_loss``) against
-its former image-by-image form (``losses._sdf_loss_reference``): the same loss and gradient bit for bit
+its former image-by-image form (``losses.sdf_loss_reference``): the same loss and gradient bit for bit
 (``torch.equal``), and the aten operations and host syncs one batched loss costs, counted with a
 ``TorchDispatchMode``. Each check is also fed a value of our own making that it must reject."""
 
@@ -104,7 +104,7 @@ def test_batched_loss_and_gradient_equal_the_per_image_ones(sign_rule, sampling)
     gt, K = views(4, 20)
     pred0 = prediction(gt)
     for (name, mask), grid in itertools.product(masks(gt).items(), (5, (4, 6, 7))):
-        ref = loss_and_grad(L._sdf_loss_reference, pred0, gt, K, grid, mask, cache=None, sign_rule=sign_rule,
+        ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, grid, mask, cache=None, sign_rule=sign_rule,
                             sampling=sampling)
         new = loss_and_grad(L.sdf_loss, pred0, gt, K, grid, mask, cache=None, sign_rule=sign_rule,
                             sampling=sampling)
@@ -124,7 +124,7 @@ def test_batched_loss_equals_the_per_image_one_with_the_ground_truth_cache(keyed
     for sign_rule, sampling in itertools.product(("view", "masked"), ("bbox", "frustum")):
         c_ref, c_new = sdf.GTFieldCache(), sdf.GTFieldCache()
         for _ in range(2):  # misses (fields computed and stored), then hits
-            ref = loss_and_grad(L._sdf_loss_reference, pred0, gt, K, 6, mask, cache=c_ref, sign_rule=sign_rule,
+            ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 6, mask, cache=c_ref, sign_rule=sign_rule,
                                 sampling=sampling)
             new = loss_and_grad(L.sdf_loss, pred0, gt, K, 6, mask, cache=c_new, sign_rule=sign_rule,
                                 sampling=sampling, frame_ids=ids)
@@ -139,13 +139,13 @@ def test_the_checks_reject_a_loss_right_but_for_rounding_and_a_wrong_gradient():
     gt, K = views(4, 20)
     pred0 = prediction(gt)
     mask = masks(gt)["empty frame"]
-    ref = loss_and_grad(L._sdf_loss_reference, pred0, gt, K, 5, mask, cache=None)
+    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 5, mask, cache=None)
     padded = loss_and_grad(L.sdf_loss, pred0, gt, K, 5, mask, cache=None)
     assert not torch.equal(ref[0], padded[0])
     with pytest.raises(AssertionError, match="loss"):
         assert_same(ref, padded)
     assert_close(ref, padded)
-    ref = loss_and_grad(L._sdf_loss_reference, pred0, gt, K, 9, cache=None)
+    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 9, cache=None)
 
     def one_off(p, *a, **k):
         B = p.shape[0]
@@ -182,14 +182,14 @@ def count_batched_loss(B: int = 20, size: int = 32, grid: int = 8, sign_rule: st
     pred0 = prediction(gt)
     cache, ids = sdf.GTFieldCache(), [("train", i) for i in range(B)]
     if reference:
-        L._sdf_loss_reference(pred0, gt, K, grid, cache=cache, sign_rule=sign_rule)  # fills the cache
+        L.sdf_loss_reference(pred0, gt, K, grid, cache=cache, sign_rule=sign_rule)  # fills the cache
     else:
         f = sdf.sdf_fields_batched(pred0, gt, K, grid, cache=cache, frame_ids=ids, sign_rule=sign_rule)
         nearest = sdf.nearest_indices_grid(camera.backproject(pred0, K), (gt > 0).reshape(B, -1), f["grid"])
     p = pred0.clone().requires_grad_()
     with OpCounter() as fwd:
         if reference:
-            loss = L._sdf_loss_reference(p, gt, K, grid, cache=cache, sign_rule=sign_rule)
+            loss = L.sdf_loss_reference(p, gt, K, grid, cache=cache, sign_rule=sign_rule)
         else:
             f = sdf.sdf_fields_batched(p, gt, K, grid, cache=cache, frame_ids=ids, sign_rule=sign_rule,
                                        nearest=nearest)
@@ -233,5 +233,5 @@ def test_bit_for_bit_at_the_paper_s_grid_and_batch(sampling):
     """20 frames (lumen, wall, close-up), the 32^3 grid, at 32 px: the sums are as long as the paper's."""
     gt, K = views(20, 32, seed=9)
     pred0 = prediction(gt, seed=3)
-    ref = loss_and_grad(L._sdf_loss_reference, pred0, gt, K, 32, cache=None, sampling=sampling)
+    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 32, cache=None, sampling=sampling)
     assert_same(ref, loss_and_grad(L.sdf_loss, pred0, gt, K, 32, cache=None, sampling=sampling))
