@@ -11,8 +11,9 @@ scaling, ``pred *= median(gt[valid]) / median(pred[valid])``; then ``pred`` is c
 - a_k      = mean(max(gt / pred, pred / gt) < 1.25^k), k = 1, 2, 3
 
 and each metric is the mean of its per-frame values. Notebook 04 writes these equations out
-("How every depth map is scored") before its first number. This is the only implementation in the
-package: training validation, evaluation and the notebooks all call :func:`compute_depth_metrics`.
+("How every depth map is scored") before its first number. Evaluation and the notebooks call
+:func:`compute_depth_metrics` (numpy); training's validation computes the same per-frame numbers in
+torch on its device (:func:`frame_metrics_torch`, checked against it in tests/test_validation_device.py).
 """
 
 from __future__ import annotations
