@@ -235,3 +235,15 @@ def test_bit_for_bit_at_the_paper_s_grid_and_batch(sampling):
     pred0 = prediction(gt, seed=3)
     ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 32, cache=None, sampling=sampling)
     assert_same(ref, loss_and_grad(L.sdf_loss, pred0, gt, K, 32, cache=None, sampling=sampling))
+
+
+@pytest.mark.parametrize("sampling", ["bbox", "frustum"])
+def test_bit_for_bit_unsigned_and_in_float64(sampling):
+    gt, K = views(4, 20)
+    pred0 = prediction(gt)
+    for kw in ({"signed": False}, {"method": "device"}):
+        assert_same(loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 6, cache=None, sampling=sampling, **kw),
+                    loss_and_grad(L.sdf_loss, pred0, gt, K, 6, cache=None, sampling=sampling, **kw))
+    g64, p64, K64 = gt.double(), pred0.double(), K.double()
+    assert_same(loss_and_grad(L.sdf_loss_reference, p64, g64, K64, 6, cache=None, sampling=sampling),
+                loss_and_grad(L.sdf_loss, p64, g64, K64, 6, cache=None, sampling=sampling))
