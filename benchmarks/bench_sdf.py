@@ -18,6 +18,12 @@ of repeats, it times:
    agreement with cKDTree on every query. Its points are depth maps back-projected, its queries
    each map's 32^3 bounding-box grid, as in the SDF loss.
 
+6. ``--compare``: the whole SDF loss (forward and backward) of a batch, today's batched form
+   (:func:`geodepth_lite.losses.sdf_loss`, fields as B x M tensors, ground-truth fields keyed by frame
+   id) beside the former image-by-image one (``losses.sdf_loss_reference``, content keys), on the same
+   tensors: without the cache, with it warm, and with the nearest points given (all but the search),
+   medians of interleaved repeats and their ratio.
+
 ``--data analytic`` takes analytic lumen, wall and close-up views (:mod:`geodepth_lite.analytic`,
 no rendering, so no VTK) instead of rendered frames of the synthetic dataset.
 
@@ -126,8 +132,82 @@ def sdf_step(pred0, gt, K, grid, method, cache=None):
     losses.sdf_loss(pred, gt, K, grid, method=method, cache=cache).backward()
 
 
+class _GivenNearest:
+    """Replays the nearest points a first search found (for timing everything but the search): patches
+    ``sdf.nearest_indices_many`` (the per-image loss's search) and passes ``nearest`` to the batched one."""
+
+    def __init__(self):
+        self.found = None
+
+    def __call__(self, pairs, method="auto"):
+        if self.found is None:
+            self.found = _SEARCH_MANY(pairs, method)
+        return self.found
+
+
+_SEARCH_MANY = sdf.nearest_indices_many
+
+
+def run_compare(gt, K, pred0, grid, repeats, dev, method) -> dict:
+    """Medians of the whole SDF loss, forward and backward, batched and per image, side by side."""
+    g3 = (grid,) * 3
+    ids = [("bench", i) for i in range(gt.shape[0])]
+    c_ref, c_new = sdf.GTFieldCache(), sdf.GTFieldCache()
+    f0 = sdf.sdf_fields_batched(pred0, gt, K, g3, method=method, cache=c_new, frame_ids=ids)  # fills c_new
+    nearest = sdf.nearest_indices_grid(sdf.camera.backproject(pred0, K), (gt > 0).reshape(gt.shape[0], -1),
+                                       f0["grid"], method)
+    given = _GivenNearest()
+
+    def step(fn, **kw):
+        p = pred0.clone().requires_grad_()
+        fn(p, gt, K, g3, method=method, **kw).backward()
+
+    def ref_given():
+        sdf.nearest_indices_many = given
+        try:
+            step(losses.sdf_loss_reference, cache=c_ref)
+        finally:
+            sdf.nearest_indices_many = _SEARCH_MANY
+
+    def new_given():
+        p = pred0.clone().requires_grad_()
+        f = sdf.sdf_fields_batched(p, gt, K, g3, method=method, cache=c_new, frame_ids=ids, nearest=nearest)
+        losses.sdf_loss_from_fields(f, p).backward()
+
+    runs = {"ref": lambda: step(losses.sdf_loss_reference, cache=None),
+            "new": lambda: step(losses.sdf_loss, cache=None),
+            "ref_cached": lambda: step(losses.sdf_loss_reference, cache=c_ref),
+            "new_cached": lambda: step(losses.sdf_loss, cache=c_new, frame_ids=ids),
+            "ref_given": ref_given, "new_given": new_given}
+    runs["ref_cached"]()  # fills c_ref
+    ref_given()  # records the per-image search's answers
+    t = {k: [] for k in runs}
+    for _ in range(repeats):  # interleaved, so machine load affects all alike
+        for k, fn in runs.items():
+            t[k].append(_timed(fn, dev))
+    med = {k: statistics.median(v) for k, v in t.items()}
+    out = {f"compare_{k}_s": v for k, v in med.items()}
+    for k in ("", "_cached", "_given"):
+        out[f"compare_ratio{k}"] = med[f"ref{k}"] / med[f"new{k}"]
+    out["compare_times"] = t
+    return out
+
+
+def report_compare(res: dict) -> str:
+    b, s, g = res["batch"], res["size"], res["grid"]
+    lines = [f"Whole SDF loss (forward + backward) on {res['device']} ({res['torch_threads']} torch threads, "
+             f"cKDTree workers {sdf.KDTREE_WORKERS}, search {res['index_method']}), {res['data']} frames, batch {b}, "
+             f"{s}x{s}, {g}^3 grid, medians of {res['repeats']} interleaved repeats",
+             f"  {'':44s} {'per image (former)':>18s} {'batched':>10s} {'ratio':>8s}"]
+    for k, name in (("", "no ground-truth cache"), ("_cached", "ground-truth fields cached"),
+                    ("_given", "cached, nearest points given (no search)")):
+        lines.append(f"  {name:44s} {res[f'compare_ref{k}_s']:16.3f} s {res[f'compare_new{k}_s']:8.3f} s "
+                     f"{res[f'compare_ratio{k}']:7.2f} x")
+    return "\n".join(lines)
+
+
 def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", train_step=True, seed=0,
-        data="synthetic", search_only=False) -> dict:
+        data="synthetic", search_only=False, compare=False) -> dict:
     """Run the benchmark; returns a dict of median seconds and the derived ratios.
 
     The SDF loss and the training step are timed twice: without the ground-truth field cache
@@ -138,11 +218,8 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     utils.seed_everything(seed)
     frames = load_batch(batch, size, dev, data)
     gt, K, image = frames["depth"], frames["K"], frames["image"]
-    if search_only:
-        res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "data": data,
-               "torch_threads": torch.get_num_threads(), "kdtree_workers": sdf.KDTREE_WORKERS}
-        res.update(run_search(search_inputs(gt, K, grid), repeats, bf_images, dev))
-        return res
+    if search_only or compare:
+        return run_apart(gt, K, grid, repeats, bf_images, dev, data, seed, compare)
     pred = fake_prediction(gt, seed)
     g3 = (grid, grid, grid)
     index = sdf.resolve_method("auto", dev)
@@ -152,7 +229,6 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     # total_loss reads sdf.GT_FIELD_CACHE (sdf_loss's default argument, bound when losses is imported):
     # rebinding the name would not reach it, so the uncached step switches that object off instead
     gt_cache = sdf.GT_FIELD_CACHE
-
     model = opt = None
     if train_step:
         model = DepthNet().to(dev)
@@ -184,18 +260,38 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
             t["step"].append(_timed(lambda: train_once(False), dev))
             t["step_cached"].append(_timed(lambda: train_once(True), dev))
     med = {k: statistics.median(v) for k, v in t.items() if v}
-    res["sdf_s"], res["sdf_cached_s"] = med["sdf"], med["sdf_cached"]
-    res["brute_force_measured_s"] = med["bf"]
-    res["brute_force_s"] = med["bf"] * batch / bf_images
-    res["speedup_vs_brute_force"] = res["brute_force_s"] / res["sdf_s"]
+    res.update(sdf_s=med["sdf"], sdf_cached_s=med["sdf_cached"], brute_force_measured_s=med["bf"],
+               brute_force_s=med["bf"] * batch / bf_images, speedup_vs_brute_force=med["bf"] * batch / bf_images
+               / med["sdf"])
     if train_step:
-        res["train_step_s"], res["train_step_cached_s"] = med["step"], med["step_cached"]
-        res["sdf_fraction_of_step"] = res["sdf_s"] / res["train_step_s"]
-        res["sdf_cached_fraction_of_step"] = res["sdf_cached_s"] / res["train_step_cached_s"]
-        model.eval()
-        with torch.no_grad():
-            inf_t = [_timed(lambda: model(image), dev) for _ in range(repeats)]
-        res["inference_fps"] = batch / statistics.median(inf_t)
+        res.update(step_figures(res, med, model, image, repeats, dev))
+    return res
+
+
+def step_figures(res: dict, med: dict, model, image, repeats: int, dev) -> dict:
+    """The training step's medians, the SDF share of a step, and inference frames/s."""
+    out = {"train_step_s": med["step"], "train_step_cached_s": med["step_cached"],
+           "sdf_fraction_of_step": res["sdf_s"] / med["step"],
+           "sdf_cached_fraction_of_step": res["sdf_cached_s"] / med["step_cached"]}
+    model.eval()
+    with torch.no_grad():
+        inf_t = [_timed(lambda: model(image), dev) for _ in range(repeats)]
+    out["inference_fps"] = image.shape[0] / statistics.median(inf_t)
+    return out
+
+
+def run_apart(gt, K, grid: int, repeats: int, bf_images: int, dev, data: str, seed: int, compare: bool) -> dict:
+    """``--search`` (the nearest-point search alone) or ``--compare`` (the whole SDF loss, batched and per
+    image) on the batch ``gt``, ``K``."""
+    res = {"device": str(dev), "batch": gt.shape[0], "size": gt.shape[-1], "grid": grid, "data": data,
+           "torch_threads": torch.get_num_threads()}
+    if not compare:
+        res["kdtree_workers"] = sdf.KDTREE_WORKERS
+        res.update(run_search(search_inputs(gt, K, grid), repeats, bf_images, dev))
+        return res
+    index = sdf.resolve_method("auto", dev)
+    res.update(repeats=repeats, index_method=index)
+    res.update(run_compare(gt, K, fake_prediction(gt, seed), grid, repeats, dev, index))
     return res
 
 
@@ -218,6 +314,8 @@ def report_search(res: dict) -> str:
 
 
 def report(res: dict) -> str:
+    if "compare_ratio" in res:
+        return report_compare(res)
     if "sdf_s" not in res:
         return report_search(res)
     b, s, g = res["batch"], res["size"], res["grid"]
@@ -262,6 +360,8 @@ def main(argv=None) -> int:
                     help="rendered frames of the synthetic dataset, or analytic views (no VTK)")
     ap.add_argument("--search", action="store_true",
                     help="time the nearest-point search alone: device search, cKDTree, brute force")
+    ap.add_argument("--compare", action="store_true",
+                    help="time the whole SDF loss, batched beside the former per-image form")
     a = ap.parse_args(argv)
     for name in ("batch", "size", "grid", "repeats", "bf_images"):
         if getattr(a, name) < 1:
@@ -276,7 +376,7 @@ def main(argv=None) -> int:
         torch.set_num_threads(a.threads)
         sdf.KDTREE_WORKERS = a.threads
     res = run(a.batch, a.size, a.grid, a.repeats, a.bf_images, a.device, not a.no_train_step, data=a.data,
-              search_only=a.search)
+              search_only=a.search, compare=a.compare)
     print(report(res))
     if a.json:
         finite = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in res.items()}

@@ -113,6 +113,7 @@ PROFILES: dict[str, dict] = {
         "threads": None,
         "heldout_overrides": None,     # the manifests as shipped: 364 frames at 256x256 per group
         "closeup_overrides": None,     # 300 close-ups at 256x256
+        "val_sdf": False,              # validation scores the metrics, not the SDF term (no notebook plots it)
     },
 }
 
@@ -195,6 +196,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
         "encoder_weights": None,
         "threads": p.get("threads"),            # CPU threads (fixed: results depend on it); None = torch's
+        "val_sdf": p.get("val_sdf", True),      # validation evaluates the SDF term (not an identity key)
     }
     for key, value in overrides.items():
         if key not in cfg:
@@ -208,7 +210,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
 CONFIG_DEFAULTS = {"dataset_overrides": None, "train_frames": None, "val_frames": None, "encoder_weights": None,
                    "threads": None, "betas": [0.9, 0.999], "lr_schedule": "constant", "optimizer": "adam",
                    "depth_term": "l1", "augment": "none", "padding": "zeros", "border_weight": 0.0, "input_pad": 0,
-                   "sdf_sampling": "bbox", "sdf_sign": "view"}
+                   "sdf_sampling": "bbox", "sdf_sign": "view", "val_sdf": True}
 
 
 def validate_config(cfg: dict) -> dict:
@@ -219,6 +221,8 @@ def validate_config(cfg: dict) -> dict:
                          ("sdf_sampling", tuple(SDF_SAMPLINGS)), ("sdf_sign", SDF_SIGNS)):
         if cfg[key] not in allowed:
             raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
+    if not isinstance(cfg["val_sdf"], bool):
+        raise ValueError(f"val_sdf must be True or False, got {cfg['val_sdf']!r}")
     missing = [k for k in IDENTITY_KEYS if k not in cfg]
     if missing:
         raise ValueError(f"training config is missing {', '.join(missing)}")

@@ -35,6 +35,7 @@ from .sdf import (  # the SDF machinery; valid_mask and check_depths are shared 
     check_depths,
     check_sdf_options,
     sdf_fields,
+    sdf_fields_batched,
     valid_mask,
 )
 
@@ -221,7 +222,7 @@ def normal_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None 
 # ----------------------------------------------------------------------------- SDF loss
 def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
              cache: GTFieldCache | None = GT_FIELD_CACHE, sign_rule: str = "view",
-             sampling: str = "bbox") -> torch.Tensor:
+             sampling: str = "bbox", frame_ids=None) -> torch.Tensor:
     """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 10).
 
     The fields come from :mod:`geodepth_lite.sdf`. Both depth maps are back-projected with K
@@ -237,7 +238,10 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     least one valid pixel (0 if none). ``method``: exact nearest-neighbour search, "auto" =
     cKDTree on the CPU, the batched torch search (:mod:`geodepth_lite.nnsearch`) on CUDA.
     ``signed=False`` gives the unsigned variant (for comparison). ``cache``: ground-truth fields
-    are reused for frames seen before (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search).
+    are reused for frames seen before (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search),
+    keyed by ``frame_ids`` (one hashable id per image) where given, by the frames' content otherwise.
+    The fields are built for the whole batch at once (:func:`geodepth_lite.sdf.sdf_fields_batched`),
+    and the loss equals, bit for bit, its former image-by-image form (``sdf_loss_reference``).
 
     Two options, not the paper's (docs/network_and_losses.md, "Where the SDF samples lie"):
     ``sign_rule="masked"`` leaves out the points where the view rule does not apply in either
@@ -249,6 +253,42 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
 
     Explained with its equation in notebook 03, section 5 (the grid, the sign rule, L_SDF).
     """
+    f = sdf_fields_batched(pred, gt, K, grid, mask, method, signed, cache, sign_rule, sampling, frame_ids)
+    return sdf_loss_from_fields(f, pred)
+
+
+def _front_mean(x: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
+    """Per row of x (B x M), the mean of the entries where ``keep`` (B x M bool), 0 for a row without any;
+    the kept entries are moved, in order, to the front of the row and the rest zeroed, so the sum adds the
+    same numbers in the same places as a sum over the kept entries alone (the per-image loss's)."""
+    order = torch.argsort((~keep).to(torch.uint8), dim=1, stable=True)  # kept entries first, in order
+    k = torch.gather(keep, 1, order)
+    front = torch.where(k, torch.gather(x, 1, order), torch.zeros((), dtype=x.dtype, device=x.device))
+    n = keep.sum(1)
+    return front.sum(1) / n.clamp_min(1).to(x.dtype), n > 0
+
+
+def sdf_loss_from_fields(f: dict, pred: torch.Tensor) -> torch.Tensor:
+    """L_sdf of the batched fields of :func:`geodepth_lite.sdf.sdf_fields_batched` (``pred``: only for a
+    zero connected to it): the mean over the images with a valid pixel ("masked": over the images with a
+    known sample, each the mean over its known samples), with no host sync."""
+    err = (f["pred"] - f["gt"]).abs()  # (B, M)
+    has = f["has"]
+    if "known" in f:
+        per_image, some = _front_mean(err, f["known"] & has[:, None])  # (B,) each
+        return _front_mean(per_image[None], some[None])[0][0]
+    # the mean over every sample of the images with a valid pixel: those rows first, the others zeroed
+    rows = torch.argsort((~has).to(torch.uint8), stable=True)  # (B,)
+    h = has.index_select(0, rows)
+    front = torch.where(h[:, None], err.index_select(0, rows), torch.zeros((), dtype=err.dtype, device=err.device))
+    return front.sum() / (h.sum() * err.shape[1]).clamp_min(1).to(err.dtype)
+
+
+def sdf_loss_reference(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
+                        cache: GTFieldCache | None = None, sign_rule: str = "view",
+                        sampling: str = "bbox") -> torch.Tensor:
+    """:func:`sdf_loss` image by image from :func:`geodepth_lite.sdf.sdf_fields` (the former code, kept as the
+    reference the batched loss must equal bit for bit, and as the benchmark's baseline)."""
     fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule, sampling)
               if f is not None]
     if sign_rule == "masked":
@@ -273,6 +313,7 @@ class LossInputs:
     border_weight: float = 0.0            # beta of border_weight_map in the depth term; 0 = all pixels alike
     sdf_sampling: str = "bbox"            # where the SDF samples lie (sdf.SDF_SAMPLINGS)
     sdf_sign: str = "view"                # the SDF sign rule (sdf.SIGN_RULES)
+    frame_ids: tuple | None = None        # one hashable id per frame keying cached ground-truth fields (None: content)
 
 
 def _depth_term(p: torch.Tensor, x: LossInputs) -> torch.Tensor:
@@ -299,7 +340,7 @@ LOSS_TERMS: dict[str, LossTerm] = {
     "grad": LossTerm(lambda p, x: gradient_loss(p, x.gt, x.mask), "lambda2", "Eq. 3"),
     "normal": LossTerm(lambda p, x: normal_loss(p, x.gt, x.mask), "lambda2", "Eq. 4"),
     "sdf": LossTerm(lambda p, x: sdf_loss(p, x.gt, x.K, x.sdf_grid, x.mask, sign_rule=x.sdf_sign,
-                                          sampling=x.sdf_sampling), "lambda3", "Eq. 10"),
+                                          sampling=x.sdf_sampling, frame_ids=x.frame_ids), "lambda3", "Eq. 10"),
 }
 
 
@@ -335,7 +376,7 @@ def group_weights(lambdas) -> dict[str, float]:
 
 def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID,
                depth_term: str = "l1", border_weight: float = 0.0, sdf_sampling: str = "bbox",
-               sdf_sign: str = "view"):
+               sdf_sign: str = "view", frame_ids=None):
     """L_total: each group's weight times the sum of its terms (``LOSS_TERMS``; Sec. 3.C, Eq. 11).
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats with
@@ -345,7 +386,9 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
     ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).
     ``sdf_sampling``, ``sdf_sign``: the SDF term's ``sampling`` and ``sign_rule`` (:func:`sdf_loss`;
-    "bbox" and "view" are the paper's).
+    "bbox" and "view" are the paper's). ``frame_ids``: one hashable id per frame, whose ground truth is
+    the same whenever the id is (no augmentation), to key the SDF term's cached ground-truth fields
+    without reading the frames (:func:`sdf_loss`); None keys them by content.
 
     Explained with its equation in notebook 04, "What the network minimises" (Eq. 11).
     """
@@ -353,7 +396,8 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
         raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
     check_sdf_options(sdf_sign, sdf_sampling)
     weights = group_weights(lambdas)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,
+                        None if frame_ids is None else tuple(frame_ids))
     zero = pred.sum() * 0.0
     t = {name: (term.fn(pred, inputs) if weights[term.group] else zero) for name, term in LOSS_TERMS.items()}
     loss = None
@@ -368,7 +412,7 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
 
 def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID, depth_term: str = "l1",
                         terms=None, border_weight: float = 0.0, sdf_sampling: str = "bbox",
-                        sdf_sign: str = "view") -> dict[str, float]:
+                        sdf_sign: str = "view", frame_ids=None) -> dict[str, float]:
     """||dL_term / dD_pred||_2 of each unweighted term at the network's output (a loss-balancing diagnostic).
 
     The network sees the losses only through this gradient on its output depth map, so the
@@ -379,7 +423,8 @@ def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID
     """
     check_sdf_options(sdf_sign, sdf_sampling)
     p = pred.detach().float().clone().requires_grad_(True)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign)
+    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,
+                        None if frame_ids is None else tuple(frame_ids))
     out = {}
     for name in term_names() if terms is None else terms:
         (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)

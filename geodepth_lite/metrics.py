@@ -11,13 +11,15 @@ scaling, ``pred *= median(gt[valid]) / median(pred[valid])``; then ``pred`` is c
 - a_k      = mean(max(gt / pred, pred / gt) < 1.25^k), k = 1, 2, 3
 
 and each metric is the mean of its per-frame values. Notebook 04 writes these equations out
-("How every depth map is scored") before its first number. This is the only implementation in the
-package: training validation, evaluation and the notebooks all call :func:`compute_depth_metrics`.
+("How every depth map is scored") before its first number. Evaluation and the notebooks call
+:func:`compute_depth_metrics` (numpy); training's validation computes the same per-frame numbers in
+torch on its device (:func:`frame_metrics_torch`, checked against it in tests/test_validation_device.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 EVAL_MIN_DEPTH = 1e-3  # ground truth at or below this is invalid (the protocol's lower cap, scene units)
 EVAL_MAX_DEPTH = 100.0  # ... and at or above this (public datasets use their own encoding's maximum)
@@ -126,4 +128,56 @@ def compute_depth_metrics(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_de
         raise ValueError(f"no valid ground-truth pixel in any frame (valid: {min_depth} < gt < {max_depth})")
     out = {k: float(np.mean(per_frame[k][used])) for k in METRIC_NAMES}
     out.update(ratios=ratios, per_frame=per_frame, n_frames=int(used.sum()))
+    return out
+
+
+def _masked_median(x, valid, n):
+    """numpy's median of each row's valid entries (x, valid: N x P float64 / bool; n: N counts >= 1): the
+    middle one, or the mean of the two middle ones."""
+    s = torch.sort(torch.where(valid, x, torch.full_like(x, float("inf"))), dim=1).values
+    lo = ((n - 1) // 2).clamp_min(0)[:, None]
+    hi = (n // 2).clamp(max=x.shape[1] - 1)[:, None]
+    return ((s.gather(1, lo) + s.gather(1, hi)) / 2)[:, 0]
+
+
+def frame_metrics_torch(pred, gt, *, min_depth: float = EVAL_MIN_DEPTH, max_depth: float = EVAL_MAX_DEPTH,
+                        median_scaling: bool = True) -> dict:
+    """:func:`compute_depth_metrics` per frame, in torch on the tensors' device (float64), nothing read to the host.
+
+    pred, gt: N x 1 x H x W or N x H x W tensors. Returns {metric: N values (NaN where unused),
+    "ratios": N, "used": N bool (frames with a valid pixel), "bad": N bool (frames that
+    :func:`compute_depth_metrics` refuses: a non-finite prediction on a valid pixel, a non-positive
+    median, or a non-positive depth after clamping)}. The same numbers as the numpy protocol up to the
+    order of float64 sums.
+    """
+    p = pred.detach().reshape(pred.shape[0], -1).to(torch.float64)
+    g = gt.detach().reshape(gt.shape[0], -1).to(device=p.device, dtype=torch.float64)
+    if p.shape != g.shape:
+        raise ValueError(f"pred and gt must have the same shape, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    valid = torch.isfinite(g) & (g > min_depth) & (g < max_depth)
+    n = valid.sum(1)
+    used = n > 0
+    bad = (valid & ~torch.isfinite(p)).any(1)
+    ratio = torch.ones_like(p[:, 0])
+    if median_scaling:
+        med_p = _masked_median(p, valid, n)
+        bad |= used & ~(med_p > 0)
+        ratio = _masked_median(g, valid, n) / med_p
+    one = torch.ones((), dtype=p.dtype, device=p.device)
+    pi = torch.where(valid, (p * ratio[:, None]).clamp(min_depth, max_depth), one)
+    gi = torch.where(valid, g, one)
+    bad |= (valid & ~(pi > 0)).any(1)
+    thresh = torch.maximum(gi / pi, pi / gi)
+    diff = gi - pi
+    cnt = n.clamp_min(1).to(p.dtype)
+
+    def mean(x):
+        return torch.where(valid, x, torch.zeros((), dtype=p.dtype, device=p.device)).sum(1) / cnt
+
+    per = {"abs_rel": mean(diff.abs() / gi), "sq_rel": mean(diff**2 / gi), "rmse": mean(diff**2).sqrt(),
+           "rmse_log": mean((gi.log() - pi.log()) ** 2).sqrt(), "a1": mean((thresh < 1.25).to(p.dtype)),
+           "a2": mean((thresh < 1.25**2).to(p.dtype)), "a3": mean((thresh < 1.25**3).to(p.dtype))}
+    nan = torch.full_like(ratio, float("nan"))
+    out = {k: torch.where(used, v, nan) for k, v in per.items()}
+    out.update(ratios=torch.where(used, ratio, nan), used=used, bad=bad & used)
     return out

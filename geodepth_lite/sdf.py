@@ -21,7 +21,9 @@ This module holds what that term is built from, in three layers:
   Indices are searched without gradient; distances are then recomputed in torch from the
   nearest points, so gradients reach the prediction through them;
 - fields: phi of one point set at given queries (:func:`signed_distance`), and the fields of a
-  batch of predicted and ground-truth depth maps on the grid (:func:`sdf_fields`);
+  batch of predicted and ground-truth depth maps on the grid, image by image (:func:`sdf_fields`,
+  the reference) or as B x M tensors with no per-image loop (:func:`sdf_fields_batched`, what the
+  loss uses; the same numbers);
 - cache: ground-truth fields, which do not depend on the network, kept per frame
   (:class:`GTFieldCache`, :data:`GT_FIELD_CACHE`).
 
@@ -380,10 +382,13 @@ class GTFieldCache:
     900 validation frames take 4500 x 128 KiB = 562.5 MiB. The least recently used are dropped
     beyond ``max_bytes`` (1 GiB: about 8000 frames at 32^3); ``max_bytes = 0`` disables the cache.
 
-    The key is the frame's content, not its index in the dataset: augmentation (flips, crops, the
+    Keys (:func:`sdf_fields_batched`): the frame's content by default, or the frame's identity where
+    the caller names it (``frame_ids``: training without augmentation names the dataset, split,
+    size and index, :func:`geodepth_lite.train.batch_frame_ids`). Augmentation (flips, crops, the
     field-of-view border) changes a frame's ground truth from one epoch to the next, and train and
     validation frames share indices, so an index alone could return another map's field. Hashing
-    costs a copy of the depth map to the host and a BLAKE2b over it (400 KiB at 320x320).
+    the content costs a copy of the depth map to the host and a BLAKE2b over it (400 KiB at
+    320x320); an identity key costs neither.
     """
 
     def __init__(self, max_bytes: int = 2**30):
@@ -580,4 +585,158 @@ def view_rule_coverage(gt: torch.Tensor, K, grid=DEFAULT_SDF_GRID, mask: torch.T
             q = _samples(S_gt[b, vb], Kb[b], (H, W), shape, sampling)[0]  # (M, 3)
             known = _view_sign(q[None], gt_safe[b, :1], Kb[b][None], valid[b])[1]  # (1, M) bool
             out[b] = known.double().mean()
+    return out
+
+
+# ----------------------------------------------------------------------------- fields of a batch, as B x M tensors
+def nearest_indices_grid(points: torch.Tensor, valid: torch.Tensor, queries: torch.Tensor,
+                         method: str = "auto") -> torch.Tensor:
+    """Per image, the exact nearest valid point of each query, as an index into all of the image's points.
+
+    points: B x N x 3 (a batch's back-projected depth maps); valid: B x N bool (the points that
+    count); queries: B x M x 3 -> B x M int64 indices into N (0 for an image without a valid point).
+    Searched among each image's valid points, in pixel order, so ties go to the least pixel index, as
+    the per-image search of :func:`sdf_fields` gives them. "kdtree" (the CPU default) builds one
+    cKDTree per image on the host; "device" runs one batched search
+    (:func:`geodepth_lite.nnsearch.nearest_indices_batched`), which selects the valid points and so
+    waits for the device once; the others search image by image.
+    """
+    B, N, _ = points.shape
+    M = queries.shape[1]
+    method = resolve_method(method, points.device)
+    if method == "device":
+        flat = valid.reshape(-1)
+        sel = flat.nonzero().squeeze(1)  # (P,) flat indices of the valid points
+        pimg = sel // N
+        qimg = torch.arange(B, device=queries.device).repeat_interleave(M)
+        pts = points.detach().reshape(-1, 3).index_select(0, sel).to(torch.float64)
+        qs = queries.detach().reshape(-1, 3).to(torch.float64)
+        narrow = (torch.float32, torch.float16, torch.bfloat16)
+        if points.dtype in narrow and queries.dtype in narrow:  # exact in float32: the search may bound in float32
+            pts, qs = pts.float(), qs.float()
+        idx = nnsearch.nearest_indices_batched(pts, pimg, qs, qimg, B)  # (B M,) into sel; -1: no point
+        full = sel.index_select(0, idx.clamp_min(0)) - qimg * N
+        return torch.where(idx >= 0, full, torch.zeros_like(full)).reshape(B, M)
+    out = torch.zeros(B, M, dtype=torch.int64, device=queries.device)
+    v_h = valid.detach().cpu()
+    for b in range(B):
+        sel = v_h[b].nonzero().squeeze(1)  # (N_b,) on the host
+        if sel.numel():
+            idx = nearest_indices(points[b].index_select(0, sel.to(points.device)), queries[b], method)
+            out[b] = sel.to(idx.device)[idx]
+    return out
+
+
+def _masked_box(S: torch.Tensor, valid: torch.Tensor, has: torch.Tensor):
+    """(lower, upper), B x 3 each: the least and greatest coordinates of each image's valid points
+    (S: B x N x 3, valid: B x N, has: B); 0 for an image without a valid point."""
+    inf = torch.tensor(float("inf"), dtype=S.dtype, device=S.device)
+    v = valid[..., None]
+    lower = torch.where(v, S, inf).amin(1)  # (B, 3)
+    upper = torch.where(v, S, -inf).amax(1)  # (B, 3)
+    zero = torch.zeros((), dtype=S.dtype, device=S.device)
+    return torch.where(has[:, None], lower, zero), torch.where(has[:, None], upper, zero)
+
+
+def _batch_samples(S_gt, valid, has, Kb, hw, shape, sampling: str, hit=None):
+    """Every image's SDF samples at once: (q B x M x 3, lower B x 3, upper B x 3), as :func:`_samples`
+    gives them image by image (the same operations, so the same values). ``hit``: cached
+    (lower, upper) boxes, B x 3 each, which the "bbox" grid reuses."""
+    rx, ry, rz = shape
+    dtype, dev = S_gt.dtype, S_gt.device
+    B = S_gt.shape[0]
+    if sampling == "frustum":
+        z_near, z_far = _masked_box(S_gt[..., 2:], valid, has)  # (B, 1) each
+        z_near = torch.where(has[:, None], z_near, torch.ones_like(z_near))  # an image without points: 1..1
+        z_far = torch.where(has[:, None], z_far, torch.ones_like(z_far))
+        K = Kb.to(dtype=dtype, device=dev)  # (B, 3, 3)
+        u = torch.linspace(0.0, hw[1] - 1, rx, dtype=dtype, device=dev)  # (rx,)
+        v = torch.linspace(0.0, hw[0] - 1, ry, dtype=dtype, device=dev)  # (ry,)
+        t = torch.linspace(0.0, 1.0, rz, dtype=dtype, device=dev)  # (rz,)
+        z = z_near * torch.pow(z_far / z_near, t)  # (B, rz)
+        x = (u - K[:, 0, 2, None]) / K[:, 0, 0, None]  # (B, rx)
+        y = (v - K[:, 1, 2, None]) / K[:, 1, 1, None]  # (B, ry)
+        X = x[:, :, None, None].expand(B, rx, ry, rz)
+        Y = y[:, None, :, None].expand(B, rx, ry, rz)
+        Z = z[:, None, None, :].expand(B, rx, ry, rz)
+        q = torch.stack((X * Z, Y * Z, Z), dim=-1).reshape(B, -1, 3)  # (B, M, 3)
+        return q, q.amin(1), q.amax(1)
+    lower, upper = (hit[0].to(S_gt), hit[1].to(S_gt)) if hit is not None else _masked_box(S_gt, valid, has)
+    axes = [torch.linspace(0.0, 1.0, r, dtype=dtype, device=dev) for r in shape]
+    t = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)  # (M, 3)
+    return lower[:, None] + t * (upper - lower)[:, None], lower, upper  # (B, M, 3), (B, 3), (B, 3)
+
+
+def _phi_batched(points, queries, idx, signed: bool, view) -> torch.Tensor:
+    """:func:`_phi` of a batch: points B x N x 3, queries B x M x 3, idx B x M (into N), ``view`` the
+    (sign, known) pair of :func:`_view_sign` or None -> B x M."""
+    nearest = torch.gather(points, 1, idx[..., None].expand(-1, -1, 3))  # (B, M, 3); backward in query order
+    return _signed_from_nearest(nearest, queries, signed, view)  # (B, M)
+
+
+def _cache_keys(cache, frame_ids, gt, valid, Kb, shape, signed, sign_rule, sampling):
+    """One key per image for ``cache``: (the frame's id, the options) where ``frame_ids`` is given (nothing
+    read from the device), else the content hash of :meth:`GTFieldCache.key`; None without a cache."""
+    if cache is None or cache.max_bytes <= 0:
+        return None
+    options = (tuple(shape), bool(signed), SIGN_RULES[sign_rule], SDF_SAMPLINGS[sampling])
+    if frame_ids is not None:
+        if len(frame_ids) != gt.shape[0]:
+            raise ValueError(f"frame_ids must name the {gt.shape[0]} frames of the batch, got {len(frame_ids)}")
+        return [("frame", fid, options) for fid in frame_ids]
+    if gt.device.type != "cpu":  # one copy of the batch to the host, not three per image
+        gt, valid, Kb = gt.detach().cpu(), valid.cpu(), Kb.cpu()
+    return [GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling) for b in range(gt.shape[0])]
+
+
+def sdf_fields_batched(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
+                       cache: GTFieldCache | None = None, sign_rule: str = "view", sampling: str = "bbox",
+                       frame_ids=None, nearest=None) -> dict:
+    """The fields of :func:`sdf_fields` for the whole batch at once, as fixed-shape tensors.
+
+    Returns {"grid": B x M x 3, "lower", "upper": B x 3, "pred", "gt": B x M, "has": B bool (the
+    image has a valid pixel; the other rows hold no field)} and, for ``sign_rule="masked"``,
+    "known": B x M. Row b equals entry b of :func:`sdf_fields` bit for bit (the same operations on
+    the same values, batched; the nearest points are searched among the same valid points). Apart
+    from the search (:func:`nearest_indices_grid`) and content cache keys, nothing waits for the
+    device: no per-image loop, no test of a tensor's value on the host.
+
+    ``frame_ids``: one hashable id per image (e.g. the dataset's split and frame index) that keys the
+    ``cache`` where the frame's ground truth is the same whenever the id is (no augmentation);
+    None keys it by content. The ground-truth fields come from the cache when every frame hits,
+    else all are computed and the missing ones stored. ``nearest``: the prediction's nearest-point
+    indices (B x M, from :func:`nearest_indices_grid`), to skip its search (tests, benchmarks).
+    """
+    check_sdf_options(sign_rule, sampling)
+    check_depths(pred, gt)
+    B, _, H, W = pred.shape
+    valid, gt_safe, Kb = _batch_inputs(gt, K, mask, B)  # (B, 1, H, W) bool, (B, 1, H, W), (B, 3, 3)
+    shape = _grid_shape(grid)
+    view = signed and sign_rule in ("view", "masked")
+    S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
+    S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
+    vflat = valid.reshape(B, H * W)
+    has = vflat.any(1)  # (B,)
+    keys = _cache_keys(cache, frame_ids, gt, valid, Kb, shape, signed, sign_rule, sampling)
+    hits = [cache.get(k) for k in keys] if keys is not None else None
+    hit = None
+    if hits is not None and all(h is not None for h in hits):
+        hit = tuple(torch.stack([h[i] for h in hits]) for i in range(3))  # (B, 3), (B, 3), (B, M)
+    q, lower, upper = _batch_samples(S_gt, vflat, has, Kb, (H, W), shape, sampling, hit)
+    if nearest is None:
+        nearest = nearest_indices_grid(S_pred, vflat, q, method)  # (B, M)
+    v_pred = _view_sign(q, pred[:, 0].detach(), Kb, valid[:, 0]) if view else None
+    phi_pred = _phi_batched(S_pred, q, nearest, signed, v_pred)  # (B, M)
+    if hit is not None:
+        phi_gt = hit[2].to(phi_pred)
+    else:
+        v_gt = _view_sign(q, gt_safe[:, 0], Kb, valid[:, 0]) if view else None
+        phi_gt = _phi_batched(S_gt, q, nearest_indices_grid(S_gt, vflat, q, method), signed, v_gt).to(phi_pred)
+        for b, h in enumerate(hits or ()):  # rows of frames without a valid pixel too: they are never read
+            if h is None:
+                cache.put(keys[b], lower[b].clone(), upper[b].clone(), phi_gt[b].clone())
+    out = {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt, "has": has}
+    if sign_rule == "masked":
+        out["known"] = v_pred[1] & v_gt[1] if hit is None else (
+            v_pred[1] & _view_sign(q, gt_safe[:, 0], Kb, valid[:, 0])[1])
     return out

@@ -41,7 +41,7 @@ from geodepth_lite import checkpoint as ckpt_io
 from geodepth_lite import config, distributed, inference, losses, utils
 from geodepth_lite.augment import augment_batch
 from geodepth_lite.datasets import MemoryDataset, load_split, resolve_dataset
-from geodepth_lite.metrics import METRIC_NAMES, compute_depth_metrics
+from geodepth_lite.metrics import METRIC_NAMES, frame_metrics_torch
 from geodepth_lite.model import DepthNet
 
 
@@ -60,13 +60,32 @@ def get_lr_factor(step: int, total_steps: int, schedule: str) -> float:
     return 1.0
 
 
-def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict):
-    """(weighted total, {term: value}) of ``losses.total_loss`` for a batch, in float32."""
+def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict, frame_ids=None):
+    """(weighted total, {term: value}) of ``losses.total_loss`` for a batch, in float32. ``frame_ids``:
+    see :func:`batch_frame_ids`."""
     g = cfg["sdf_grid"]
     return losses.total_loss(pred.float(), batch["depth"], batch["image"], batch["K"], lambdas=cfg["lambdas"],
                              mask=batch.get("valid"), sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
                              border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
-                             sdf_sign=cfg["sdf_sign"])
+                             sdf_sign=cfg["sdf_sign"], frame_ids=frame_ids)
+
+
+def frame_space(root, split: str, image_size) -> tuple:
+    """What names a split's frames apart from their index: the dataset folder, the split, the size they are
+    resized to, and when the split's frame list was written (a dataset written anew gets new ids)."""
+    root = Path(root).resolve()
+    listing = root / split / "frames.jsonl"
+    return (str(root), split, image_size, listing.stat().st_mtime_ns if listing.exists() else 0)
+
+
+def batch_frame_ids(batch: dict, space: tuple | None) -> list | None:
+    """One id per frame of a batch as the loader gives it (before augmentation, its "index" on the host),
+    keying the cached ground-truth SDF fields (``losses.sdf_loss``) by the frame's identity: no copy of the
+    frames to the host and no hash. None (key by content) without ``space`` or an "index"."""
+    index = batch.get("index")
+    if space is None or index is None:
+        return None
+    return [(*space, int(i)) for i in (index.tolist() if isinstance(index, torch.Tensor) else index)]
 
 
 def weighted_terms(cfg: dict) -> tuple[str, ...]:
@@ -75,7 +94,7 @@ def weighted_terms(cfg: dict) -> tuple[str, ...]:
     return tuple(name for name, term in losses.LOSS_TERMS.items() if weights[term.group])
 
 
-def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict) -> dict[str, float]:
+def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict, frame_ids=None) -> dict[str, float]:
     """The gradient norm at the network output of each weighted loss term (logged once per epoch, on
     the first batch); a term whose weight is zero is not evaluated, and its ``gradnorm_`` column is
     absent from the log."""
@@ -83,35 +102,60 @@ def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict) -> dict[str,
     return losses.term_gradient_norms(pred, batch["depth"], batch["image"], batch["K"], mask=batch.get("valid"),
                                       sdf_grid=(g, g, g), depth_term=cfg["depth_term"], terms=weighted_terms(cfg),
                                       border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
-                                      sdf_sign=cfg["sdf_sign"])
+                                      sdf_sign=cfg["sdf_sign"], frame_ids=frame_ids)
 
 
 @torch.no_grad()
-def validate(model, dataset, cfg: dict, device: torch.device, batch_size: int | None = None) -> dict:
-    """Mean validation loss terms and the seven metrics (median scaling) over ``dataset``."""
+def validate(model, dataset, cfg: dict, device: torch.device, batch_size: int | None = None,
+             space: tuple | None = None) -> dict:
+    """Mean validation loss terms and the seven metrics (median scaling) over ``dataset``.
+
+    The metrics are computed per frame on ``device`` (``metrics.frame_metrics_torch``, the numbers of
+    ``metrics.compute_depth_metrics``) and read to the host once, at the end. The SDF term is evaluated
+    only where ``cfg["val_sdf"]`` (the teach and smoke profiles, whose notebooks plot it; the paper
+    profile leaves it out, and its ``val_sdf`` and ``val_total`` read NaN). ``space``: names the split's
+    frames (:func:`frame_space`), so cached ground-truth fields are keyed by frame id. Nothing here
+    draws a random number or changes the model's weights."""
     model.eval()
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size or cfg["batch_size"], shuffle=False,
                                          collate_fn=inference.collate)
     keys = log_keys()
+    skip_sdf = not cfg.get("val_sdf", True) and losses.group_weights(cfg["lambdas"])["lambda3"] > 0
+    vcfg = cfg if not skip_sdf else {**cfg, "lambdas": [*cfg["lambdas"][:2], 0.0]}
     sums = {k: 0.0 for k in keys}
     n = 0
-    preds, gts = [], []
+    per_frame: list[dict] = []
     for batch in loader:
+        ids = batch_frame_ids(batch, space)
         batch = inference.to_device(batch, device)
         with inference.autocast(device):
             pred = model(batch["image"])  # (B, 1, H, W)
-        _, terms = compute_losses(pred, batch, cfg)
+        _, terms = compute_losses(pred, batch, vcfg, ids)
         b = batch["image"].shape[0]
         for k in keys:
             sums[k] += float(terms.get(k, 0.0)) * b
         n += b
-        preds.append(pred.float()[:, 0].cpu())
-        gts.append(batch["depth"][:, 0].cpu())
+        per_frame.append(frame_metrics_torch(pred.float(), batch["depth"]))
     out = {f"val_{k}": sums[k] / max(n, 1) for k in keys}
+    if skip_sdf:
+        out["val_sdf"] = out["val_total"] = float("nan")  # not evaluated: the weighted total lacks a term
     if n:
-        m = compute_depth_metrics(torch.cat(preds).numpy(), torch.cat(gts).numpy())
-        out.update({f"val_{k}": float(m[k]) for k in METRIC_NAMES})
+        out.update(_metric_means(per_frame))
     return out
+
+
+def _metric_means(per_frame: list[dict]) -> dict:
+    """The seven metrics' means over the frames with a valid pixel, from per-batch
+    ``metrics.frame_metrics_torch`` results (one read to the host); the numpy protocol's errors."""
+    cat = {k: torch.cat([f[k] for f in per_frame]) for k in (*METRIC_NAMES, "used", "bad")}
+    used, bad = cat["used"], cat["bad"]
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise ValueError(f"pred frame {i} cannot be scored: a non-finite or non-positive depth on valid pixels")
+    if not bool(used.any()):
+        raise ValueError("no valid ground-truth pixel in any frame")
+    means = torch.stack([cat[k][used].mean() for k in METRIC_NAMES]).tolist()
+    return {f"val_{k}": v for k, v in zip(METRIC_NAMES, means)}
 
 
 def build_network(cfg: dict, network=None) -> torch.nn.Module:
@@ -265,6 +309,8 @@ class Trainer:
         self.train_ds = load_split(root, "train", cfg["image_size"], cache=cache, limit=cfg["train_frames"])
         self.val_ds = (load_split(root, "val", cfg["image_size"], cache=cache, limit=cfg["val_frames"])
                        if self.is_main else None)
+        # frame ids key the cached ground-truth SDF fields where no augmentation changes a frame's ground truth
+        self.spaces = {split: frame_space(root, split, cfg["image_size"]) for split in ("train", "val")}
         if len(self.train_ds) == 0:
             raise ValueError(f"dataset {root} has no training frames")
         in_memory = isinstance(self.train_ds, MemoryDataset)
@@ -298,7 +344,7 @@ class Trainer:
             if not bool(torch.isfinite(loss)):
                 raise TrainingDiverged(self.divergence_message(epoch, step, terms))
             if not grad_norms:  # the first step of the epoch (at initialisation in epoch 1)
-                grad_norms = term_gradient_norms(pred, batch, cfg)
+                grad_norms = term_gradient_norms(pred, batch, cfg, self.frame_ids(batch, "train"))
             self.step(loss)
             b = batch["image"].shape[0]
             sums[:-1] += torch.tensor([float(terms.get(k, 0.0)) * b for k in keys], dtype=torch.float64)
@@ -318,7 +364,7 @@ class Trainer:
         row: dict[str, Any] = {"epoch": epoch + 1}
         row.update({f"train_{k}": float(sums[i] / max(sums[-1], 1)) for i, k in enumerate(keys)})
         if self.is_main:
-            row.update(validate(self.model, self.val_ds, cfg, self.device))
+            row.update(validate(self.model, self.val_ds, cfg, self.device, space=self.spaces["val"]))
         row.update({f"gradnorm_{k}": v for k, v in grad_norms.items()})
         row["lr"] = self.opt.param_groups[0]["lr"]
         row["epoch_s"] = time.perf_counter() - t_epoch
@@ -340,12 +386,20 @@ class Trainer:
                 f"{what} at learning rate {self.opt.param_groups[0]['lr']:g}; {kept}. Lower --lr, or check "
                 "the dataset")
 
+    def frame_ids(self, batch: dict, split: str) -> list | None:
+        """The frames' ids (:func:`batch_frame_ids`) where augmentation leaves their ground truth as it is
+        (``augment="none"``), else None (cached ground-truth fields keyed by content)."""
+        if split == "train" and self.cfg["augment"] != "none":
+            return None
+        return batch_frame_ids(batch, getattr(self, "spaces", {}).get(split))
+
     def process_batch(self, batch: dict):
         """Augment, forward, losses: (loss, {term: value}, prediction (B, 1, H, W), the batch as seen)."""
+        ids = self.frame_ids(batch, "train")  # read from the loader's batch, on the host
         batch = augment_batch(inference.to_device(batch, self.device), self.cfg["augment"])
         with inference.autocast(self.device):
             pred = self.net(batch["image"])  # (B, 1, H, W)
-        loss, terms = compute_losses(pred, batch, self.cfg)
+        loss, terms = compute_losses(pred, batch, self.cfg, ids)
         return loss, terms, pred, batch
 
     def step(self, loss: torch.Tensor) -> None:

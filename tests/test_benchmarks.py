@@ -33,6 +33,18 @@ def test_bench_sdf_runs_and_times_the_uncached_step_without_the_cache(tmp_path, 
     assert len(lookups) == 2 * 2
 
 
+def test_bench_sdf_compare_times_both_losses_on_the_same_batch(tmp_path, capsys):
+    out = tmp_path / "compare.json"
+    main = load("bench_sdf.py")["main"]
+    assert main(["--compare", "--batch", "3", "--size", "32", "--grid", "4", "--repeats", "1", "--data", "analytic",
+                 "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    for k in ("", "_cached", "_given"):
+        assert res[f"compare_ratio{k}"] == res[f"compare_ref{k}_s"] / res[f"compare_new{k}_s"] > 0
+        assert len(res["compare_times"][f"ref{k}"]) == len(res["compare_times"][f"new{k}"]) == 1
+    assert "per image (former)" in capsys.readouterr().out
+
+
 def test_bench_render_runs(capsys):
     main = load("bench_render.py")["main"]
     assert main(["--size", "32", "--frames", "1", "--repeats", "1"]) == 0
@@ -269,3 +281,28 @@ def test_bench_many_runs_and_reports_the_four_ways(tmp_path, capsys):
     assert all(res[k] > 0 for k in ("one_step_s", "sequential_s", "stacked_s", "processes_s"))
     said = capsys.readouterr().out
     assert "one process, stacked (vmap" in said and "2 processes (1 thread each)" in said
+
+
+def compare_table_rows(text: str) -> list:
+    """The (former s, batched s, ratio) of each row of the batched-vs-per-image SDF table in ``text``."""
+    import re
+
+    rows = re.findall(r"^\| [^|]+ \| ([\d.]+) s \| ([\d.]+) s \| ([\d.]+)x \|$", text, flags=re.M)
+    return [tuple(float(x) for x in r) for r in rows]
+
+
+def stated_compare_figures_hold(text: str, rec: dict) -> bool:
+    want = [(round(rec[f"compare_ref{k}_s"], 2), round(rec[f"compare_new{k}_s"], 2),
+             round(rec[f"compare_ratio{k}"], 2)) for k in ("", "_cached", "_given")]
+    return compare_table_rows(text) == want
+
+
+def test_the_docs_state_the_recorded_sdf_loss_comparison():
+    rec = json.loads((BENCHMARKS / "sdf_loss_compare_cpu.json").read_text())
+    text = (BENCHMARKS.parent / "docs" / "network_and_losses.md").read_text()
+    assert rec["batch"] == 20 and rec["size"] == 320 and rec["grid"] == 32 and rec["repeats"] >= 3
+    for k in ("", "_cached", "_given"):  # each median is the median of its recorded repeats
+        for side in ("ref", "new"):
+            assert rec[f"compare_{side}{k}_s"] == sorted(rec["compare_times"][f"{side}{k}"])[rec["repeats"] // 2]
+    assert stated_compare_figures_hold(text, rec)
+    assert not stated_compare_figures_hold(text.replace("| 1.99x |", "| 2.99x |"), rec)  # the check can fail

@@ -162,3 +162,32 @@ def test_ground_truth_fields_are_cached_on_the_gpu():
     # the same frames' keys on the CPU: a CPU search finds the same fields
     cpu = float(losses.sdf_loss(d.cpu() * 1.05, d.cpu(), K.cpu(), 8, cache=None))
     assert first == pytest.approx(cpu, rel=1e-5)
+
+
+def test_the_batched_search_and_loss_on_cuda_match_the_cpu_reference():
+    """The batched fields on CUDA tensors: the nearest points exactly those of the CPU path (cKDTree, the
+    reference), the loss and gradient those of the per-image loss on the CPU up to float32 rounding (CUDA
+    sums in another order)."""
+    from geodepth_lite.sdf import nearest_indices_grid
+
+    d = torch.stack([torch.from_numpy(analytic.depth_map(k, 48, seed=i))[None]
+                     for i, k in enumerate(analytic.KINDS * 2)])  # (6, 1, 48, 48)
+    K = torch.from_numpy(analytic.intrinsics(48)).float()
+    mask = torch.ones_like(d, dtype=torch.bool)
+    mask[..., :4, :] = False
+    pred = d * 1.05
+    S = camera.backproject(pred, K)
+    q = sdf.sdf_fields_batched(pred, d, K, 16, mask)["grid"]
+    valid = mask.reshape(6, -1)
+    cpu = nearest_indices_grid(S, valid, q, "kdtree")
+    gpu = nearest_indices_grid(S.cuda(), valid.cuda(), q.cuda(), "device")
+    assert torch.equal(cpu, gpu.cpu())
+    out = {}
+    for dev in ("cpu", "cuda"):
+        p = pred.clone().to(dev).requires_grad_()
+        fn = losses.sdf_loss_reference if dev == "cpu" else losses.sdf_loss
+        loss = fn(p, d.to(dev), K.to(dev), 16, mask.to(dev), cache=None)
+        loss.backward()
+        out[dev] = (loss.detach().cpu(), p.grad.cpu())
+    assert torch.allclose(out["cuda"][0], out["cpu"][0], rtol=1e-5, atol=0)
+    assert torch.allclose(out["cuda"][1], out["cpu"][1], rtol=1e-4, atol=1e-9)

@@ -487,8 +487,8 @@ def test_a_term_whose_weight_is_zero_is_never_evaluated(monkeypatch, smoke_root,
     from geodepth_lite import losses
 
     calls = []
-    fields = losses.sdf_fields
-    monkeypatch.setattr(losses, "sdf_fields", lambda *a, **k: calls.append(1) or fields(*a, **k))
+    fields = losses.sdf_fields_batched
+    monkeypatch.setattr(losses, "sdf_fields_batched", lambda *a, **k: calls.append(1) or fields(*a, **k))
     row = checkpoint.read_log(train.fit(_cfg(smoke_root, case=case, epochs=1), tmp_path / "run", progress=False))[-1]
     assert bool(calls) is evaluated
     logged = sorted(k[len("gradnorm_"):] for k in row if k.startswith("gradnorm_"))
