@@ -1,0 +1,306 @@
+"""The tube rendered in torch on any device: the same frames as ``render.Renderer`` without VTK.
+
+A z-buffer rasteriser of ``tube.py``'s triangle mesh with the VTK renderer's camera, lights
+and material (its OpenGL fragment shader, term for term), so that a dataset can be made where
+the GPU is (no VTK, no display). Per frame:
+
+- camera: ``camera.py``'s convention (OpenCV frame, K in pixels, pixel centres at integer
+  coordinates); a pixel is covered when the ray through its centre meets a triangle, and its
+  depth is the z-depth of that meeting point in [near, far] (0 elsewhere), so depth is the
+  mesh's, as the VTK z-buffer's (triangles cut by the near plane are handled exactly: the
+  coverage test works on rays, not on projected vertices);
+- shading (``render.Renderer``, VTK's positional lights): at the meeting point, with the
+  perspective-correct interpolated normal, texture coordinate and the view direction,
+  ``ambient tint + sum_lights att (diffuse tint max(n.l, 0) + specular spec_color r.v^power) c_l``,
+  att = 1 / d^2 (attenuation (0, 0, 1)), c_l the light's colour x intensity, times the texture
+  colour (bilinear, repeating: OpenGL's GL_LINEAR without mipmaps), clamped and rounded to 8 bits;
+- ``cast_rays``: ``tube.TubeMesh.cast_rays`` (the auto-exposure rays) on the same triangles.
+
+Rasterisation is vectorised: triangles outside the view are culled, each remaining triangle's
+pixel bounding box (of its part in front of the near plane) lists candidate pixels, the ray
+test keeps the covered ones, and one ``scatter_reduce`` over (z bits, triangle) keys picks the
+nearest, the lowest triangle index on a tie: deterministic on every device. ``render_batch``
+renders many poses of one tube at once.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from . import camera as cam
+
+NEAR, FAR = cam.DEPTH_RANGE
+DEFAULT_MATERIAL = {"ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0}  # as render.py's
+DEFAULT_MUCOSA_COLOR = (0.85, 0.45, 0.4)
+MAX_CANDIDATES = 1 << 25  # candidate (pixel, triangle) pairs per rasterised chunk: bounds the memory used
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+class TorchRenderer:
+    """Torch renderer of one tube at a time, with ``render.Renderer``'s interface.
+
+    width, height: image size; K: 3x3 intrinsics in pixels; device: any torch device (default:
+    CUDA when available). ``render(T_world_cam, lights)`` returns numpy (rgb H x W x 3 uint8,
+    depth H x W float32, 0 = no surface in [near, far]); ``render_batch`` many at once as tensors.
+    """
+
+    def __init__(self, width: int, height: int, K=None, near: float = NEAR, far: float = FAR,
+                 device: str | torch.device | None = None):
+        self.width, self.height = int(width), int(height)
+        self.K = np.asarray(cam.intrinsics(self.width, self.height) if K is None else K, dtype=np.float64)
+        self.near, self.far = float(near), float(far)
+        self.device = default_device() if device is None else torch.device(device)
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        u = (torch.arange(self.width, dtype=torch.float64) - cx) / fx
+        v = (torch.arange(self.height, dtype=torch.float64) - cy) / fy
+        self._ray_x, self._ray_y = u.float().to(self.device), v.float().to(self.device)
+        self.tube = None
+        self.material = dict(DEFAULT_MATERIAL)
+        self.color = torch.tensor(DEFAULT_MUCOSA_COLOR)
+        self.specular_color = torch.ones(3)
+
+    # scene -------------------------------------------------------------------
+    def set_tube(self, tube, texture: np.ndarray | None = None, material: dict | None = None) -> None:
+        """Show ``tube`` (a tube.TubeMesh) with an RGB texture (h x w x 3 uint8, periodic) and Phong material."""
+        a, dev = tube.arrays, self.device
+        self._points = torch.from_numpy(a["points"]).to(dev)  # float64: moved to the camera frame, then float32
+        self._tris = torch.from_numpy(a["triangles"]).to(dev)
+        self._normals = torch.from_numpy(a["normals"]).to(dev)
+        self._tcoords = torch.from_numpy(a["tcoords"]).to(dev)
+        # as VTK shows a numpy image (pyvista.Texture): its last row is texture row 0 (t = 0)
+        self._texture = (None if texture is None else
+                         torch.from_numpy(np.ascontiguousarray(texture[::-1, :, :3])).to(dev).float() / 255.0)
+        self.material = dict(DEFAULT_MATERIAL, **(material or {}))
+        self.color = torch.ones(3) if texture is not None else torch.tensor(DEFAULT_MUCOSA_COLOR)
+        self.specular_color = torch.ones(3)
+        self.tube = tube
+
+    def set_material(self, material: dict) -> None:
+        """Phong coefficients {ambient, diffuse, specular, specular_power} of the mucosa (per frame)."""
+        self.material = {k: float(material[k]) for k in DEFAULT_MATERIAL}
+
+    def set_tint(self, tint) -> None:
+        """Per-sample mucosa colour (multiplies the texture); as VTK's ``SetColor``, it is the ambient,
+        diffuse and specular colour alike."""
+        c = torch.tensor([float(min(max(t, 0.0), 1.0)) for t in tint], dtype=torch.float32)
+        self.color, self.specular_color = c, c.clone()
+
+    # frames ------------------------------------------------------------------
+    def render(self, T_world_cam, lights: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """One frame: (rgb H x W x 3 uint8, depth H x W float32 z-depth; 0 = no surface in [near, far])."""
+        rgb, depth = self.render_batch([T_world_cam], [lights])
+        return rgb[0].cpu().numpy(), depth[0].cpu().numpy()
+
+    def render_batch(self, poses, lights: list, tints=None, materials=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Frames of the shown tube from ``poses`` (T_world_cam each), ``lights[i]`` a list of render.Light
+        (None: one white light at the lens); ``tints``/``materials`` per frame (None: the current ones).
+        Returns (rgb B x H x W x 3 uint8, depth B x H x W float32) on the renderer's device."""
+        n = len(poses)
+        tints = [None] * n if tints is None else tints
+        materials = [None] * n if materials is None else materials
+        rots = [torch.as_tensor(np.asarray(T, dtype=np.float64)[:3, :3], device=self.device).float() for T in poses]
+        verts = [self._camera_vertices(T) for T in poses]
+        rgbs, depths = [], []
+        for chunk in _chunks(self, len(verts)):
+            tri, z, lam = self._rasterise([verts[i] for i in chunk])
+            for j, i in enumerate(chunk):
+                rgb, depth = self._shade(rots[i], tri[j], z[j], lam[j], lights[i], tints[i], materials[i])
+                rgbs.append(rgb)
+                depths.append(depth)
+        return torch.stack(rgbs), torch.stack(depths)
+
+    def cast_rays(self, T_world_cam, directions_cam: np.ndarray) -> np.ndarray:
+        """Distance from the camera along each unit direction (n x 3, camera frame) to the first wall hit
+        (inf: none): ``tube.TubeMesh.cast_rays`` on this renderer's triangles, in float64."""
+        T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=self.device)
+        v = (self._points - T[:3, 3]) @ T[:3, :3]
+        d = torch.as_tensor(np.asarray(directions_cam, dtype=np.float64), device=self.device)
+        v0, v1, v2 = (v[self._tris[:, k]] for k in range(3))
+        keep = (torch.stack([v0[:, 2], v1[:, 2], v2[:, 2]]).max(0).values > 0)  # a triangle wholly behind: no hit
+        v0, v1, v2 = v0[keep], v1[keep], v2[keep]
+        c0, c1, c2 = torch.cross(v1, v2, dim=1), torch.cross(v2, v0, dim=1), torch.cross(v0, v1, dim=1)
+        e0, e1, e2 = d @ c0.T, d @ c1.T, d @ c2.T  # rays x triangles
+        den = e0 + e1 + e2
+        inside = (e0 * den >= 0) & (e1 * den >= 0) & (e2 * den >= 0) & (den != 0)
+        t = (v0 * c0).sum(1)[None, :] / torch.where(den != 0, den, torch.ones_like(den))
+        t = torch.where(inside & (t > 0), t, torch.full_like(t, math.inf))
+        return t.min(1).values.cpu().numpy() if t.shape[1] else np.full(len(d), np.inf)
+
+    def close(self) -> None:
+        self.tube = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # internals ---------------------------------------------------------------
+    def _camera_vertices(self, T_world_cam) -> torch.Tensor:
+        T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=self.device)
+        return ((self._points - T[:3, 3]) @ T[:3, :3]).float()
+
+    def _visible(self, v: torch.Tensor) -> torch.Tensor:
+        """Indices of the triangles not wholly beyond the near or far plane or one side of the view."""
+        tv = v[self._tris]  # m x 3 x 3
+        x, y, z = tv[..., 0], tv[..., 1], tv[..., 2]
+        fx, fy, cx, cy = (float(t) for t in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
+        lo_u, hi_u = (-0.5 - cx) / fx, (self.width - 0.5 - cx) / fx  # the view's edges, x/z and y/z
+        lo_v, hi_v = (-0.5 - cy) / fy, (self.height - 0.5 - cy) / fy
+        out = ((z < self.near).all(1) | (z > self.far).all(1) | (x < lo_u * z).all(1) | (x > hi_u * z).all(1)
+               | (y < lo_v * z).all(1) | (y > hi_v * z).all(1))
+        return torch.nonzero(~out).squeeze(1)
+
+    def _bounds(self, tv: torch.Tensor) -> torch.Tensor:
+        """Pixel bounding boxes (u0, u1, v0, v1), inclusive, of triangles' parts in front of the near plane."""
+        near = self.near
+        pts, ok = [tv], [tv[..., 2] >= near]
+        for a, b in ((0, 1), (1, 2), (2, 0)):  # where an edge crosses the near plane
+            pa, pb = tv[:, a], tv[:, b]
+            za, zb = pa[:, 2], pb[:, 2]
+            cross = (za - near) * (zb - near) < 0
+            f = ((near - za) / torch.where(cross, zb - za, torch.ones_like(za))).unsqueeze(1)
+            pts.append((pa + f * (pb - pa)).unsqueeze(1))
+            ok.append(cross.unsqueeze(1))
+        p, ok = torch.cat(pts, 1), torch.cat(ok, 1)
+        zz = torch.where(ok, p[..., 2], torch.ones_like(p[..., 2]))
+        u = self.K[0, 0] * p[..., 0] / zz + self.K[0, 2]
+        v = self.K[1, 1] * p[..., 1] / zz + self.K[1, 2]
+        big = torch.full_like(u, math.inf)
+        u0, u1 = torch.where(ok, u, big).amin(1), torch.where(ok, u, -big).amax(1)
+        v0, v1 = torch.where(ok, v, big).amin(1), torch.where(ok, v, -big).amax(1)
+        box = torch.stack([torch.ceil(u0).clamp(min=0), torch.floor(u1).clamp(max=self.width - 1),
+                           torch.ceil(v0).clamp(min=0), torch.floor(v1).clamp(max=self.height - 1)], 1)
+        return box.long()
+
+    def _rasterise(self, verts: list) -> tuple[list, list, list]:
+        """Per frame of ``verts`` (camera-frame vertices): the nearest triangle per pixel (H x W long, -1:
+        none), its z-depth (H x W) and barycentric weights (H x W x 3)."""
+        frames, tris, boxes = [], [], []
+        for f, v in enumerate(verts):
+            idx = self._visible(v)
+            frames.append(torch.full_like(idx, f))
+            tris.append(idx)
+            boxes.append(self._bounds(v[self._tris[idx]]))
+        frame, tri, box = torch.cat(frames), torch.cat(tris), torch.cat(boxes)
+        bw, bh = (box[:, 1] - box[:, 0] + 1).clamp(min=0), (box[:, 3] - box[:, 2] + 1).clamp(min=0)
+        keep = (bw > 0) & (bh > 0)
+        frame, tri, box, bw, bh = frame[keep], tri[keep], box[keep], bw[keep], bh[keep]
+        count = bw * bh
+        owner = torch.repeat_interleave(torch.arange(len(count), device=self.device), count)
+        local = torch.arange(len(owner), device=self.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count,
+                                                                                        count)
+        pu = box[owner, 0] + local % bw[owner]
+        pv = box[owner, 2] + torch.div(local, bw[owner], rounding_mode="floor")
+        V = torch.stack(verts)  # B x n x 3
+        tv = V[frame[owner].unsqueeze(1), self._tris[tri[owner]]]  # k x 3 x 3
+        z, ok = _ray_hits(tv, self._ray_x[pu], self._ray_y[pv], self.near, self.far)
+        return self._depth_test(len(verts), frame[owner][ok], tri[owner][ok], pu[ok], pv[ok], z[ok], V)
+
+    def _depth_test(self, n_frames, frame, tri, pu, pv, z, V) -> tuple[list, list, list]:
+        H, W, dev = self.height, self.width, self.device
+        pix = (frame * H + pv) * W + pu
+        key = (z.view(torch.int32).long() << 32) | tri  # positive floats: their bits sort as the numbers do
+        best = torch.full((n_frames * H * W,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+        best.scatter_reduce_(0, pix, key, reduce="amin")
+        hit = best != torch.iinfo(torch.int64).max
+        tri_px = torch.where(hit, best & 0xFFFFFFFF, torch.full_like(best, -1))
+        z_px = torch.where(hit, (best >> 32).int().view(torch.float32), torch.zeros((), device=dev))
+        # barycentric weights of the winners (perspective-correct: of the 3D meeting point)
+        f_px = torch.arange(n_frames, device=dev).repeat_interleave(H * W)
+        safe = tri_px.clamp(min=0)
+        tv = V[f_px.unsqueeze(1), self._tris[safe]]
+        rx = self._ray_x.repeat(n_frames * H)
+        ry = self._ray_y.repeat_interleave(W).repeat(n_frames)
+        lam = _barycentric(tv, rx, ry)
+        return (list(tri_px.view(n_frames, H, W)), list(z_px.view(n_frames, H, W)),
+                list(lam.view(n_frames, H, W, 3)))
+
+    def _shade(self, rot, tri, z, lam, lights, tint, material) -> tuple[torch.Tensor, torch.Tensor]:
+        """VTK's fragment shader at every covered pixel: (rgb H x W x 3 uint8, depth H x W float32)."""
+        from .render import Light  # numpy only: no VTK
+
+        dev = self.device
+        mat = self.material if material is None else {k: float(material[k]) for k in DEFAULT_MATERIAL}
+        color = self.color if tint is None else torch.tensor([min(max(float(t), 0.0), 1.0) for t in tint])
+        spec_color = self.specular_color if tint is None else color
+        lights = [Light((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0)] if lights is None else lights
+        hit = tri >= 0
+        corners = self._tris[tri.clamp(min=0)]  # H x W x 3
+        n = (lam.unsqueeze(-1) * self._normals[corners]).sum(-2)
+        n = n @ rot  # world frame -> camera frame (OpenCV; lighting is the same in any frame)
+        n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        p = torch.stack([self._ray_x[None, :].expand_as(z) * z, self._ray_y[:, None].expand_as(z) * z, z], -1)
+        view = -p / p.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        diffuse, specular = torch.zeros_like(p), torch.zeros_like(p)
+        for light in lights:
+            ld = p - torch.tensor(light.offset, dtype=torch.float32, device=dev)
+            dist = ld.norm(dim=-1, keepdim=True)
+            ld = ld / dist.clamp(min=1e-12)
+            att = 1.0 / (dist * dist)
+            df = torch.clamp(att * (n * -ld).sum(-1, keepdim=True), min=0.0)
+            refl = ld - 2.0 * (n * ld).sum(-1, keepdim=True) * n
+            sf = torch.sign(df) * att * torch.clamp((refl * view).sum(-1, keepdim=True), min=1e-5).pow(
+                mat["specular_power"])
+            c = torch.tensor(light.color, dtype=torch.float32, device=dev) * float(light.intensity)
+            diffuse, specular = diffuse + df * c, specular + sf * c
+        col, spec_col = color.to(dev), spec_color.to(dev)
+        out = mat["ambient"] * col + diffuse * (mat["diffuse"] * col) + specular * (mat["specular"] * spec_col)
+        if self._texture is not None:
+            out = out * _sample_texture(self._texture, (lam.unsqueeze(-1) * self._tcoords[corners]).sum(-2))
+        rgb = torch.where(hit.unsqueeze(-1), torch.round(out.clamp(0.0, 1.0) * 255.0), torch.zeros((), device=dev))
+        return rgb.to(torch.uint8), torch.where(hit, z, torch.zeros((), device=dev))
+
+
+def _ray_hits(tv: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor, near: float, far: float):
+    """z-depth where the ray (rx, ry, 1) meets triangle tv (k x 3 x 3), and whether it does within [near, far]."""
+    v0, v1, v2 = tv[:, 0], tv[:, 1], tv[:, 2]
+    c0, c1, c2 = torch.cross(v1, v2, dim=1), torch.cross(v2, v0, dim=1), torch.cross(v0, v1, dim=1)
+    e0 = rx * c0[:, 0] + ry * c0[:, 1] + c0[:, 2]
+    e1 = rx * c1[:, 0] + ry * c1[:, 1] + c1[:, 2]
+    e2 = rx * c2[:, 0] + ry * c2[:, 1] + c2[:, 2]
+    den = e0 + e1 + e2
+    inside = (e0 * den >= 0) & (e1 * den >= 0) & (e2 * den >= 0) & (den != 0)
+    z = (v0 * c0).sum(1) / torch.where(den != 0, den, torch.ones_like(den))
+    return z, inside & (z >= near) & (z <= far)
+
+
+def _barycentric(tv: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor) -> torch.Tensor:
+    """Weights of the triangles' corners at the point where the ray (rx, ry, 1) meets their plane."""
+    v0, v1, v2 = tv[:, 0], tv[:, 1], tv[:, 2]
+    e = []
+    for a, b in ((v1, v2), (v2, v0), (v0, v1)):
+        c = torch.cross(a, b, dim=1)
+        e.append(rx * c[:, 0] + ry * c[:, 1] + c[:, 2])
+    e = torch.stack(e, 1)
+    den = e.sum(1, keepdim=True)
+    return e / torch.where(den != 0, den, torch.ones_like(den))
+
+
+def _sample_texture(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Bilinear, repeating lookup of ``tex`` (h x w x 3, rows from t = 0) at texture coordinates ``uv`` (... x 2):
+    OpenGL's GL_LINEAR with GL_REPEAT, texel centres at (i + 0.5) / size."""
+    h, w = tex.shape[:2]
+    x = uv[..., 0] * w - 0.5
+    y = uv[..., 1] * h - 0.5
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = (x - x0).unsqueeze(-1), (y - y0).unsqueeze(-1)
+    x0, y0 = x0.long() % w, y0.long() % h
+    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+    top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
+    bottom = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _chunks(renderer: TorchRenderer, n: int) -> list[list[int]]:
+    """Frames grouped so that each group rasterises about MAX_CANDIDATES candidate pixels at most (on the
+    CPU a sixteenth of that), at a rough estimate of 4 candidates per pixel."""
+    budget = MAX_CANDIDATES if renderer.device.type != "cpu" else MAX_CANDIDATES // 16
+    size = max(1, budget // (4 * renderer.width * renderer.height))
+    return [list(range(i, min(i + size, n))) for i in range(0, n, size)]
