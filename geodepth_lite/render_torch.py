@@ -71,6 +71,9 @@ class TorchRenderer:
         a, dev = tube.arrays, self.device
         self._points = torch.from_numpy(a["points"]).to(dev)  # float64: moved to the camera frame, then float32
         self._tris = torch.from_numpy(a["triangles"]).to(dev)
+        corners = self._points[self._tris]
+        self._centres = corners.mean(1)  # bounding spheres of the triangles (``cast_rays``)
+        self._radii = (corners - self._centres[:, None]).norm(dim=-1).amax(1)
         self._normals = torch.from_numpy(a["normals"]).to(dev)
         self._tcoords = torch.from_numpy(a["tcoords"]).to(dev)
         # as VTK shows a numpy image (pyvista.Texture): its last row is texture row 0 (t = 0)
@@ -115,22 +118,20 @@ class TorchRenderer:
                 depths.append(depth)
         return torch.stack(rgbs), torch.stack(depths)
 
-    def cast_rays(self, T_world_cam, directions_cam: np.ndarray) -> np.ndarray:
-        """Distance from the camera along each unit direction (n x 3, camera frame) to the first wall hit
+    def cast_rays(self, origin, directions) -> np.ndarray:
+        """Distance from ``origin`` (3,) along each unit direction (n x 3, world frame) to the first wall hit
         (inf: none): ``tube.TubeMesh.cast_rays`` on this renderer's triangles, in float64."""
-        T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=self.device)
-        v = (self._points - T[:3, 3]) @ T[:3, :3]
-        d = torch.as_tensor(np.asarray(directions_cam, dtype=np.float64), device=self.device)
-        v0, v1, v2 = (v[self._tris[:, k]] for k in range(3))
-        keep = (torch.stack([v0[:, 2], v1[:, 2], v2[:, 2]]).max(0).values > 0)  # a triangle wholly behind: no hit
-        v0, v1, v2 = v0[keep], v1[keep], v2[keep]
-        c0, c1, c2 = torch.cross(v1, v2, dim=1), torch.cross(v2, v0, dim=1), torch.cross(v0, v1, dim=1)
-        e0, e1, e2 = d @ c0.T, d @ c1.T, d @ c2.T  # rays x triangles
-        den = e0 + e1 + e2
-        inside = (e0 * den >= 0) & (e1 * den >= 0) & (e2 * den >= 0) & (den != 0)
-        t = (v0 * c0).sum(1)[None, :] / torch.where(den != 0, den, torch.ones_like(den))
+        o = torch.as_tensor(np.asarray(origin, dtype=np.float64), device=self.device)
+        d = torch.as_tensor(np.asarray(directions, dtype=np.float64), device=self.device)
+        keep = torch.nonzero(_in_cone(self._centres - o, self._radii, d)).squeeze(1)
+        coef = _edge_coefficients(self._points[self._tris[keep]] - o)
+        dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+        e = [dx * coef[:, 3 * i] + dy * coef[:, 3 * i + 1] + dz * coef[:, 3 * i + 2] for i in range(3)]  # rays x tris
+        den = e[0] + e[1] + e[2]
+        inside = (e[0] * den >= 0) & (e[1] * den >= 0) & (e[2] * den >= 0) & (den != 0)
+        t = coef[:, 9] / torch.where(den != 0, den, torch.ones_like(den))
         t = torch.where(inside & (t > 0), t, torch.full_like(t, math.inf))
-        return t.min(1).values.cpu().numpy() if t.shape[1] else np.full(len(d), np.inf)
+        return t.amin(1).cpu().numpy() if t.shape[1] else np.full(len(d), np.inf)
 
     def close(self) -> None:
         self.tube = None
@@ -143,8 +144,11 @@ class TorchRenderer:
 
     # internals ---------------------------------------------------------------
     def _camera_vertices(self, T_world_cam) -> torch.Tensor:
+        """The mesh's points in the camera frame, R^T (p - t), float32 (explicit multiply-adds, not BLAS)."""
         T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=self.device)
-        return ((self._points - T[:3, 3]) @ T[:3, :3]).float()
+        p = self._points - T[:3, 3]
+        R = T[:3, :3]
+        return (p[:, 0:1] * R[0] + p[:, 1:2] * R[1] + p[:, 2:3] * R[2]).float()
 
     def _visible(self, v: torch.Tensor) -> torch.Tensor:
         """Indices of the triangles not wholly beyond the near or far plane or one side of the view."""
@@ -182,43 +186,47 @@ class TorchRenderer:
     def _rasterise(self, verts: list) -> tuple[list, list, list]:
         """Per frame of ``verts`` (camera-frame vertices): the nearest triangle per pixel (H x W long, -1:
         none), its z-depth (H x W) and barycentric weights (H x W x 3)."""
-        frames, tris, boxes = [], [], []
+        frames, tris, coefs, boxes = [], [], [], []
         for f, v in enumerate(verts):
             idx = self._visible(v)
+            tv = v[self._tris[idx]]
             frames.append(torch.full_like(idx, f))
             tris.append(idx)
-            boxes.append(self._bounds(v[self._tris[idx]]))
-        frame, tri, box = torch.cat(frames), torch.cat(tris), torch.cat(boxes)
+            coefs.append(_edge_coefficients(tv))
+            boxes.append(self._bounds(tv))
+        frame, tri, coef, box = torch.cat(frames), torch.cat(tris), torch.cat(coefs), torch.cat(boxes)
         bw, bh = (box[:, 1] - box[:, 0] + 1).clamp(min=0), (box[:, 3] - box[:, 2] + 1).clamp(min=0)
-        keep = (bw > 0) & (bh > 0)
-        frame, tri, box, bw, bh = frame[keep], tri[keep], box[keep], bw[keep], bh[keep]
         count = bw * bh
         owner = torch.repeat_interleave(torch.arange(len(count), device=self.device), count)
         local = torch.arange(len(owner), device=self.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count,
                                                                                         count)
-        pu = box[owner, 0] + local % bw[owner]
-        pv = box[owner, 2] + torch.div(local, bw[owner], rounding_mode="floor")
-        V = torch.stack(verts)  # B x n x 3
-        tv = V[frame[owner].unsqueeze(1), self._tris[tri[owner]]]  # k x 3 x 3
-        z, ok = _ray_hits(tv, self._ray_x[pu], self._ray_y[pv], self.near, self.far)
-        return self._depth_test(len(verts), frame[owner][ok], tri[owner][ok], pu[ok], pv[ok], z[ok], V)
+        w_o = bw.index_select(0, owner)
+        pu = box[:, 0].index_select(0, owner) + local % w_o
+        pv = box[:, 2].index_select(0, owner) + torch.div(local, w_o, rounding_mode="floor")
+        e = _edge_values(coef.index_select(0, owner), self._ray_x.index_select(0, pu), self._ray_y.index_select(0, pv))
+        den = e.sum(1)
+        z = coef[:, 9].index_select(0, owner) / torch.where(den != 0, den, torch.ones_like(den))
+        ok = ((e * den[:, None]) >= 0).all(1) & (den != 0) & (z >= self.near) & (z <= self.far)
+        pix = (frame.index_select(0, owner) * self.height + pv) * self.width + pu
+        return self._depth_test(len(verts), pix[ok], owner[ok], z[ok], coef, tri)
 
-    def _depth_test(self, n_frames, frame, tri, pu, pv, z, V) -> tuple[list, list, list]:
+    def _depth_test(self, n_frames, pix, owner, z, coef, tri) -> tuple[list, list, list]:
+        """The nearest candidate per pixel (the lowest ``owner`` on a tie): (mesh triangle, z, weights) per frame."""
         H, W, dev = self.height, self.width, self.device
-        pix = (frame * H + pv) * W + pu
-        key = (z.view(torch.int32).long() << 32) | tri  # positive floats: their bits sort as the numbers do
-        best = torch.full((n_frames * H * W,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+        none = torch.iinfo(torch.int64).max
+        key = (z.view(torch.int32).long() << 32) | owner  # positive floats: their bits sort as the numbers do
+        best = torch.full((n_frames * H * W,), none, dtype=torch.int64, device=dev)
         best.scatter_reduce_(0, pix, key, reduce="amin")
-        hit = best != torch.iinfo(torch.int64).max
-        tri_px = torch.where(hit, best & 0xFFFFFFFF, torch.full_like(best, -1))
+        hit = best != none
+        win = torch.where(hit, best & 0xFFFFFFFF, torch.zeros_like(best))
+        tri_px = torch.where(hit, tri.index_select(0, win) if len(tri) else win, torch.full_like(best, -1))
         z_px = torch.where(hit, (best >> 32).int().view(torch.float32), torch.zeros((), device=dev))
         # barycentric weights of the winners (perspective-correct: of the 3D meeting point)
-        f_px = torch.arange(n_frames, device=dev).repeat_interleave(H * W)
-        safe = tri_px.clamp(min=0)
-        tv = V[f_px.unsqueeze(1), self._tris[safe]]
         rx = self._ray_x.repeat(n_frames * H)
         ry = self._ray_y.repeat_interleave(W).repeat(n_frames)
-        lam = _barycentric(tv, rx, ry)
+        e = _edge_values(coef.index_select(0, win) if len(coef) else torch.zeros(len(win), 10, device=dev), rx, ry)
+        den = e.sum(1, keepdim=True)
+        lam = e / torch.where(den != 0, den, torch.ones_like(den))
         return (list(tri_px.view(n_frames, H, W)), list(z_px.view(n_frames, H, W)),
                 list(lam.view(n_frames, H, W, 3)))
 
@@ -234,7 +242,7 @@ class TorchRenderer:
         hit = tri >= 0
         corners = self._tris[tri.clamp(min=0)]  # H x W x 3
         n = (lam.unsqueeze(-1) * self._normals[corners]).sum(-2)
-        n = n @ rot  # world frame -> camera frame (OpenCV; lighting is the same in any frame)
+        n = n[..., 0:1] * rot[0] + n[..., 1:2] * rot[1] + n[..., 2:3] * rot[2]  # world -> camera frame (OpenCV)
         n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-12)
         p = torch.stack([self._ray_x[None, :].expand_as(z) * z, self._ray_y[:, None].expand_as(z) * z, z], -1)
         view = -p / p.norm(dim=-1, keepdim=True).clamp(min=1e-12)
@@ -258,29 +266,34 @@ class TorchRenderer:
         return rgb.to(torch.uint8), torch.where(hit, z, torch.zeros((), device=dev))
 
 
-def _ray_hits(tv: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor, near: float, far: float):
-    """z-depth where the ray (rx, ry, 1) meets triangle tv (k x 3 x 3), and whether it does within [near, far]."""
+def _in_cone(centre: torch.Tensor, radius: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Which triangles may meet a ray of unit directions ``d``: those whose bounding sphere (``centre``, relative
+    to the rays' origin, and ``radius``) reaches into the narrowest cone about the rays' mean direction that
+    holds them all (all when that cone is 90 degrees or wider)."""
+    axis = d.mean(0)
+    axis = axis / axis.norm().clamp(min=1e-300)
+    cos_a = (d * axis).sum(1).min()
+    if cos_a <= 0:
+        return torch.ones(len(centre), dtype=torch.bool, device=centre.device)
+    dist = centre.norm(dim=1)
+    angle = torch.acos(((centre * axis).sum(1) / dist.clamp(min=1e-300)).clamp(-1.0, 1.0))
+    slack = torch.asin((radius / dist.clamp(min=1e-300)).clamp(max=1.0))
+    return (dist <= radius) | (angle - slack <= torch.acos(cos_a.clamp(max=1.0)) + 1e-9)
+
+
+def _edge_coefficients(tv: torch.Tensor) -> torch.Tensor:
+    """Per triangle (k x 3 x 3 corners, camera frame) the ray test's 10 numbers: c_i = v_j x v_k (i, j, k
+    cyclic; 9) and v_0 . c_0 (1). The ray d = (x, y, 1) meets the triangle where e_i = d . c_i share the
+    sign of their sum, with barycentric weights e_i / sum and z-depth (v_0 . c_0) / sum."""
     v0, v1, v2 = tv[:, 0], tv[:, 1], tv[:, 2]
     c0, c1, c2 = torch.cross(v1, v2, dim=1), torch.cross(v2, v0, dim=1), torch.cross(v0, v1, dim=1)
-    e0 = rx * c0[:, 0] + ry * c0[:, 1] + c0[:, 2]
-    e1 = rx * c1[:, 0] + ry * c1[:, 1] + c1[:, 2]
-    e2 = rx * c2[:, 0] + ry * c2[:, 1] + c2[:, 2]
-    den = e0 + e1 + e2
-    inside = (e0 * den >= 0) & (e1 * den >= 0) & (e2 * den >= 0) & (den != 0)
-    z = (v0 * c0).sum(1) / torch.where(den != 0, den, torch.ones_like(den))
-    return z, inside & (z >= near) & (z <= far)
+    return torch.cat([c0, c1, c2, (v0 * c0).sum(1, keepdim=True)], 1)
 
 
-def _barycentric(tv: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor) -> torch.Tensor:
-    """Weights of the triangles' corners at the point where the ray (rx, ry, 1) meets their plane."""
-    v0, v1, v2 = tv[:, 0], tv[:, 1], tv[:, 2]
-    e = []
-    for a, b in ((v1, v2), (v2, v0), (v0, v1)):
-        c = torch.cross(a, b, dim=1)
-        e.append(rx * c[:, 0] + ry * c[:, 1] + c[:, 2])
-    e = torch.stack(e, 1)
-    den = e.sum(1, keepdim=True)
-    return e / torch.where(den != 0, den, torch.ones_like(den))
+def _edge_values(coef: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor) -> torch.Tensor:
+    """e_i = (rx, ry, 1) . c_i for rows of ``_edge_coefficients`` (n x 3)."""
+    c = coef[:, :9].view(-1, 3, 3)
+    return rx[:, None] * c[:, :, 0] + ry[:, None] * c[:, :, 1] + c[:, :, 2]
 
 
 def _sample_texture(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
