@@ -286,8 +286,17 @@ def _edge_coefficients(tv: torch.Tensor) -> torch.Tensor:
     cyclic; 9) and v_0 . c_0 (1). The ray d = (x, y, 1) meets the triangle where e_i = d . c_i share the
     sign of their sum, with barycentric weights e_i / sum and z-depth (v_0 . c_0) / sum."""
     v0, v1, v2 = tv[:, 0], tv[:, 1], tv[:, 2]
-    c0, c1, c2 = torch.cross(v1, v2, dim=1), torch.cross(v2, v0, dim=1), torch.cross(v0, v1, dim=1)
+    c0, c1, c2 = _cross(v1, v2), _cross(v2, v0), _cross(v0, v1)
     return torch.cat([c0, c1, c2, (v0 * c0).sum(1, keepdim=True)], 1)
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a x b by separate products and differences, so that b x a is exactly -(a x b) (``torch.cross`` may fuse
+    a multiply-add and lose that): two triangles sharing an edge then get exactly opposite edge values, and a
+    ray through the edge covers one of them (no cracks)."""
+    ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+    bx, by, bz = b[:, 0], b[:, 1], b[:, 2]
+    return torch.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], 1)
 
 
 def _edge_values(coef: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor) -> torch.Tensor:
