@@ -62,6 +62,7 @@ from .utils import (
 LUMEN_RADII = 4.0  # a pixel deeper than this many lumen radii sees down the lumen (frames.jsonl "lumen_share")
 RENDERERS = ("vtk", "torch", "auto")  # synth --renderer; auto: vtk when it can be imported, else torch
 MAX_PENDING_FRAMES = 512  # torch renderer: rendered frames waiting for their appearance step and files, at most
+SCENES_AHEAD = 4  # torch renderer: scenes whose tube and texture are built ahead, in the worker threads
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -390,16 +391,23 @@ def _finish_frame(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.
     write_bytes_atomic(_frame_path(out, split, index, "rgb"), _png_bytes(ap.apply_appearance(rgb, look)))
 
 
-def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRenderer, bar,
-                          pool: ThreadPoolExecutor) -> tuple[list, int, list]:
-    """``_render_scene`` for the torch renderer: every draw of the scene first (the same per-frame pipeline
-    and generators), then the frames not on disk rendered in one batch on the device; appearance and
-    writing go to ``pool``. Returns (records, frames rendered, the pool's futures)."""
-    preset = m["organ_presets"][scene["organ"]]
-    tube = tb.build_tube(preset, scene["tube_seed"], m["resolution"])
+def _scene_assets(m: dict, out: Path, split: str, scene: dict) -> tuple:
+    """(tube, frame indices not on disk, texture or None when there are none) of a planned scene."""
+    tube = tb.build_tube(m["organ_presets"][scene["organ"]], scene["tube_seed"], m["resolution"])
     todo = {i for i, _ in scene["frames"]
             if not (_frame_path(out, split, i, "rgb").exists() and _frame_path(out, split, i, "depth").exists())}
-    shown = renderer.showing(tube, _scene_texture(m, split, scene) if todo else None)  # (its rays: exposure)
+    return tube, todo, _scene_texture(m, split, scene) if todo else None
+
+
+def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRenderer, bar,
+                          pool: ThreadPoolExecutor, assets) -> tuple[list, int, list]:
+    """``_render_scene`` for the torch renderer: every draw of the scene first (the same per-frame pipeline
+    and generators), then the frames not on disk rendered in one batch on the device; appearance and
+    writing go to ``pool``. assets: a future of ``_scene_assets`` (built ahead in ``pool``). Returns
+    (records, frames rendered, the pool's futures)."""
+    preset = m["organ_presets"][scene["organ"]]
+    tube, todo, texture = assets.result()
+    shown = renderer.showing(tube, texture)  # (also its rays: the exposure)
     camera = {"K": mf.intrinsics_of(m), "size": (m["camera"]["width"], m["camera"]["height"])}
     path = mf.split_path(m, split)
     frames = [render_frame(_frame_rng(m, split, scene["scene"], i), tube, float(preset["radius"]), path,
@@ -429,11 +437,17 @@ def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer:
 def _render_split(m: dict, out: Path, split: str, renderer: _LazyRenderer, bar, pool) -> int:
     """Render a split's frames not on disk yet and write its frames.jsonl. Returns how many were rendered."""
     records, pending, rendered = [], [], 0
-    for scene in _scene_plan(m, split):
+    plan = _scene_plan(m, split)
+    assets = []  # torch: the next scenes' tubes and textures, built ahead in the pool
+    for k, scene in enumerate(plan):
         if pool is None:
             scene_records, n_rendered = _render_scene(m, out, split, scene, renderer, bar)
         else:
-            scene_records, n_rendered, futures = _render_scene_batched(m, out, split, scene, renderer, bar, pool)
+            while len(assets) < min(k + SCENES_AHEAD, len(plan)):
+                assets.append(pool.submit(_scene_assets, m, out, split, plan[len(assets)]))
+            scene_records, n_rendered, futures = _render_scene_batched(m, out, split, scene, renderer, bar, pool,
+                                                                       assets[k])
+            assets[k] = None
             pending += futures
             while len(pending) > MAX_PENDING_FRAMES:  # bounds the frames held in memory
                 pending.pop(0).result()

@@ -1,0 +1,92 @@
+"""Speed of the torch renderer's dataset pipeline, stage by stage (docs/dataset.md, "Renderer speed").
+
+``python benchmarks/bench_render_torch.py [--manifest scenario_paper] [--scenes 2] [--device cpu]`` times, on one
+thread, per scene of the manifest's train split: building the tube and its texture; per frame the draws (pose,
+exposure rays cast on the device, lights, appearance record); the batched render of the scene's frames; the
+appearance step; the PNG and .npy encoding. Prints medians over the scenes (ms per frame, or per scene).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from geodepth_lite import appearance as ap
+from geodepth_lite import manifest as mf
+from geodepth_lite import render as rd
+from geodepth_lite import render_torch as rt
+from geodepth_lite import synth
+from geodepth_lite import tube as tb
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def time_scene(m: dict, scene: dict, renderer: rt.TorchRenderer) -> dict:
+    """Seconds of each stage for one planned scene of the train split."""
+    t = {}
+    t0 = time.perf_counter()
+    tube = tb.build_tube(m["organ_presets"][scene["organ"]], scene["tube_seed"], m["resolution"])
+    texture = synth._scene_texture(m, "train", scene)
+    renderer.set_tube(tube, texture)
+    t["scene setup"] = time.perf_counter() - t0
+    K, size, path = mf.intrinsics_of(m), (m["camera"]["width"], m["camera"]["height"]), mf.split_path(m, "train")
+    t0 = time.perf_counter()
+    frames = [synth.render_frame(synth._frame_rng(m, "train", scene["scene"], i), tube,
+                                 float(m["organ_presets"][scene["organ"]]["radius"]), path, m["lighting_sets"][name],
+                                 m["appearance"], K=K, size=size, cast_rays=renderer.cast_rays)
+              for i, name in scene["frames"]]
+    t["draws"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rgbs, depths = renderer.render_batch([f["T_world_cam"] for f in frames], [f["lights"] for f in frames],
+                                         [f["tint"] for f in frames],
+                                         [{k: m["lighting_sets"][n][k] for k in rd.MATERIAL_KEYS}
+                                          for _, n in scene["frames"]])
+    _sync(renderer.device)
+    rgbs, depths = rgbs.cpu().numpy(), depths.cpu().numpy()
+    t["render"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    finals = [ap.apply_appearance(rgb, f["appearance"]) for rgb, f in zip(rgbs, frames)]
+    t["appearance"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for rgb, depth in zip(finals, depths):
+        synth._png_bytes(rgb)
+        synth._npy_bytes(depth)
+    t["encode"] = time.perf_counter() - t0
+    return {k: v / (1 if k == "scene setup" else len(frames)) for k, v in t.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--manifest", default="scenario_paper")
+    parser.add_argument("--scenes", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    m = mf.load_manifest(args.manifest)
+    c = m["camera"]
+    dev = torch.device(args.device)
+    renderer = rt.TorchRenderer(c["width"], c["height"], mf.intrinsics_of(m), near=c["near"], far=c["far"],
+                                device=dev)
+    plan = synth._scene_plan(m, "train")
+    picks = [plan[k * len(plan) // args.scenes] for k in range(args.scenes)]
+    time_scene(m, picks[0], renderer)  # warm-up
+    rows = [time_scene(m, scene, renderer) for scene in picks]
+    med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+    per_frame = sum(v for k, v in med.items() if k != "scene setup")
+    print(f"{args.manifest} ({c['width']}x{c['height']}, {len(plan[0]['frames'])} frames per scene), {args.device}, "
+          f"{args.threads} thread(s), median of {len(rows)} scenes ({', '.join(s['organ'] for s in picks)}):")
+    for k, v in med.items():
+        print(f"  {k:12s} {1e3 * v:8.1f} ms {'per scene' if k == 'scene setup' else 'per frame'}")
+    print(f"  render alone: {1 / med['render']:.1f} frames/s; whole pipeline: "
+          f"{1 / (per_frame + med['scene setup'] / len(plan[0]['frames'])):.1f} frames/s")
+
+
+if __name__ == "__main__":
+    main()
