@@ -124,14 +124,19 @@ class TorchRenderer:
         o = torch.as_tensor(np.asarray(origin, dtype=np.float64), device=self.device)
         d = torch.as_tensor(np.asarray(directions, dtype=np.float64), device=self.device)
         keep = torch.nonzero(_in_cone(self._centres - o, self._radii, d)).squeeze(1)
-        coef = _edge_coefficients(self._points[self._tris[keep]] - o)
-        dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-        e = [dx * coef[:, 3 * i] + dy * coef[:, 3 * i + 1] + dz * coef[:, 3 * i + 2] for i in range(3)]  # rays x tris
-        den = e[0] + e[1] + e[2]
-        inside = (e[0] * den >= 0) & (e[1] * den >= 0) & (e[2] * den >= 0) & (den != 0)
+        c, r = self._centres[keep] - o, self._radii[keep]
+        along = c[:, 0:1] * d[:, 0] + c[:, 1:2] * d[:, 1] + c[:, 2:3] * d[:, 2]  # triangles x rays
+        near = ((c * c).sum(1, keepdim=True) - along * along <= (r * r)[:, None]) & (along >= -r[:, None])
+        tri, ray = torch.nonzero(near, as_tuple=True)  # the pairs whose bounding sphere the ray passes through
+        coef = _edge_coefficients(self._points[self._tris[keep[tri]]] - o)
+        c9, dr = coef[:, :9].view(-1, 3, 3), d[ray]
+        e = dr[:, None, 0] * c9[:, :, 0] + dr[:, None, 1] * c9[:, :, 1] + dr[:, None, 2] * c9[:, :, 2]
+        den = e.sum(1)
+        inside = ((e * den[:, None]) >= 0).all(1) & (den != 0)
         t = coef[:, 9] / torch.where(den != 0, den, torch.ones_like(den))
         t = torch.where(inside & (t > 0), t, torch.full_like(t, math.inf))
-        return t.amin(1).cpu().numpy() if t.shape[1] else np.full(len(d), np.inf)
+        out = torch.full((len(d),), math.inf, dtype=torch.float64, device=self.device)
+        return out.scatter_reduce_(0, ray, t, reduce="amin").cpu().numpy()
 
     def close(self) -> None:
         self.tube = None
