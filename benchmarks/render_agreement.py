@@ -22,13 +22,13 @@ from geodepth_lite import render_agreement as ra
 from geodepth_lite import render_torch as rt
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--manifest", default="scenario_teach")
     parser.add_argument("--split", default="train")
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--json", default=None, help="also write the per-frame rows here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
     m = mf.load_manifest(args.manifest)
     c = m["camera"]
@@ -64,7 +64,8 @@ def main() -> None:
               f"{pair['depth_median'][0]:.3f} / {pair['depth_median'][1]:.3f} |")
     problems = ra.within_bounds(rows)
     print("within bounds" if not problems else "\n".join(problems))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

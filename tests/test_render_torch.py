@@ -252,3 +252,20 @@ def test_the_torch_path_needs_neither_vtk_nor_matplotlib(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "torch path ok" in proc.stdout
     assert _files(tmp_path / "a") == _files(tmp_path / "b")
+
+
+def test_the_benchmark_scripts_run_at_tiny_sizes(capsys):
+    import runpy
+
+    bench = ROOT / "benchmarks"
+    main = runpy.run_path(str(bench / "render_agreement.py"), run_name="benchmark_under_test")["main"]
+    assert main(["--manifest", "scenario_smoke", "--frames", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "| all (2) |" in out and "within bounds" in out
+    main = runpy.run_path(str(bench / "bench_render_torch.py"), run_name="benchmark_under_test")["main"]
+    before = torch.get_num_threads()
+    try:
+        assert main(["--manifest", "scenario_smoke", "--scenes", "1", "--vtk"]) == 0
+    finally:
+        torch.set_num_threads(before)
+    assert "torch render / VTK render" in capsys.readouterr().out
