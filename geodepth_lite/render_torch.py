@@ -107,36 +107,44 @@ class TorchRenderer:
         n = len(poses)
         tints = [None] * n if tints is None else tints
         materials = [None] * n if materials is None else materials
-        rots = [torch.as_tensor(np.asarray(T, dtype=np.float64)[:3, :3], device=self.device).float() for T in poses]
-        verts = [self._camera_vertices(T) for T in poses]
         rgbs, depths = [], []
-        for chunk in _chunks(self, len(verts)):
-            tri, z, lam = self._rasterise([verts[i] for i in chunk])
-            for j, i in enumerate(chunk):
-                rgb, depth = self._shade(rots[i], tri[j], z[j], lam[j], lights[i], tints[i], materials[i])
-                rgbs.append(rgb)
-                depths.append(depth)
-        return torch.stack(rgbs), torch.stack(depths)
+        for chunk in _chunks(self, n):
+            T = torch.as_tensor(np.stack([np.asarray(poses[i], dtype=np.float64) for i in chunk]), device=self.device)
+            tri, z, lam = self._rasterise(self._camera_vertices(T))
+            rgb, depth = self._shade(T[:, :3, :3].float(), tri, z, lam, [lights[i] for i in chunk],
+                                     [tints[i] for i in chunk], [materials[i] for i in chunk])
+            rgbs.append(rgb)
+            depths.append(depth)
+        return torch.cat(rgbs), torch.cat(depths)
 
     def cast_rays(self, origin, directions) -> np.ndarray:
         """Distance from ``origin`` (3,) along each unit direction (n x 3, world frame) to the first wall hit
         (inf: none): ``tube.TubeMesh.cast_rays`` on this renderer's triangles, in float64."""
-        o = torch.as_tensor(np.asarray(origin, dtype=np.float64), device=self.device)
+        return self.cast_rays_many(np.asarray(origin)[None], np.asarray(directions)[None])[0]
+
+    def cast_rays_many(self, origins, directions) -> np.ndarray:
+        """``cast_rays`` for F origins (F x 3) with n directions each (F x n x 3): distances F x n.
+
+        Only the (triangle, ray) pairs whose bounding sphere the ray passes through, among the triangles
+        reaching into the cone of that origin's rays (``_in_cone``), get the exact test."""
+        o = torch.as_tensor(np.asarray(origins, dtype=np.float64), device=self.device)
         d = torch.as_tensor(np.asarray(directions, dtype=np.float64), device=self.device)
-        keep = torch.nonzero(_in_cone(self._centres - o, self._radii, d)).squeeze(1)
-        c, r = self._centres[keep] - o, self._radii[keep]
-        along = c[:, 0:1] * d[:, 0] + c[:, 1:2] * d[:, 1] + c[:, 2:3] * d[:, 2]  # triangles x rays
+        F, n = d.shape[:2]
+        frame, keep = torch.nonzero(_in_cone(self._centres[None] - o[:, None], self._radii, d), as_tuple=True)
+        c, r, dk = self._centres[keep] - o[frame], self._radii[keep], d[frame]  # per pair: k x 3, k, k x n x 3
+        along = c[:, None, 0] * dk[..., 0] + c[:, None, 1] * dk[..., 1] + c[:, None, 2] * dk[..., 2]  # k x n
         near = ((c * c).sum(1, keepdim=True) - along * along <= (r * r)[:, None]) & (along >= -r[:, None])
-        tri, ray = torch.nonzero(near, as_tuple=True)  # the pairs whose bounding sphere the ray passes through
-        coef = _edge_coefficients(self._points[self._tris[keep[tri]]] - o)
-        c9, dr = coef[:, :9].view(-1, 3, 3), d[ray]
+        pair, ray = torch.nonzero(near, as_tuple=True)
+        f = frame[pair]
+        coef = _edge_coefficients(self._points[self._tris[keep[pair]]] - o[f][:, None])
+        c9, dr = coef[:, :9].view(-1, 3, 3), d[f, ray]
         e = dr[:, None, 0] * c9[:, :, 0] + dr[:, None, 1] * c9[:, :, 1] + dr[:, None, 2] * c9[:, :, 2]
         den = e.sum(1)
         inside = ((e * den[:, None]) >= 0).all(1) & (den != 0)
         t = coef[:, 9] / torch.where(den != 0, den, torch.ones_like(den))
         t = torch.where(inside & (t > 0), t, torch.full_like(t, math.inf))
-        out = torch.full((len(d),), math.inf, dtype=torch.float64, device=self.device)
-        return out.scatter_reduce_(0, ray, t, reduce="amin").cpu().numpy()
+        out = torch.full((F * n,), math.inf, dtype=torch.float64, device=self.device)
+        return out.scatter_reduce_(0, f * n + ray, t, reduce="amin").view(F, n).cpu().numpy()
 
     def close(self) -> None:
         self.tube = None
@@ -148,23 +156,24 @@ class TorchRenderer:
         self.close()
 
     # internals ---------------------------------------------------------------
-    def _camera_vertices(self, T_world_cam) -> torch.Tensor:
-        """The mesh's points in the camera frame, R^T (p - t), float32 (explicit multiply-adds, not BLAS)."""
-        T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64), device=self.device)
-        p = self._points - T[:3, 3]
-        R = T[:3, :3]
-        return (p[:, 0:1] * R[0] + p[:, 1:2] * R[1] + p[:, 2:3] * R[2]).float()
+    def _camera_vertices(self, T: torch.Tensor) -> torch.Tensor:
+        """The mesh's points in the camera frames of poses T (B x 4 x 4): R^T (p - t), B x n x 3 float32
+        (explicit multiply-adds, not BLAS: the same bits at any thread count)."""
+        p = self._points[None] - T[:, None, :3, 3]
+        R = T[:, None, :3, :3]
+        return (p[..., 0:1] * R[..., 0, :] + p[..., 1:2] * R[..., 1, :] + p[..., 2:3] * R[..., 2, :]).float()
 
-    def _visible(self, v: torch.Tensor) -> torch.Tensor:
-        """Indices of the triangles not wholly beyond the near or far plane or one side of the view."""
-        tv = v[self._tris]  # m x 3 x 3
+    def _visible(self, V: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(frame, triangle) of the triangles not wholly beyond the near or far plane or one side of the view."""
+        tv = V[:, self._tris]  # B x m x 3 x 3
         x, y, z = tv[..., 0], tv[..., 1], tv[..., 2]
         fx, fy, cx, cy = (float(t) for t in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
         lo_u, hi_u = (-0.5 - cx) / fx, (self.width - 0.5 - cx) / fx  # the view's edges, x/z and y/z
         lo_v, hi_v = (-0.5 - cy) / fy, (self.height - 0.5 - cy) / fy
-        out = ((z < self.near).all(1) | (z > self.far).all(1) | (x < lo_u * z).all(1) | (x > hi_u * z).all(1)
-               | (y < lo_v * z).all(1) | (y > hi_v * z).all(1))
-        return torch.nonzero(~out).squeeze(1)
+        out = ((z < self.near).all(-1) | (z > self.far).all(-1) | (x < lo_u * z).all(-1) | (x > hi_u * z).all(-1)
+               | (y < lo_v * z).all(-1) | (y > hi_v * z).all(-1))
+        frame, tri = torch.nonzero(~out, as_tuple=True)
+        return frame, tri
 
     def _bounds(self, tv: torch.Tensor) -> torch.Tensor:
         """Pixel bounding boxes (u0, u1, v0, v1), inclusive, of triangles' parts in front of the near plane."""
@@ -188,18 +197,12 @@ class TorchRenderer:
                            torch.ceil(v0).clamp(min=0), torch.floor(v1).clamp(max=self.height - 1)], 1)
         return box.long()
 
-    def _rasterise(self, verts: list) -> tuple[list, list, list]:
-        """Per frame of ``verts`` (camera-frame vertices): the nearest triangle per pixel (H x W long, -1:
-        none), its z-depth (H x W) and barycentric weights (H x W x 3)."""
-        frames, tris, coefs, boxes = [], [], [], []
-        for f, v in enumerate(verts):
-            idx = self._visible(v)
-            tv = v[self._tris[idx]]
-            frames.append(torch.full_like(idx, f))
-            tris.append(idx)
-            coefs.append(_edge_coefficients(tv))
-            boxes.append(self._bounds(tv))
-        frame, tri, coef, box = torch.cat(frames), torch.cat(tris), torch.cat(coefs), torch.cat(boxes)
+    def _rasterise(self, V: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For camera-frame vertices V (B x n x 3): the nearest triangle per pixel (B x H x W long, -1: none),
+        its z-depth (B x H x W) and barycentric weights (B x H x W x 3)."""
+        frame, tri = self._visible(V)
+        tv = V[frame[:, None], self._tris[tri]]  # k x 3 x 3
+        coef, box = _edge_coefficients(tv), self._bounds(tv)
         bw, bh = (box[:, 1] - box[:, 0] + 1).clamp(min=0), (box[:, 3] - box[:, 2] + 1).clamp(min=0)
         count = bw * bh
         owner = torch.repeat_interleave(torch.arange(len(count), device=self.device), count)
@@ -213,9 +216,9 @@ class TorchRenderer:
         z = coef[:, 9].index_select(0, owner) / torch.where(den != 0, den, torch.ones_like(den))
         ok = ((e * den[:, None]) >= 0).all(1) & (den != 0) & (z >= self.near) & (z <= self.far)
         pix = (frame.index_select(0, owner) * self.height + pv) * self.width + pu
-        return self._depth_test(len(verts), pix[ok], owner[ok], z[ok], coef, tri)
+        return self._depth_test(len(V), pix[ok], owner[ok], z[ok], coef, tri)
 
-    def _depth_test(self, n_frames, pix, owner, z, coef, tri) -> tuple[list, list, list]:
+    def _depth_test(self, n_frames, pix, owner, z, coef, tri) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The nearest candidate per pixel (the lowest ``owner`` on a tie): (mesh triangle, z, weights) per frame."""
         H, W, dev = self.height, self.width, self.device
         none = torch.iinfo(torch.int64).max
@@ -232,58 +235,77 @@ class TorchRenderer:
         e = _edge_values(coef.index_select(0, win) if len(coef) else torch.zeros(len(win), 10, device=dev), rx, ry)
         den = e.sum(1, keepdim=True)
         lam = e / torch.where(den != 0, den, torch.ones_like(den))
-        return (list(tri_px.view(n_frames, H, W)), list(z_px.view(n_frames, H, W)),
-                list(lam.view(n_frames, H, W, 3)))
+        return tri_px.view(n_frames, H, W), z_px.view(n_frames, H, W), lam.view(n_frames, H, W, 3)
 
-    def _shade(self, rot, tri, z, lam, lights, tint, material) -> tuple[torch.Tensor, torch.Tensor]:
-        """VTK's fragment shader at every covered pixel: (rgb H x W x 3 uint8, depth H x W float32)."""
+    def _frame_constants(self, lights: list, tints: list, materials: list) -> dict:
+        """Per frame of a batch: mucosa and specular colours (B x 3), Phong coefficients (B each), and the lights'
+        positions and colour x intensity (B x L x 3; a frame with fewer lights gets black ones: adding their
+        zero terms changes no bit)."""
         from .render import Light  # numpy only: no VTK
 
-        dev = self.device
-        mat = self.material if material is None else {k: float(material[k]) for k in DEFAULT_MATERIAL}
-        color = self.color if tint is None else torch.tensor([min(max(float(t), 0.0), 1.0) for t in tint])
-        spec_color = self.specular_color if tint is None else color
-        lights = [Light((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0)] if lights is None else lights
+        n, dev = len(lights), self.device
+        lights = [[Light((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0)] if ls is None else ls for ls in lights]
+        n_l = max(len(ls) for ls in lights)
+        pos, col = np.zeros((n, n_l, 3), np.float32), np.zeros((n, n_l, 3), np.float32)
+        for i, ls in enumerate(lights):
+            for k, light in enumerate(ls):
+                pos[i, k] = light.offset
+                col[i, k] = np.float32(light.color) * np.float32(light.intensity)
+        colour = torch.stack([self.color if t is None else torch.tensor([min(max(float(c), 0.0), 1.0) for c in t])
+                              for t in tints]).float()
+        spec = torch.stack([self.specular_color if t is None else colour[i] for i, t in enumerate(tints)]).float()
+        mats = [self.material if mt is None else mt for mt in materials]
+        coef = {k: torch.tensor([float(mt[k]) for mt in mats], dtype=torch.float32, device=dev)[:, None, None, None]
+                for k in DEFAULT_MATERIAL}
+        return dict(coef, colour=colour.to(dev)[:, None, None], spec=spec.to(dev)[:, None, None],
+                    pos=torch.from_numpy(pos).to(dev), col=torch.from_numpy(col).to(dev))
+
+    def _shade(self, rot, tri, z, lam, lights, tints, materials) -> tuple[torch.Tensor, torch.Tensor]:
+        """VTK's fragment shader at every covered pixel of a batch: (rgb B x H x W x 3 uint8, depth B x H x W)."""
+        c = self._frame_constants(lights, tints, materials)
         hit = tri >= 0
-        corners = self._tris[tri.clamp(min=0)]  # H x W x 3
+        corners = self._tris[tri.clamp(min=0)]  # B x H x W x 3
         n = (lam.unsqueeze(-1) * self._normals[corners]).sum(-2)
-        n = n[..., 0:1] * rot[0] + n[..., 1:2] * rot[1] + n[..., 2:3] * rot[2]  # world -> camera frame (OpenCV)
+        R = rot[:, None, None]  # world -> camera frame (OpenCV; lighting is the same in any frame)
+        n = n[..., 0:1] * R[..., 0, :] + n[..., 1:2] * R[..., 1, :] + n[..., 2:3] * R[..., 2, :]
         n = n / n.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-        p = torch.stack([self._ray_x[None, :].expand_as(z) * z, self._ray_y[:, None].expand_as(z) * z, z], -1)
+        p = torch.stack([self._ray_x[None, None, :] * z, self._ray_y[None, :, None] * z, z], -1)
         view = -p / p.norm(dim=-1, keepdim=True).clamp(min=1e-12)
         diffuse, specular = torch.zeros_like(p), torch.zeros_like(p)
-        for light in lights:
-            ld = p - torch.tensor(light.offset, dtype=torch.float32, device=dev)
+        for k in range(c["pos"].shape[1]):
+            ld = p - c["pos"][:, None, None, k]
             dist = ld.norm(dim=-1, keepdim=True)
             ld = ld / dist.clamp(min=1e-12)
             att = 1.0 / (dist * dist)
             df = torch.clamp(att * (n * -ld).sum(-1, keepdim=True), min=0.0)
             refl = ld - 2.0 * (n * ld).sum(-1, keepdim=True) * n
             sf = torch.sign(df) * att * torch.clamp((refl * view).sum(-1, keepdim=True), min=1e-5).pow(
-                mat["specular_power"])
-            c = torch.tensor(light.color, dtype=torch.float32, device=dev) * float(light.intensity)
-            diffuse, specular = diffuse + df * c, specular + sf * c
-        col, spec_col = color.to(dev), spec_color.to(dev)
-        out = mat["ambient"] * col + diffuse * (mat["diffuse"] * col) + specular * (mat["specular"] * spec_col)
+                c["specular_power"])
+            diffuse = diffuse + df * c["col"][:, None, None, k]
+            specular = specular + sf * c["col"][:, None, None, k]
+        out = (c["ambient"] * c["colour"] + diffuse * (c["diffuse"] * c["colour"])
+               + specular * (c["specular"] * c["spec"]))
         if self._texture is not None:
             out = out * _sample_texture(self._texture, (lam.unsqueeze(-1) * self._tcoords[corners]).sum(-2))
-        rgb = torch.where(hit.unsqueeze(-1), torch.round(out.clamp(0.0, 1.0) * 255.0), torch.zeros((), device=dev))
-        return rgb.to(torch.uint8), torch.where(hit, z, torch.zeros((), device=dev))
+        zero = torch.zeros((), device=self.device)
+        rgb = torch.where(hit.unsqueeze(-1), torch.round(out.clamp(0.0, 1.0) * 255.0), zero)
+        return rgb.to(torch.uint8), torch.where(hit, z, zero)
 
 
 def _in_cone(centre: torch.Tensor, radius: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    """Which triangles may meet a ray of unit directions ``d``: those whose bounding sphere (``centre``, relative
-    to the rays' origin, and ``radius``) reaches into the narrowest cone about the rays' mean direction that
-    holds them all (all when that cone is 90 degrees or wider)."""
-    axis = d.mean(0)
-    axis = axis / axis.norm().clamp(min=1e-300)
-    cos_a = (d * axis).sum(1).min()
-    if cos_a <= 0:
-        return torch.ones(len(centre), dtype=torch.bool, device=centre.device)
-    dist = centre.norm(dim=1)
-    angle = torch.acos(((centre * axis).sum(1) / dist.clamp(min=1e-300)).clamp(-1.0, 1.0))
+    """Per origin (F) and triangle (m): whether the triangle may meet one of that origin's rays (unit directions
+    ``d``, F x n x 3), i.e. its bounding sphere (``centre`` relative to the origin, F x m x 3, and ``radius``)
+    reaches into the narrowest cone about the rays' mean direction that holds them all (every triangle when
+    that cone is 90 degrees or wider). F x m booleans."""
+    axis = d.mean(1)
+    axis = axis / axis.norm(dim=1, keepdim=True).clamp(min=1e-300)
+    cos_a = (d * axis[:, None]).sum(-1).amin(1)  # F
+    dist = centre.norm(dim=-1)
+    along = (centre * axis[:, None]).sum(-1) / dist.clamp(min=1e-300)
+    angle = torch.acos(along.clamp(-1.0, 1.0))
     slack = torch.asin((radius / dist.clamp(min=1e-300)).clamp(max=1.0))
-    return (dist <= radius) | (angle - slack <= torch.acos(cos_a.clamp(max=1.0)) + 1e-9)
+    inside = (dist <= radius) | (angle - slack <= torch.acos(cos_a.clamp(-1.0, 1.0))[:, None] + 1e-9)
+    return inside | (cos_a <= 0)[:, None]
 
 
 def _edge_coefficients(tv: torch.Tensor) -> torch.Tensor:

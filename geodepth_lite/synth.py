@@ -84,13 +84,34 @@ def render_frame(rng: np.random.Generator, tube, radius: float, path: dict, ligh
     """
     T, pose = rd.sample_pose(tube, rng, path)                        # pose: where the endoscope looks
     d_ref = rd.exposure_distance(tube, T, K, *size, cast_rays=cast_rays)  # exposure: the auto-gain distance
+    frame = _lit_frame(rng, T, pose, d_ref, radius, lighting, look_params, K)
+    if renderer is not None:                                          # render: shaded tube, then appearance
+        frame["rgb"], frame["depth"] = _shade(renderer, T, lighting, frame["lights"], frame["tint"],
+                                              frame["appearance"])
+    return frame
+
+
+def _lit_frame(rng: np.random.Generator, T: np.ndarray, pose: dict, d_ref: float, radius: float, lighting: dict,
+               look_params: dict, K: np.ndarray) -> dict:
+    """The rest of ``render_frame``'s draws once pose and exposure are known: lighting, then appearance."""
     lights, tint = rd.sample_lighting(lighting, rng, radius, d_ref)   # lighting: lights and mucosa tint
     look = ap.sample_appearance(look_params, rng)                     # appearance: the camera's effects
-    frame = {"K": K, "T_world_cam": T, "pose": pose, "exposure_distance": d_ref, "lights": lights, "tint": tint,
-             "appearance": look}
-    if renderer is not None:                                          # render: shaded tube, then appearance
-        frame["rgb"], frame["depth"] = _shade(renderer, T, lighting, lights, tint, look)
-    return frame
+    return {"K": K, "T_world_cam": T, "pose": pose, "exposure_distance": d_ref, "lights": lights, "tint": tint,
+            "appearance": look}
+
+
+def _scene_draws(m: dict, split: str, scene: dict, tube, shown) -> list[dict]:
+    """``render_frame``'s draws for every frame of a scene (each from its own generator, in the same order),
+    the exposure rays of all its poses cast in one batch by the torch renderer ``shown``."""
+    K, size, path = mf.intrinsics_of(m), (m["camera"]["width"], m["camera"]["height"]), mf.split_path(m, split)
+    radius = float(m["organ_presets"][scene["organ"]]["radius"])
+    rngs = [_frame_rng(m, split, scene["scene"], i) for i, _ in scene["frames"]]
+    poses = [rd.sample_pose(tube, rng, path) for rng in rngs]
+    rays = [rd.exposure_rays(T, K, *size) for T, _ in poses]
+    dist = shown.cast_rays_many(np.stack([o for o, _ in rays]), np.stack([d for _, d in rays]))
+    return [_lit_frame(rng, T, pose, rd.exposure_from_distances(tube, dist[k]), radius, m["lighting_sets"][name],
+                       m["appearance"], K)
+            for k, (rng, (T, pose), (_, name)) in enumerate(zip(rngs, poses, scene["frames"]))]
 
 
 def _shade(renderer, T: np.ndarray, lighting: dict, lights: list, tint, look: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -405,14 +426,9 @@ def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer:
     and generators), then the frames not on disk rendered in one batch on the device; appearance and
     writing go to ``pool``. assets: a future of ``_scene_assets`` (built ahead in ``pool``). Returns
     (records, frames rendered, the pool's futures)."""
-    preset = m["organ_presets"][scene["organ"]]
     tube, todo, texture = assets.result()
     shown = renderer.showing(tube, texture)  # (also its rays: the exposure)
-    camera = {"K": mf.intrinsics_of(m), "size": (m["camera"]["width"], m["camera"]["height"])}
-    path = mf.split_path(m, split)
-    frames = [render_frame(_frame_rng(m, split, scene["scene"], i), tube, float(preset["radius"]), path,
-                           m["lighting_sets"][name], m["appearance"], **camera, cast_rays=shown.cast_rays)
-              for i, name in scene["frames"]]
+    frames = _scene_draws(m, split, scene, tube, shown)
     batch = [k for k, (i, _) in enumerate(scene["frames"]) if i in todo]
     if batch:
         rgbs, depths = shown.render_batch(
