@@ -36,7 +36,7 @@ import json
 import math
 import os
 import shutil
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -62,7 +62,7 @@ from .utils import (
 LUMEN_RADII = 4.0  # a pixel deeper than this many lumen radii sees down the lumen (frames.jsonl "lumen_share")
 RENDERERS = ("vtk", "torch", "auto")  # synth --renderer; auto: vtk when it can be imported, else torch
 MAX_PENDING_FRAMES = 512  # torch renderer: rendered frames waiting for their appearance step and files, at most
-SCENES_AHEAD = 4  # torch renderer: scenes whose tube and texture are built ahead, in the worker threads
+SCENES_AHEAD = 4  # torch renderer: scenes built ahead (tube, texture, poses), at least; twice the processes if more
 
 
 # ----------------------------------------------------------------------------- one frame
@@ -100,13 +100,12 @@ def _lit_frame(rng: np.random.Generator, T: np.ndarray, pose: dict, d_ref: float
             "appearance": look}
 
 
-def _scene_draws(m: dict, split: str, scene: dict, tube, shown) -> list[dict]:
+def _scene_draws(m: dict, split: str, scene: dict, tube, shown, rngs: list, poses: list) -> list[dict]:
     """``render_frame``'s draws for every frame of a scene (each from its own generator, in the same order),
-    the exposure rays of all its poses cast in one batch by the torch renderer ``shown``."""
-    K, size, path = mf.intrinsics_of(m), (m["camera"]["width"], m["camera"]["height"]), mf.split_path(m, split)
+    given the generators after their poses were drawn (``_scene_assets``); the exposure rays of all the
+    poses cast in one batch by the torch renderer ``shown``."""
+    K, size = mf.intrinsics_of(m), (m["camera"]["width"], m["camera"]["height"])
     radius = float(m["organ_presets"][scene["organ"]]["radius"])
-    rngs = [_frame_rng(m, split, scene["scene"], i) for i, _ in scene["frames"]]
-    poses = [rd.sample_pose(tube, rng, path) for rng in rngs]
     rays = [rd.exposure_rays(T, K, *size) for T, _ in poses]
     dist = shown.cast_rays_many(np.stack([o for o, _ in rays]), np.stack([d for _, d in rays]))
     return [_lit_frame(rng, T, pose, rd.exposure_from_distances(tube, dist[k]), radius, m["lighting_sets"][name],
@@ -413,11 +412,16 @@ def _finish_frame(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.
 
 
 def _scene_assets(m: dict, out: Path, split: str, scene: dict) -> tuple:
-    """(tube, frame indices not on disk, texture or None when there are none) of a planned scene."""
+    """(tube, frame indices not on disk, texture or None when there are none, the frames' generators after
+    their poses were drawn, the poses (``render.sample_pose``)) of a planned scene: the CPU's share of a
+    scene, run ahead in worker threads or processes (all of it picklable)."""
     tube = tb.build_tube(m["organ_presets"][scene["organ"]], scene["tube_seed"], m["resolution"])
     todo = {i for i, _ in scene["frames"]
             if not (_frame_path(out, split, i, "rgb").exists() and _frame_path(out, split, i, "depth").exists())}
-    return tube, todo, _scene_texture(m, split, scene) if todo else None
+    path = mf.split_path(m, split)
+    rngs = [_frame_rng(m, split, scene["scene"], i) for i, _ in scene["frames"]]
+    poses = [rd.sample_pose(tube, rng, path) for rng in rngs]
+    return tube, todo, _scene_texture(m, split, scene) if todo else None, rngs, poses
 
 
 def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRenderer, bar,
@@ -426,9 +430,9 @@ def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer:
     and generators), then the frames not on disk rendered in one batch on the device; appearance and
     writing go to ``pool``. assets: a future of ``_scene_assets`` (built ahead in ``pool``). Returns
     (records, frames rendered, the pool's futures)."""
-    tube, todo, texture = assets.result()
+    tube, todo, texture, rngs, poses = assets.result()
     shown = renderer.showing(tube, texture)  # (also its rays: the exposure)
-    frames = _scene_draws(m, split, scene, tube, shown)
+    frames = _scene_draws(m, split, scene, tube, shown, rngs, poses)
     batch = [k for k, (i, _) in enumerate(scene["frames"]) if i in todo]
     if batch:
         rgbs, depths = shown.render_batch(
@@ -450,8 +454,26 @@ def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer:
     return records, len(batch), futures
 
 
-def _render_split(m: dict, out: Path, split: str, renderer: _LazyRenderer, bar, pool) -> int:
-    """Render a split's frames not on disk yet and write its frames.jsonl. Returns how many were rendered."""
+def _process_pool(processes: int | None) -> tuple:
+    """(the worker processes that build scenes ahead for the torch renderer, or None; how many scenes ahead).
+    ``generate``'s ``processes``; started by spawning (never forked from a process that may hold CUDA)."""
+    import multiprocessing
+
+    processes = processes or 0
+    if processes < 0:
+        raise ValueError(f"processes must be >= 0, got {processes}")
+    if not processes:
+        return None, SCENES_AHEAD
+    return ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")), max(SCENES_AHEAD,
+                                                                                               2 * processes)
+
+
+def _render_split(m: dict, out: Path, split: str, renderer: _LazyRenderer, bar, pool, ahead=None,
+                  n_ahead: int = SCENES_AHEAD) -> int:
+    """Render a split's frames not on disk yet and write its frames.jsonl. Returns how many were rendered.
+    pool: the torch renderer's worker threads (None: VTK); ahead: the executor building scenes ahead
+    (``_scene_assets``; None: ``pool``), ``n_ahead`` scenes ahead."""
+    ahead = pool if ahead is None else ahead
     records, pending, rendered = [], [], 0
     plan = _scene_plan(m, split)
     assets = []  # torch: the next scenes' tubes and textures, built ahead in the pool
@@ -459,8 +481,8 @@ def _render_split(m: dict, out: Path, split: str, renderer: _LazyRenderer, bar, 
         if pool is None:
             scene_records, n_rendered = _render_scene(m, out, split, scene, renderer, bar)
         else:
-            while len(assets) < min(k + SCENES_AHEAD, len(plan)):
-                assets.append(pool.submit(_scene_assets, m, out, split, plan[len(assets)]))
+            while len(assets) < min(k + n_ahead, len(plan)):
+                assets.append(ahead.submit(_scene_assets, m, out, split, plan[len(assets)]))
             scene_records, n_rendered, futures = _render_scene_batched(m, out, split, scene, renderer, bar, pool,
                                                                        assets[k])
             assets[k] = None
@@ -477,7 +499,8 @@ def _render_split(m: dict, out: Path, split: str, renderer: _LazyRenderer, bar, 
 
 
 def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: bool = True,
-             counts: dict | None = None, renderer: str = "auto", device=None, workers: int | None = None) -> Path:
+             counts: dict | None = None, renderer: str = "auto", device=None, workers: int | None = None,
+             processes: int | None = None) -> Path:
     """Render the dataset of resolved manifest ``m`` into ``out`` (resuming any earlier partial run).
 
     Frames already on disk (both files) are kept; in a finished dataset, frame files that no
@@ -486,8 +509,11 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
     "replaced" (changed frame files rendered again). A file that cannot be read or written
     raises ``utils.FileProblem`` naming it. renderer: "vtk", "torch" or "auto" (vtk when it
     imports); device: the torch renderer's (None: CUDA when available); workers: its threads for
-    the appearance step and the writing (None: the CPU count, at most 16). A folder holding
-    another renderer's frames of ``m`` is refused unless ``overwrite``.
+    the appearance step and the writing (None: the CPU count, at most 16); processes: worker
+    processes building the scenes ahead, tube, texture and poses (None or 0: none, the threads do
+    it; they are spawned, so a calling script needs an ``if __name__ == "__main__":`` guard). The
+    files do not depend on workers or processes. A folder holding another renderer's frames of
+    ``m`` is refused unless ``overwrite``.
     """
     out = Path(out)
     kind = resolve_renderer(renderer)
@@ -495,14 +521,16 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
     total, rendered = sum(m["splits"].values()), 0
     lazy = _LazyRenderer(m, kind, device)
     pool = ThreadPoolExecutor(workers or min(16, os.cpu_count() or 1)) if kind == "torch" else None
+    ahead, n_ahead = _process_pool(processes) if kind == "torch" else (None, SCENES_AHEAD)
     bar = tqdm(total=total, disable=not progress, desc=f"synth {m['name']}", unit="frame")
     try:
         for split in m["splits"]:
-            rendered += _render_split(m, out, split, lazy, bar, pool)
+            rendered += _render_split(m, out, split, lazy, bar, pool, ahead, n_ahead)
     finally:
         bar.close()
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        for executor in (pool, ahead):
+            if executor is not None:
+                executor.shutdown(wait=True, cancel_futures=True)
         lazy.close()
     integrity.write_checksums(out, m)
     if counts is not None:
@@ -618,8 +646,9 @@ def run_synth(args) -> int:
     if kind == "torch":
         torch_device(args.device)  # a bad --device: one line, before anything is written
     counts: dict = {}
+    processes = min(16, os.cpu_count() or 1) if kind == "torch" and torch_device(args.device).type != "cpu" else 0
     generate(m, out, overwrite=args.overwrite, progress=args.progress, counts=counts, renderer=kind,
-             device=args.device)
+             device=args.device, processes=processes)
     line = f"synth: rendered {counts['rendered']} frame{'s' * (counts['rendered'] != 1)}"
     if counts["kept"]:
         line += f", kept {counts['kept']} from an earlier run"

@@ -170,7 +170,7 @@ def test_the_agreement_bounds_catch_a_wrong_renderer(teach_frames, cls, measure)
 def test_torch_datasets_are_byte_identical_record_their_renderer_and_verify(tmp_path):
     m = mf.load_manifest("scenario_smoke", TINY)
     a = synth.generate(m, tmp_path / "a", progress=False, renderer="torch", device="cpu")
-    b = synth.generate(m, tmp_path / "b", progress=False, renderer="torch", device="cpu", workers=1)
+    b = synth.generate(m, tmp_path / "b", progress=False, renderer="torch", device="cpu", workers=1, processes=1)
     assert _files(a) == _files(b)
     assert integrity.verify(a) == []
     assert integrity.renderer_of(a)["renderer"] == "torch" and integrity.renderer_of(a)["device"] == "cpu"
