@@ -1,11 +1,10 @@
 """Speed of the torch renderer's dataset pipeline, stage by stage (docs/dataset.md, "Renderer speed").
 
 ``python benchmarks/bench_render_torch.py [--manifest scenario_paper] [--scenes 2] [--device cpu] [--vtk]`` times,
-on one thread, per scene of the manifest's train split: building the tube and its texture; per frame the draws (pose,
-exposure rays cast on the device, lights, appearance record); the batched render of the scene's frames; the
-appearance step; the PNG and .npy encoding; with ``--vtk``, VTK rendering the same frames one by one. Prints
-medians over the scenes (ms per frame, or per scene).
-"""
+on one thread, per scene of the manifest's train split: building the tube and its texture; per frame the pose;
+the rest of the draws (exposure rays cast in one batch on the device, lights, appearance record); the batched
+render of the scene's frames; the appearance step; the PNG and .npy encoding; with ``--vtk``, VTK rendering the
+same frames one by one. Prints medians over the scenes (ms per frame, or per scene)."""
 
 from __future__ import annotations
 
@@ -36,13 +35,15 @@ def time_scene(m: dict, scene: dict, renderer: rt.TorchRenderer, vtk=None) -> di
     texture = synth._scene_texture(m, "train", scene)
     renderer.set_tube(tube, texture)
     t["scene setup"] = time.perf_counter() - t0
-    K, size, path = mf.intrinsics_of(m), (m["camera"]["width"], m["camera"]["height"]), mf.split_path(m, "train")
     t0 = time.perf_counter()
-    frames = [synth.render_frame(synth._frame_rng(m, "train", scene["scene"], i), tube,
-                                 float(m["organ_presets"][scene["organ"]]["radius"]), path, m["lighting_sets"][name],
-                                 m["appearance"], K=K, size=size, cast_rays=renderer.cast_rays)
-              for i, name in scene["frames"]]
-    t["draws"] = time.perf_counter() - t0
+    path = mf.split_path(m, "train")
+    rngs = [synth._frame_rng(m, "train", scene["scene"], i) for i, _ in scene["frames"]]
+    poses = [rd.sample_pose(tube, rng, path) for rng in rngs]
+    t["poses"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    frames = synth._scene_draws(m, "train", scene, tube, renderer, rngs, poses)
+    _sync(renderer.device)
+    t["exposure+draws"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     rgbs, depths = renderer.render_batch([f["T_world_cam"] for f in frames], [f["lights"] for f in frames],
                                          [f["tint"] for f in frames],

@@ -126,13 +126,20 @@ class TorchRenderer:
         """``cast_rays`` for F origins (F x 3) with n directions each (F x n x 3): distances F x n.
 
         Only the (triangle, ray) pairs whose bounding sphere the ray passes through, among the triangles
-        reaching into the cone of that origin's rays (``_in_cone``), get the exact test."""
+        reaching into the cone of that origin's rays (``_in_cone``), get the exact test. One batch on a GPU;
+        on the CPU one origin at a time (fewer large gathers; the same numbers: every step is per pair)."""
         o = torch.as_tensor(np.asarray(origins, dtype=np.float64), device=self.device)
         d = torch.as_tensor(np.asarray(directions, dtype=np.float64), device=self.device)
+        if self.device.type == "cpu":
+            return np.concatenate([self._cast(o[i:i + 1], d[i:i + 1]) for i in range(len(o))])
+        return self._cast(o, d)
+
+    def _cast(self, o: torch.Tensor, d: torch.Tensor) -> np.ndarray:
         F, n = d.shape[:2]
         frame, keep = torch.nonzero(_in_cone(self._centres[None] - o[:, None], self._radii, d), as_tuple=True)
-        c, r, dk = self._centres[keep] - o[frame], self._radii[keep], d[frame]  # per pair: k x 3, k, k x n x 3
-        along = c[:, None, 0] * dk[..., 0] + c[:, None, 1] * dk[..., 1] + c[:, None, 2] * dk[..., 2]  # k x n
+        c, r = self._centres[keep] - o[frame], self._radii[keep]  # per (frame, triangle) pair
+        dx, dy, dz = (d[..., i].contiguous() for i in range(3))  # F x n each
+        along = c[:, 0:1] * dx[frame] + c[:, 1:2] * dy[frame] + c[:, 2:3] * dz[frame]  # pairs x n
         near = ((c * c).sum(1, keepdim=True) - along * along <= (r * r)[:, None]) & (along >= -r[:, None])
         pair, ray = torch.nonzero(near, as_tuple=True)
         f = frame[pair]

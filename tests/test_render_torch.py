@@ -75,6 +75,12 @@ def test_exposure_rays_meet_the_wall_where_vtk_finds_it():
         dirs = rng.normal(size=(9, 3)) * 0.3 + T[:3, 2]
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         np.testing.assert_allclose(r.cast_rays(T[:3, 3], dirs), tm.cast_rays(T[:3, 3], dirs), rtol=1e-9)
+    # many origins in one batch (as on a GPU) give the same bits as one origin at a time (the CPU's way)
+    poses = [render.sample_pose(tm, rng, mf.split_path(m, "train"))[0] for _ in range(5)]
+    origins, dirs = zip(*(render.exposure_rays(T, camera.intrinsics(32), 32, 32) for T in poses))
+    one_by_one = r.cast_rays_many(np.stack(origins), np.stack(dirs))
+    batched = r._cast(torch.as_tensor(np.stack(origins)), torch.as_tensor(np.stack(dirs)))
+    assert np.isfinite(one_by_one).mean() > 0.9 and np.array_equal(one_by_one, batched)
 
 
 def test_a_frame_is_the_same_at_one_and_two_threads():
