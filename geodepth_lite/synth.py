@@ -1,7 +1,8 @@
 """The synthetic "Scenario dataset" (paper Section 3.A): rendering a manifest's frames to disk.
 
 A manifest (``data_manifests/*.json``; schema and validation: ``manifest.py``) is the whole
-recipe; the same manifest gives byte-identical files on the same machine. Each frame follows
+recipe; the same manifest gives byte-identical files on the same machine, per renderer (below;
+docs/dataset.md says what is tested where). Each frame follows
 the paper's per-frame pipeline (``render_frame``): camera pose -> auto-exposure distance ->
 lighting -> camera appearance -> render, every random draw from the frame's own generator.
 
