@@ -32,16 +32,16 @@ def time_scene(m: dict, scene: dict, renderer: rt.TorchRenderer, vtk=None) -> di
     t = {}
     t0 = time.perf_counter()
     tube = tb.build_tube(m["organ_presets"][scene["organ"]], scene["tube_seed"], m["resolution"])
-    texture = synth._scene_texture(m, "train", scene)
+    texture = synth.scene_texture(m, "train", scene)
     renderer.set_tube(tube, texture)
     t["scene setup"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     path = mf.split_path(m, "train")
-    rngs = [synth._frame_rng(m, "train", scene["scene"], i) for i, _ in scene["frames"]]
+    rngs = [synth.frame_rng(m, "train", scene["scene"], i) for i, _ in scene["frames"]]
     poses = [rd.sample_pose(tube, rng, path) for rng in rngs]
     t["poses"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    frames = synth._scene_draws(m, "train", scene, tube, renderer, rngs, poses)
+    frames = synth.scene_draws(m, "train", scene, tube, renderer, rngs, poses)
     _sync(renderer.device)
     t["exposure+draws"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -57,8 +57,8 @@ def time_scene(m: dict, scene: dict, renderer: rt.TorchRenderer, vtk=None) -> di
     t["appearance"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for rgb, depth in zip(finals, depths):
-        synth._png_bytes(rgb)
-        synth._npy_bytes(depth)
+        synth.encode_png(rgb)
+        synth.encode_npy(depth)
     t["encode"] = time.perf_counter() - t0
     if vtk is not None:  # the same frames by VTK, one at a time (its scene set-up not counted)
         vtk.set_tube(tube, texture)
@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     dev = torch.device(args.device)
     renderer = rt.TorchRenderer(c["width"], c["height"], mf.intrinsics_of(m), near=c["near"], far=c["far"],
                                 device=dev)
-    plan = synth._scene_plan(m, "train")
+    plan = synth.scene_plan(m, "train")
     picks = [plan[k * len(plan) // args.scenes] for k in range(args.scenes)]
     vtk = rd.Renderer(c["width"], c["height"], mf.intrinsics_of(m), near=c["near"], far=c["far"]) if args.vtk else None
     time_scene(m, picks[0], renderer, vtk)  # warm-up

@@ -39,7 +39,7 @@ def pick_frames(m: dict, split: str, count: int) -> list[tuple[dict, int, str]]:
     """``count`` frames of ``split`` spread over its scenes (frame k: scene k x scenes // count, its frame k modulo
     the scene's frames; distinct when ``count`` is at most the split's frames): (planned scene, frame index,
     lighting name) each."""
-    plan = synth._scene_plan(m, split)
+    plan = synth.scene_plan(m, split)
     out = []
     for k in range(count):
         scene = plan[k * len(plan) // count]
@@ -57,10 +57,10 @@ def frame_inputs(m: dict, split: str, count: int) -> list[dict]:
         if scene["scene"] not in scenes:
             preset = m["organ_presets"][scene["organ"]]
             scenes[scene["scene"]] = (tb.build_tube(preset, scene["tube_seed"], m["resolution"]),
-                                      synth._scene_texture(m, split, scene))
+                                      synth.scene_texture(m, split, scene))
         tube, texture = scenes[scene["scene"]]
         lighting = m["lighting_sets"][name]
-        frame = synth.render_frame(synth._frame_rng(m, split, scene["scene"], i), tube,
+        frame = synth.render_frame(synth.frame_rng(m, split, scene["scene"], i), tube,
                                    float(m["organ_presets"][scene["organ"]]["radius"]), path, lighting,
                                    m["appearance"], K=K, size=size)
         out.append({"tube": tube, "texture": texture, "frame": frame, "organ": scene["organ"], "index": i,

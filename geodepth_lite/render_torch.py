@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from . import camera as cam
+from .render import Light
 
 NEAR, FAR = cam.DEPTH_RANGE
 DEFAULT_MATERIAL = {"ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0}  # as render.py's
@@ -248,8 +249,6 @@ class TorchRenderer:
         """Per frame of a batch: mucosa and specular colours (B x 3), Phong coefficients (B each), and the lights'
         positions and colour x intensity (B x L x 3; a frame with fewer lights gets black ones: adding their
         zero terms changes no bit)."""
-        from .render import Light  # numpy only: no VTK
-
         n, dev = len(lights), self.device
         lights = [[Light((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0)] if ls is None else ls for ls in lights]
         n_l = max(len(ls) for ls in lights)

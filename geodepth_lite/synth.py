@@ -35,12 +35,14 @@ import hashlib
 import io
 import json
 import math
+import multiprocessing
 import os
 import shutil
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image
 from tqdm.auto import tqdm
 
@@ -48,6 +50,7 @@ from . import appearance as ap
 from . import integrity
 from . import manifest as mf
 from . import render as rd
+from . import render_torch as rt
 from . import tube as tb
 from .utils import (
     FileProblem,
@@ -101,9 +104,9 @@ def _lit_frame(rng: np.random.Generator, T: np.ndarray, pose: dict, d_ref: float
             "appearance": look}
 
 
-def _scene_draws(m: dict, split: str, scene: dict, tube, shown, rngs: list, poses: list) -> list[dict]:
+def scene_draws(m: dict, split: str, scene: dict, tube, shown, rngs: list, poses: list) -> list[dict]:
     """``render_frame``'s draws for every frame of a scene (each from its own generator, in the same order),
-    given the generators after their poses were drawn (``_scene_assets``); the exposure rays of all the
+    given the generators after their poses were drawn (``scene_assets``); the exposure rays of all the
     poses cast in one batch by the torch renderer ``shown``."""
     K, size = mf.intrinsics_of(m), (m["camera"]["width"], m["camera"]["height"])
     radius = float(m["organ_presets"][scene["organ"]]["radius"])
@@ -124,7 +127,7 @@ def _shade(renderer, T: np.ndarray, lighting: dict, lights: list, tint, look: di
 
 
 def frame_record(m: dict, split: str, index: int, scene: dict, lighting_name: str, frame: dict) -> dict:
-    """The frames.jsonl record of frame ``index`` of ``split``: ``scene`` as planned by ``_scene_plan``,
+    """The frames.jsonl record of frame ``index`` of ``split``: ``scene`` as planned by ``scene_plan``,
     ``frame`` as returned by ``render_frame`` (with its "depth", rendered or read back)."""
     pose = frame["pose"]
     return {
@@ -158,7 +161,7 @@ def _round(a) -> list:
 # ----------------------------------------------------------------------------- generation
 
 
-def _scene_plan(m: dict, split: str) -> list[dict]:
+def scene_plan(m: dict, split: str) -> list[dict]:
     """Scenes of a split: organ, texture, tube seed, and per frame (index, lighting family).
 
     Organs cycle over scenes and textures over each organ's scenes (so every organ meets
@@ -179,17 +182,17 @@ def _scene_plan(m: dict, split: str) -> list[dict]:
     return plan
 
 
-def _frame_rng(m: dict, split: str, scene: int, index: int) -> np.random.Generator:
+def frame_rng(m: dict, split: str, scene: int, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([m["seed"], mf.SPLITS.index(split), scene, index, 1]))
 
 
-def _png_bytes(rgb: np.ndarray) -> bytes:
+def encode_png(rgb: np.ndarray) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(rgb).save(buf, format="PNG", compress_level=1)  # fast; still lossless
     return buf.getvalue()
 
 
-def _npy_bytes(depth: np.ndarray) -> bytes:
+def encode_npy(depth: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(depth, dtype=np.float32), allow_pickle=False)
     return buf.getvalue()
@@ -316,7 +319,7 @@ def resolve_renderer(name: str) -> str:
         return name
     try:
         import pyvista  # noqa: F401  (VTK: heavy; imported here only to see whether it can be)
-        import vtk  # noqa: F401
+        import vtk  # noqa: F401  (VTK: as pyvista above)
     except ImportError:
         return "torch"
     return "vtk"
@@ -324,8 +327,6 @@ def resolve_renderer(name: str) -> str:
 
 def torch_device(device):
     """The torch device of ``--device`` (None: CUDA when available, else the CPU); ValueError naming the flag."""
-    import torch
-
     if device is None:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -341,8 +342,6 @@ def renderer_record(renderer: str, device=None) -> dict:
     """What a dataset records of the renderer that made it (renderer.json; VTK: integrity.VTK_RECORD, no file)."""
     if renderer == "vtk":
         return dict(integrity.VTK_RECORD)
-    import torch
-
     return {"renderer": renderer, "device": torch_device(device).type, "torch": torch.__version__}
 
 
@@ -358,8 +357,6 @@ class _LazyRenderer:
         if self.renderer is None:
             c = self.m["camera"]
             if self.kind == "torch":
-                from . import render_torch as rt  # torch only: no VTK
-
                 self.renderer = rt.TorchRenderer(c["width"], c["height"], mf.intrinsics_of(self.m), near=c["near"],
                                                  far=c["far"], device=torch_device(self.device))
             else:
@@ -382,17 +379,17 @@ def _render_scene(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRe
             if not (_frame_path(out, split, i, "rgb").exists() and _frame_path(out, split, i, "depth").exists())]
     shown = None
     if todo:
-        shown = renderer.showing(tube, _scene_texture(m, split, scene))
+        shown = renderer.showing(tube, scene_texture(m, split, scene))
     camera = {"K": mf.intrinsics_of(m), "size": (m["camera"]["width"], m["camera"]["height"])}
     path = mf.split_path(m, split)
     records = []
     for i, lighting_name in scene["frames"]:
-        frame = render_frame(_frame_rng(m, split, scene["scene"], i), tube, float(preset["radius"]), path,
+        frame = render_frame(frame_rng(m, split, scene["scene"], i), tube, float(preset["radius"]), path,
                              m["lighting_sets"][lighting_name], m["appearance"], **camera,
                              renderer=shown if i in todo else None)
         if i in todo:
-            write_bytes_atomic(_frame_path(out, split, i, "depth"), _npy_bytes(frame["depth"]))
-            write_bytes_atomic(_frame_path(out, split, i, "rgb"), _png_bytes(frame["rgb"]))
+            write_bytes_atomic(_frame_path(out, split, i, "depth"), encode_npy(frame["depth"]))
+            write_bytes_atomic(_frame_path(out, split, i, "rgb"), encode_png(frame["rgb"]))
         else:
             frame["depth"] = read_npy(_frame_path(out, split, i, "depth"))
         records.append(frame_record(m, split, i, scene, lighting_name, frame))
@@ -400,7 +397,7 @@ def _render_scene(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRe
     return records, len(todo)
 
 
-def _scene_texture(m: dict, split: str, scene: dict) -> np.ndarray:
+def scene_texture(m: dict, split: str, scene: dict) -> np.ndarray:
     """The texture of a planned scene (its own generator, as every renderer draws it)."""
     tex_rng = np.random.default_rng(np.random.SeedSequence([m["seed"], mf.SPLITS.index(split), scene["scene"], 2]))
     return rd.make_texture(m["texture_sets"][scene["texture"]], tex_rng)
@@ -408,11 +405,11 @@ def _scene_texture(m: dict, split: str, scene: dict) -> np.ndarray:
 
 def _finish_frame(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.ndarray, look: dict) -> None:
     """Apply a rendered frame's appearance and write both its files (a worker thread's share)."""
-    write_bytes_atomic(_frame_path(out, split, index, "depth"), _npy_bytes(depth))
-    write_bytes_atomic(_frame_path(out, split, index, "rgb"), _png_bytes(ap.apply_appearance(rgb, look)))
+    write_bytes_atomic(_frame_path(out, split, index, "depth"), encode_npy(depth))
+    write_bytes_atomic(_frame_path(out, split, index, "rgb"), encode_png(ap.apply_appearance(rgb, look)))
 
 
-def _scene_assets(m: dict, out: Path, split: str, scene: dict) -> tuple:
+def scene_assets(m: dict, out: Path, split: str, scene: dict) -> tuple:
     """(tube, frame indices not on disk, texture or None when there are none, the frames' generators after
     their poses were drawn, the poses (``render.sample_pose``)) of a planned scene: the CPU's share of a
     scene, run ahead in worker threads or processes (all of it picklable)."""
@@ -420,20 +417,20 @@ def _scene_assets(m: dict, out: Path, split: str, scene: dict) -> tuple:
     todo = {i for i, _ in scene["frames"]
             if not (_frame_path(out, split, i, "rgb").exists() and _frame_path(out, split, i, "depth").exists())}
     path = mf.split_path(m, split)
-    rngs = [_frame_rng(m, split, scene["scene"], i) for i, _ in scene["frames"]]
+    rngs = [frame_rng(m, split, scene["scene"], i) for i, _ in scene["frames"]]
     poses = [rd.sample_pose(tube, rng, path) for rng in rngs]
-    return tube, todo, _scene_texture(m, split, scene) if todo else None, rngs, poses
+    return tube, todo, scene_texture(m, split, scene) if todo else None, rngs, poses
 
 
 def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRenderer, bar,
                           pool: ThreadPoolExecutor, assets) -> tuple[list, int, list]:
     """``_render_scene`` for the torch renderer: every draw of the scene first (the same per-frame pipeline
     and generators), then the frames not on disk rendered in one batch on the device; appearance and
-    writing go to ``pool``. assets: a future of ``_scene_assets`` (built ahead in ``pool``). Returns
+    writing go to ``pool``. assets: a future of ``scene_assets`` (built ahead in ``pool``). Returns
     (records, frames rendered, the pool's futures)."""
     tube, todo, texture, rngs, poses = assets.result()
     shown = renderer.showing(tube, texture)  # (also its rays: the exposure)
-    frames = _scene_draws(m, split, scene, tube, shown, rngs, poses)
+    frames = scene_draws(m, split, scene, tube, shown, rngs, poses)
     batch = [k for k, (i, _) in enumerate(scene["frames"]) if i in todo]
     if batch:
         rgbs, depths = shown.render_batch(
@@ -458,8 +455,6 @@ def _render_scene_batched(m: dict, out: Path, split: str, scene: dict, renderer:
 def _process_pool(processes: int | None) -> tuple:
     """(the worker processes that build scenes ahead for the torch renderer, or None; how many scenes ahead).
     ``generate``'s ``processes``; started by spawning (never forked from a process that may hold CUDA)."""
-    import multiprocessing
-
     processes = processes or 0
     if processes < 0:
         raise ValueError(f"processes must be >= 0, got {processes}")
@@ -473,17 +468,17 @@ def _render_split(m: dict, out: Path, split: str, renderer: _LazyRenderer, bar, 
                   n_ahead: int = SCENES_AHEAD) -> int:
     """Render a split's frames not on disk yet and write its frames.jsonl. Returns how many were rendered.
     pool: the torch renderer's worker threads (None: VTK); ahead: the executor building scenes ahead
-    (``_scene_assets``; None: ``pool``), ``n_ahead`` scenes ahead."""
+    (``scene_assets``; None: ``pool``), ``n_ahead`` scenes ahead."""
     ahead = pool if ahead is None else ahead
     records, pending, rendered = [], [], 0
-    plan = _scene_plan(m, split)
+    plan = scene_plan(m, split)
     assets = []  # torch: the next scenes' tubes and textures, built ahead in the pool
     for k, scene in enumerate(plan):
         if pool is None:
             scene_records, n_rendered = _render_scene(m, out, split, scene, renderer, bar)
         else:
             while len(assets) < min(k + n_ahead, len(plan)):
-                assets.append(ahead.submit(_scene_assets, m, out, split, plan[len(assets)]))
+                assets.append(ahead.submit(scene_assets, m, out, split, plan[len(assets)]))
             scene_records, n_rendered, futures = _render_scene_batched(m, out, split, scene, renderer, bar, pool,
                                                                        assets[k])
             assets[k] = None
