@@ -7,6 +7,11 @@ split are on disk); ``check_dataset`` turns those problems into one error line b
 ``train`` or ``evaluate`` use a dataset (``--no-verify`` skips it); ``is_complete`` is the
 cheap check (no hashing) of ``synth.ensure_dataset``.
 
+Which renderer made a dataset: ``DIR/renderer.json`` (``renderer_of``), written by every renderer
+but VTK and listed in checksums.sha256 after manifest.json; a dataset without it (every dataset
+made before there was a second renderer) was made by VTK. The same manifest gives the same bytes
+per renderer only (docs/dataset.md says where each promise holds).
+
 Command: ``python -m geodepth_lite verify DIR``.
 """
 
@@ -21,6 +26,8 @@ from .utils import MAX_DATASET_FILE_BYTES, FileProblem, inside_folder, os_reason
 MAX_MANIFEST_BYTES = 4 * 2**20  # a dataset's manifest.json, at most (as manifest.MAX_MANIFEST_BYTES)
 MAX_SPLIT_FRAMES = 10_000_000  # frames of one split, at most (as manifest's check of 'splits')
 MAX_CHECKSUMS_BYTES = 2**30  # checksums.sha256, at most
+RENDERER_FILE = "renderer.json"  # which renderer made the dataset; absent: VTK
+VTK_RECORD = {"renderer": "vtk"}  # the record of a dataset without RENDERER_FILE
 
 
 def dataset_files(m: dict) -> list[str]:
@@ -41,10 +48,31 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def checksum_files(out: Path, m: dict) -> list[str]:
+    """The files checksums.sha256 lists: ``dataset_files(m)``, with RENDERER_FILE after manifest.json when there."""
+    files = dataset_files(m)
+    return files[:1] + [RENDERER_FILE] + files[1:] if (Path(out) / RENDERER_FILE).is_file() else files
+
+
+def renderer_of(root: str | Path) -> dict:
+    """The renderer record of a dataset directory: RENDERER_FILE's object, or VTK_RECORD without it (raises
+    FileProblem when it is there but unreadable or not a JSON object with a "renderer" string)."""
+    path = Path(root) / RENDERER_FILE
+    if not path.exists():
+        return dict(VTK_RECORD)
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:  # ValueError: json.JSONDecodeError, UnicodeDecodeError
+        raise FileProblem(f"cannot read {path}: {os_reason(exc) if isinstance(exc, OSError) else exc}", path) from exc
+    if not isinstance(rec, dict) or not isinstance(rec.get("renderer"), str):
+        raise FileProblem(f"cannot read {path}: not a JSON object with a \"renderer\" string", path)
+    return rec
+
+
 def write_checksums(out: Path, m: dict) -> None:
-    """Write ``out/checksums.sha256`` over ``dataset_files(m)``; synth writes it last, to mark completion."""
+    """Write ``out/checksums.sha256`` over ``checksum_files``; synth writes it last, to mark completion."""
     lines = []
-    for rel in dataset_files(m):
+    for rel in checksum_files(out, m):
         try:
             lines.append(f"{file_sha256(out / rel)}  {rel}\n")
         except OSError as exc:
@@ -167,6 +195,9 @@ def verify(root: str | Path) -> list[str]:
             continue
         if actual != digest:
             problems.append(f"changed: {rel}")
+    if (root / RENDERER_FILE).exists() and not any(ln.endswith(f"  {RENDERER_FILE}") for ln in text.splitlines()):
+        problems.append(f"changed: {RENDERER_FILE} (not listed in checksums.sha256: the frames were made by VTK, "
+                        "the file says otherwise)")
     return problems
 
 
@@ -221,6 +252,16 @@ def is_complete(root: Path, m: dict) -> bool:
     return (root / "checksums.sha256").is_file() and all((root / f).is_file() for f in dataset_files(m))
 
 
+def is_complete_by(root: Path, m: dict, renderer: str | None) -> bool:
+    """``is_complete``, and made by ``renderer`` ("vtk", "torch"; None: any)."""
+    if not is_complete(root, m):
+        return False
+    try:
+        return renderer is None or renderer_of(root)["renderer"] == renderer
+    except FileProblem:
+        return False
+
+
 # ----------------------------------------------------------------------------- CLI
 
 
@@ -236,5 +277,7 @@ def run_verify(args) -> int:
         print(f"verify: {len(problems)} problem(s) in {args.dir}")
         return 1
     n = sum(1 for line in (Path(args.dir) / "checksums.sha256").read_text().splitlines() if line.strip())
-    print(f"verify: ok, {n} files match checksums.sha256")
+    rec = renderer_of(args.dir)
+    made = "" if rec == VTK_RECORD else f" (made by the {rec['renderer']} renderer on {rec.get('device', '?')})"
+    print(f"verify: ok, {n} files match checksums.sha256{made}")
     return 0

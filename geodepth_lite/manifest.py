@@ -6,7 +6,7 @@ texture and lighting families, camera path, mesh resolution, appearance. ``DEFAU
 schema (every section, key and default); ``resolve_manifest`` validates a manifest dict against
 it and fills every default, with one-line errors naming the offending field; ``load_manifest``
 reads one by name (``data_manifests/<name>.json``) or path. ``synth.py`` renders a resolved
-manifest; the same manifest gives byte-identical files on the same machine.
+manifest; the same manifest gives byte-identical files on the same machine, per renderer.
 """
 
 from __future__ import annotations

@@ -155,13 +155,21 @@ class Light:
 
 
 def exposure_distance(tube, T_world_cam, K, width: int, height: int,
-                      percentile: float = EXPOSURE_PERCENTILE) -> float:
+                      percentile: float = EXPOSURE_PERCENTILE, cast_rays=None) -> float:
     """Auto-exposure reference distance: a low percentile of the wall distances along a 5 x 5 grid of rays.
 
     An endoscope's processor adjusts gain to the scene; here the light intensity is
     scaled by this distance squared, so near-wall views are not blown out and views
     down the lumen are not black, while inverse-square falloff within a frame stays.
+    cast_rays: ``(origin, unit directions) -> distances`` (default ``tube.cast_rays``, VTK's).
     """
+    origin, directions = exposure_rays(T_world_cam, K, width, height)
+    dist = (tube.cast_rays if cast_rays is None else cast_rays)(origin, directions)
+    return exposure_from_distances(tube, dist, percentile)
+
+
+def exposure_rays(T_world_cam, K, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The auto-exposure rays of a pose: (origin (3,), unit directions (25 x 3)), world frame."""
     K = np.asarray(K, dtype=np.float64)
     u = np.linspace(*EXPOSURE_GRID_SPAN, EXPOSURE_GRID_SIZE) * (width - 1)
     v = np.linspace(*EXPOSURE_GRID_SPAN, EXPOSURE_GRID_SIZE) * (height - 1)
@@ -169,7 +177,11 @@ def exposure_distance(tube, T_world_cam, K, width: int, height: int,
     rays = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(uu)], -1).reshape(-1, 3)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     T = np.asarray(T_world_cam, dtype=np.float64)
-    dist = tube.cast_rays(T[:3, 3], rays @ T[:3, :3].T)
+    return T[:3, 3], rays @ T[:3, :3].T
+
+
+def exposure_from_distances(tube, dist: np.ndarray, percentile: float = EXPOSURE_PERCENTILE) -> float:
+    """``exposure_distance`` from the wall distances along its rays (inf: none met; no finite one: the radius)."""
     dist = dist[np.isfinite(dist)]
     return float(np.percentile(dist, percentile)) if len(dist) else float(tube.preset["radius"])
 

@@ -122,7 +122,7 @@ def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | Non
 def scene_of(index) -> np.ndarray:
     """The scene of confirmation frame ``index`` (int or array): ``index // 20``.
 
-    Why: ``synth._scene_plan`` gives scene k the frames ``range(k * frames_per_scene, (k + 1) *
+    Why: ``synth.scene_plan`` gives scene k the frames ``range(k * frames_per_scene, (k + 1) *
     frames_per_scene)`` of the split, each frame's ``index`` in ``frames.jsonl`` is that number
     (``synth.frame_record``), and the evaluation keeps it (``SyntheticDepthDataset`` returns the
     record's ``index``, ``study.score`` writes it). ``scenario_study_confirm`` has

@@ -14,8 +14,8 @@ Coordinates: ``s`` is arc length along the centerline (scene units), ``theta``
 the angle around it measured from the frame's normal ``N`` towards ``B``. A wall
 point is ``c(s) + r(s, theta) (cos(theta) N(s) + sin(theta) B(s))``.
 
-Public API: ``build_tube(preset, seed, resolution) -> TubeMesh`` with ``.mesh``
-(pyvista PolyData, inward normals, texture coordinates), ``.centerline(s)``,
+Public API: ``build_tube(preset, seed, resolution) -> TubeMesh`` with ``.arrays`` (the mesh as
+numpy arrays) and ``.mesh`` (the same as a pyvista PolyData, inward normals, texture coordinates), ``.centerline(s)``,
 ``.frame(s)``, ``.radius(s, theta)`` and ``.wall_point(s, theta)``.
 """
 
@@ -379,16 +379,19 @@ def _local_structures(r, s, theta, R: float, feats: WallFeatures) -> np.ndarray:
 class TubeMesh:
     """A procedural tube: mesh plus the geometry it came from.
 
-    mesh: pyvista PolyData of triangles, closed (both ends capped), point normals
-    pointing into the lumen, texture coordinates ``(s / tile, theta / 2 pi)``
-    (``Texture Coordinates``) and point arrays ``s`` and ``theta``.
+    arrays: the triangle mesh as numpy arrays (``tube_arrays``): ``points`` (n x 3 float64),
+    ``triangles`` (m x 3 int64), point ``normals`` pointing into the lumen, texture coordinates
+    ``tcoords`` ``(s / tile, theta / 2 pi)``, and per point ``s`` and ``theta`` (float32).
+    mesh: the same as a pyvista PolyData of triangles (built from ``arrays`` on first use, so a
+    renderer without VTK never imports it), closed (both ends capped), point normals, texture
+    coordinates (``Texture Coordinates``) and point arrays ``s`` and ``theta``.
     The seam theta = 0 = 2 pi has duplicated points (same coordinates) so the
     texture does not wrap backwards; ``mesh.clean()`` merges them.
     """
 
     preset: dict
     seed: int
-    mesh: object
+    arrays: dict
     s_grid: np.ndarray
     points: np.ndarray
     T: np.ndarray
@@ -396,6 +399,14 @@ class TubeMesh:
     B: np.ndarray
     features: WallFeatures
     texture_tile: float
+    _mesh: object = field(default=None, repr=False, compare=False)
+
+    @property
+    def mesh(self):
+        """The pyvista PolyData of ``arrays`` (VTK: imported here, on first use)."""
+        if self._mesh is None:
+            self._mesh = _polydata(self.arrays)
+        return self._mesh
 
     @property
     def length(self) -> float:
@@ -468,8 +479,8 @@ def build_tube(preset: dict | str, seed: int, resolution: dict | None = None) ->
     feats = _draw_features(preset, rng)
     S, TH, wall, normals = _wall_grid(s_grid, pts, N, B, n_theta, preset, feats)
     tile = 2 * np.pi * R
-    mesh = _tube_polydata(S, TH, wall, normals, s_grid, pts, T, tile)
-    return TubeMesh(preset=preset, seed=int(seed), mesh=mesh, s_grid=s_grid, points=pts, T=T, N=N, B=B,
+    arrays = tube_arrays(S, TH, wall, normals, s_grid, pts, T, tile)
+    return TubeMesh(preset=preset, seed=int(seed), arrays=arrays, s_grid=s_grid, points=pts, T=T, N=N, B=B,
                     features=feats, texture_tile=tile)
 
 
@@ -503,11 +514,9 @@ def _wall_grid(s_grid, pts, N, B, n_theta: int, preset: dict, feats: WallFeature
     return S, TH, wall, np.concatenate([normals, normals[:, :1]], axis=1)
 
 
-def _tube_polydata(S, TH, wall, normals, s_grid, pts, T, tile: float):
+def tube_arrays(S, TH, wall, normals, s_grid, pts, T, tile: float) -> dict:
     """The wall grid as triangles, closed by a fan at each end, with normals, texture coordinates,
-    and the arc length ``s`` and angle ``theta`` of every point."""
-    import pyvista as pv  # VTK: imported where a mesh is built
-
+    and the arc length ``s`` and angle ``theta`` of every point (numpy arrays: see ``TubeMesh``)."""
     n_rings, n_cols = wall.shape[:2]
     idx = np.arange(n_rings * n_cols).reshape(n_rings, n_cols)
     a, b_, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
@@ -528,11 +537,21 @@ def _tube_polydata(S, TH, wall, normals, s_grid, pts, T, tile: float):
         fan = (np.stack([np.full_like(j0, centre), j0, j1], -1) if ring == 0
                else np.stack([np.full_like(j0, centre), j1, j0], -1))
         tris = np.concatenate([tris, fan])
+    return {"points": np.concatenate(verts).astype(np.float64), "triangles": tris.astype(np.int64),
+            "normals": np.concatenate(nrm).astype(np.float32), "tcoords": np.concatenate(tex).astype(np.float32),
+            "s": np.concatenate(s_arr).astype(np.float32), "theta": np.concatenate(th_arr).astype(np.float32)}
+
+
+def _polydata(arrays: dict):
+    """``tube_arrays``' mesh as a pyvista PolyData with point normals, texture coordinates, ``s`` and ``theta``."""
+    import pyvista as pv  # VTK: imported where a mesh is built
+
+    tris = arrays["triangles"]
     faces = np.hstack([np.full((len(tris), 1), 3), tris]).astype(np.int64).ravel()
-    mesh = pv.PolyData(np.concatenate(verts).astype(np.float64), faces)
-    mesh.point_data["Normals"] = np.concatenate(nrm).astype(np.float32)
+    mesh = pv.PolyData(arrays["points"], faces)
+    mesh.point_data["Normals"] = arrays["normals"]
     mesh.point_data.active_normals_name = "Normals"
-    mesh.active_texture_coordinates = np.concatenate(tex).astype(np.float32)
-    mesh.point_data["s"] = np.concatenate(s_arr).astype(np.float32)
-    mesh.point_data["theta"] = np.concatenate(th_arr).astype(np.float32)
+    mesh.active_texture_coordinates = arrays["tcoords"]
+    mesh.point_data["s"] = arrays["s"]
+    mesh.point_data["theta"] = arrays["theta"]
     return mesh

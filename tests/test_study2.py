@@ -62,7 +62,7 @@ def test_the_run_list_is_24_runs_with_each_arms_settings():
 def test_scene_of_is_the_scene_plans():
     m = mf.load_manifest("scenario_study_confirm")
     assert m["frames_per_scene"] == study2.FRAMES_PER_SCENE and m["splits"]["test"] == 20 * study2.N_SCENES
-    plan = synth._scene_plan(m, "test")
+    plan = synth.scene_plan(m, "test")
     assert len(plan) == study2.N_SCENES
     for scene in plan:
         assert {int(study2.scene_of(i)) for i, _ in scene["frames"]} == {scene["scene"]}
