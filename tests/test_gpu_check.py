@@ -165,3 +165,13 @@ def test_a_paper_run_cut_off_by_its_time_limit_is_recorded(tmp_path, monkeypatch
     assert status.startswith(("stopped at the time limit of", "not run: the data took the whole --full-timeout"))
     assert rep["paper_run"]["epochs"] == [] and rep["paper_test"]["status"].startswith("not run: ")
     assert status in (out / "gpu_check.md").read_text()
+
+
+def test_sdf_share_in_words_calls_a_faster_case4_step_noise():
+    from geodepth_lite.gpu_check import share_words
+
+    sh = {"case4_first_s": 0.100, "case2_first_s": 0.080, "share_first": 1 - 0.080 / 0.100}
+    assert share_words(sh, "first") == "20.0 % (100.0 ms a step)"
+    noisy = {"case4_first_s": 0.080, "case2_first_s": 0.100, "share_first": 1 - 0.100 / 0.080}
+    assert share_words(noisy, "first").startswith("below the timing noise")
+    assert "%" not in share_words(noisy, "first")
