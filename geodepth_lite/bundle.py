@@ -375,7 +375,8 @@ def _write_runs(zf: zipfile.ZipFile, infos: dict[str, zipfile.ZipInfo], index: d
                     raise ValueError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
             ckpt = next(t for t in files if t.name == checkpoint.CHECKPOINT_NAME)
             try:
-                checkpoint.read_checkpoint(temps[ckpt])  # loads safely, or is refused before it is in place
+                state = checkpoint.read_checkpoint(temps[ckpt])  # loads safely, or is refused before it is in place
+                checkpoint.check_fits(None, state["model"], temps[ckpt])  # and fits the network the notebooks build
             except ValueError as exc:
                 reason = str(exc).replace(str(temps[ckpt]), "").strip()
                 raise _refuse(path, f"its {files[ckpt]} is refused ({reason})") from None
