@@ -49,6 +49,8 @@ def add_arguments_train(parser: argparse.ArgumentParser) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    if args.device is not None:
+        utils.parse_device(args.device)  # a bad --device: one line, before any work
     cfg = config.make_config(args.profile, args.case, args.seed, epochs=args.epochs, batch_size=args.batch_size,
                              lr=args.lr, lr_schedule=args.lr_schedule, image_size=args.image_size,
                              border_weight=args.border_weight, input_pad=args.input_pad, augment=args.augment,

@@ -28,6 +28,24 @@ def seed_everything(seed: int) -> None:
         torch.cuda.manual_seed_all(seed)
 
 
+DEVICE_TYPES = ("cpu", "cuda", "mps")  # what a --device flag may name (cuda:N picks one GPU)
+
+
+def parse_device(device: str | torch.device, flag: str = "--device") -> torch.device:
+    """``device`` as a torch.device, or ValueError naming ``flag`` and what it accepts (one line,
+    instead of torch's RuntimeError listing every backend it knows)."""
+    if isinstance(device, torch.device):
+        return device
+    text = str(device)
+    try:
+        parsed = torch.device(text) if text == text.strip() else None
+    except (RuntimeError, ValueError):
+        parsed = None
+    if parsed is None or parsed.type not in DEVICE_TYPES:
+        raise ValueError(f"{flag} {text[:40]!r} is not a device: cpu, cuda or cuda:N (N a GPU's index)")
+    return parsed
+
+
 def worker_init(worker_id: int) -> None:
     """DataLoader ``worker_init_fn``: derive numpy/python seeds from torch's per-worker seed."""
     seed = torch.initial_seed() % 2**32
