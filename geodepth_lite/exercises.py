@@ -37,7 +37,7 @@ from geodepth_lite import utils
 
 NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
 EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks with a graded section
-GRADE_ID = re.compile(r"^ex(\d\d)-(\d+)-(answer|check)$")
+GRADE_ID = re.compile(r"ex(\d\d)-(\d+)-(answer|check)")  # whole ids only: fullmatch
 SOLUTION_MARKERS = ("### BEGIN SOLUTION", "### END SOLUTION")
 HIDDEN_MARKERS = ("### BEGIN HIDDEN TESTS", "### END HIDDEN TESTS")
 OPEN_LEVEL = re.compile(r"\(open,")  # the prompt's level marker of an open-ended exercise
@@ -75,7 +75,7 @@ def collect(nb: dict) -> dict[str, Exercise]:
     cells = nb["cells"]
     for i, cell in enumerate(cells):
         grade_id = cell.get("metadata", {}).get("nbgrader", {}).get("grade_id", "")
-        m = GRADE_ID.match(grade_id)
+        m = GRADE_ID.fullmatch(grade_id)
         if not m:
             continue
         ex = out.setdefault(f"{m.group(1)}-{m.group(2)}", Exercise(f"{m.group(1)}-{m.group(2)}"))
@@ -217,7 +217,7 @@ def read_notebook(path: Path, solutions: bool = True) -> dict:
         grading = meta.get("nbgrader", {})
         if not isinstance(grading, dict) or not isinstance(grading.get("grade_id", ""), str):
             raise ValueError(f"cannot read {path}: cell {i} has damaged nbgrader metadata")
-        if GRADE_ID.match(grading.get("grade_id", "")):
+        if GRADE_ID.fullmatch(str(grading.get("grade_id", ""))):
             try:
                 float(grading.get("points", 0))
             except (TypeError, ValueError):

@@ -120,7 +120,7 @@ def fsync_dir(path: str | os.PathLike) -> None:
 
 TEMP_PREFIX = ".geodepth-"  # every temporary file this project writes: .geodepth-<pid>-<name>.<random>.tmp
 TEMP_GLOB = TEMP_PREFIX + "*.tmp"  # the names atomic_path's temporary files match (for removing stale ones)
-_TEMP_NAME = re.compile(r"^\.geodepth-(\d+)-.*\.tmp$")
+_TEMP_NAME = re.compile(r"\.geodepth-(\d+)-.*\.tmp")  # whole names only: fullmatch
 NAME_PART_MAX = 120  # characters of the final name kept in a temporary file's name (file names hold 255 bytes)
 
 
@@ -146,7 +146,7 @@ def stale_temp(path: Path, locked: bool = False) -> bool:
     """Whether ``path`` is a temporary file of this project left by an interrupted writer: its name is
     ``.geodepth-<pid>-...tmp`` and its writer is gone (or, with ``locked`` -- the caller holds the
     folder's lock -- it is any process but this one). A file of any other name is never stale."""
-    m = _TEMP_NAME.match(path.name)
+    m = _TEMP_NAME.fullmatch(path.name)
     if not m:
         return False
     pid = int(m.group(1))
