@@ -167,7 +167,27 @@ def verify(root: str | Path) -> list[str]:
             continue
         if actual != digest:
             problems.append(f"changed: {rel}")
-    return problems
+    return problems + _record_problems(root, text, problems)
+
+
+def _record_problems(root: Path, text: str, problems: list[str]) -> list[str]:
+    """Each unchanged ``<split>/frames.jsonl`` read as ``train`` and ``evaluate`` read it
+    (``datasets.synthetic.read_frames``: every record's files inside the folder, regular, listed in
+    checksums.sha256); 'unreadable: <split>/frames.jsonl (why)' for the first record refused in a split."""
+    from geodepth_lite.datasets.synthetic import read_frames  # torch: only once the checksums are read
+
+    flagged = {p.partition(": ")[2].split(" ", 1)[0] for p in problems}
+    found = []
+    for line in text.splitlines():
+        rel = line.partition("  ")[2]
+        parts = Path(rel).parts
+        if len(parts) != 2 or parts[1] != "frames.jsonl" or rel in flagged or Path(rel).is_absolute():
+            continue
+        try:
+            read_frames(root, parts[0])
+        except (OSError, ValueError) as exc:
+            found.append(f"unreadable: {rel} ({' '.join(str(exc).split())[:300]})")
+    return found
 
 
 def _complete_splits(root: Path, splits) -> bool:
