@@ -173,15 +173,16 @@ def verify(root: str | Path) -> list[str]:
 def _record_problems(root: Path, text: str, problems: list[str]) -> list[str]:
     """Each unchanged ``<split>/frames.jsonl`` read as ``train`` and ``evaluate`` read it
     (``datasets.synthetic.read_frames``: every record's files inside the folder, regular, listed in
-    checksums.sha256); 'unreadable: <split>/frames.jsonl (why)' for the first record refused in a split."""
+    checksums.sha256); 'unreadable: <split>/frames.jsonl (why)' for the first record refused in a split.
+    A split with a problem already (a missing or changed file) is left to those lines."""
     from geodepth_lite.datasets.synthetic import read_frames  # torch: only once the checksums are read
 
-    flagged = {p.partition(": ")[2].split(" ", 1)[0] for p in problems}
+    flagged = {Path(p.partition(": ")[2].split(" ", 1)[0]).parts[0] for p in problems if ": " in p}
     found = []
     for line in text.splitlines():
         rel = line.partition("  ")[2]
         parts = Path(rel).parts
-        if len(parts) != 2 or parts[1] != "frames.jsonl" or rel in flagged or Path(rel).is_absolute():
+        if len(parts) != 2 or parts[1] != "frames.jsonl" or parts[0] in flagged or Path(rel).is_absolute():
             continue
         try:
             read_frames(root, parts[0])
