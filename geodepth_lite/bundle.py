@@ -109,8 +109,8 @@ MEMBER_MAX = {checkpoint.CHECKPOINT_NAME: 2**30, checkpoint.LOG_JSON: 64 * 2**20
 MEMBERS_MAX = 10_000  # members in one bundle
 RATIO_MAX = 200  # unpacked / packed size of a member over RATIO_FROM bytes (a zip bomb packs ~1000x)
 RATIO_FROM = 2**20
-RUN_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+=-]{0,99}$")  # a run folder's name: case4_seed0-<hash>, 100 at most
-MANIFEST_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,99}\.json$")
+RUN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+=-]{0,99}")  # a run folder's name: case4_seed0-<hash>, 100 at most
+MANIFEST_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,99}\.json")  # names: fullmatch
 CHUNK = 2**20
 SUPPORTED = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
 
@@ -201,11 +201,11 @@ def _member_target(name: str, path: Path) -> tuple[str, ...]:
     if not ok or any(p in ("", ".", "..") or "\\" in p for p in parts) or PurePosixPath(name).as_posix() != name:
         raise ValueError(f"{path}: refused member {name!r} (a bundle holds checkpoints/<run>/<file> and "
                          "manifests/<file> only)")
-    if parts[0] == "checkpoints" and not RUN_NAME.match(parts[1]):
+    if parts[0] == "checkpoints" and not RUN_NAME.fullmatch(parts[1]):
         raise _refuse(path, f"member {name!r}: run name {parts[1][:40]!r}{'...' if len(parts[1]) > 40 else ''} "
                             f"({len(parts[1])} characters) is not a run folder's name (letters, digits, ._+=-, "
                             "100 characters at most)")
-    if parts[0] == "manifests" and not MANIFEST_NAME.match(parts[1]):
+    if parts[0] == "manifests" and not MANIFEST_NAME.fullmatch(parts[1]):
         raise _refuse(path, f"member {name!r} is not a manifest's name (<name>.json, letters, digits, _ and -)")
     return parts
 
@@ -375,7 +375,8 @@ def _write_runs(zf: zipfile.ZipFile, infos: dict[str, zipfile.ZipInfo], index: d
                     raise ValueError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
             ckpt = next(t for t in files if t.name == checkpoint.CHECKPOINT_NAME)
             try:
-                checkpoint.read_checkpoint(temps[ckpt])  # loads safely, or is refused before it is in place
+                state = checkpoint.read_checkpoint(temps[ckpt])  # loads safely, or is refused before it is in place
+                checkpoint.check_fits(None, state["model"], temps[ckpt])  # and fits the network the notebooks build
             except ValueError as exc:
                 reason = str(exc).replace(str(temps[ckpt]), "").strip()
                 raise _refuse(path, f"its {files[ckpt]} is refused ({reason})") from None

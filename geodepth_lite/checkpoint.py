@@ -9,15 +9,22 @@ Every read uses ``torch.load(weights_only=True)``: a checkpoint is data, never c
 
 from __future__ import annotations
 
+import _compat_pickle
 import contextlib
 import csv
+import filecmp
+import functools
 import io
 import json
 import multiprocessing
 import os
+import pickletools
 import random
 import re
+import struct
 import warnings
+import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -81,29 +88,209 @@ class OldCheckpoint(ValueError):
     """A checkpoint of the first format (numpy objects inside): loadable only through ``convert``."""
 
 
-def _load_safely(path: Path) -> Any:
+# --------------------------------------------------------------------------- bounds of a read
+# A checkpoint is read only after its zip's central directory (declared sizes, compression) and its
+# pickle (the globals it names) have been checked against what a checkpoint of the network can hold,
+# and its tensors are used only after each is checked to view no more bytes than its storage holds.
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What one checkpoint may hold, in bytes: ``record``, one tensor's storage; ``total``, all of them."""
+
+    record: int
+    total: int
+
+
+PICKLE_MAX_BYTES = 16 * 2**20  # data.pkl: every entry besides the tensors' data (a training run's: ~50 KB)
+RECORD_SLACK_BYTES = 2**20  # a record besides the weights (the random states: a few KB each)
+TOTAL_SLACK_BYTES = 16 * 2**20
+# a network given to train.fit in place of DepthNet: its size is not known before it is built
+ANY_NETWORK = Limits(record=4 * 2**30, total=16 * 2**30)
+SAFE_GLOBALS = frozenset({  # what torch.save writes for a checkpoint of tensors, dicts, lists and numbers
+    "collections.OrderedDict", "torch._utils._rebuild_tensor_v2", "torch._utils._rebuild_parameter",
+    "torch.Size", "torch.device", "builtins.set", "builtins.complex", "_codecs.encode"})
+
+
+@functools.lru_cache(maxsize=None)
+def network_sizes() -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """(shape, dtype) of every tensor of DepthNet's state dict, built on the meta device (no memory)."""
+    with torch.device("meta"):
+        state = DepthNet().state_dict()
+    return {k: (tuple(v.shape), v.dtype) for k, v in state.items()}
+
+
+def network_limits() -> Limits:
+    """The bounds of a DepthNet checkpoint: one record, the largest weight tensor; all of them, the
+    weights three times (the model and Adam's two moments), plus slack for the random states."""
+    sizes = [int(np.prod(shape, dtype=np.int64)) * dt.itemsize for shape, dt in network_sizes().values()]
+    return Limits(record=max(max(sizes), RECORD_SLACK_BYTES), total=3 * sum(sizes) + TOTAL_SLACK_BYTES)
+
+
+def _refused(path: Path, reason: str) -> ValueError:
+    return ValueError(f"checkpoint {path} is refused: {reason}; nothing in it was read")
+
+
+def _checked_records(path: Path, zf: zipfile.ZipFile, limits: Limits) -> zipfile.ZipInfo | None:
+    """Every record's declared size and packing against ``limits``; returns the pickle's entry (or None)."""
+    total, pickle_info = 0, None
+    with open(path, "rb") as f:
+        for info in zf.infolist():
+            f.seek(info.header_offset)
+            local = f.read(30)
+            method = struct.unpack("<H", local[8:10])[0] if len(local) == 30 and local[:4] == b"PK\3\4" else -1
+            if info.compress_type != zipfile.ZIP_STORED or method != 0 or info.file_size != info.compress_size:
+                raise _refused(path, f"its record {info.filename[:80]} is compressed ({info.file_size} bytes "
+                                     f"declared, {info.compress_size} stored); torch.save never compresses a record")
+            is_pickle = info.filename.rpartition("/")[2] == "data.pkl"
+            cap = PICKLE_MAX_BYTES if is_pickle else limits.record
+            if info.file_size > cap:
+                what = "the entries besides the tensors" if is_pickle else "the largest tensor of the network"
+                raise _refused(path, f"its record {info.filename[:80]} declares {info.file_size} bytes, over the "
+                                     f"{cap} bytes of {what}")
+            total += info.file_size
+            if is_pickle:
+                pickle_info = pickle_info or info
+    if total > limits.total + PICKLE_MAX_BYTES:
+        raise _refused(path, f"its records declare {total} bytes, over the {limits.total} bytes a checkpoint of "
+                             "the network holds (its weights and the optimizer's two moments)")
+    return pickle_info
+
+
+def _pickle_globals(data: bytes) -> list[str]:
+    """Every global a pickle names (module.name), read opcode by opcode: nothing is built."""
+    names: list[str] = []
+    strings: list[str] = []
+    for op, arg, _ in pickletools.genops(data):
+        if op.name in ("GLOBAL", "INST"):  # protocol 2 names Python 2's modules, which pickle maps
+            module, _, name = str(arg).partition(" ")
+            module, name = _compat_pickle.NAME_MAPPING.get((module, name), (module, name))
+            names.append(f"{_compat_pickle.IMPORT_MAPPING.get(module, module)}.{name}")
+        elif op.name == "STACK_GLOBAL":
+            names.append(".".join(strings[-2:]) if len(strings) >= 2 else "a global named on the stack")
+        elif isinstance(arg, str) and op.name.endswith("UNICODE"):
+            strings = [*strings[-1:], arg[:100]]
+        if op.name == "STOP":
+            break
+    return names
+
+
+def _safe_global(name: str) -> bool:
+    if name in SAFE_GLOBALS:
+        return True
+    module, _, attr = name.rpartition(".")
+    return module == "torch" and (re.fullmatch(r"[A-Za-z0-9]*Storage", attr) is not None
+                                  or isinstance(getattr(torch, attr, None), torch.dtype))
+
+
+def check_archive(path: Path, limits: Limits) -> list[str]:
+    """Check ``path`` before torch reads any record of it: a zip file (torch.save's format) whose records
+    are stored uncompressed within ``limits``; returns the globals its pickle names that
+    ``SAFE_GLOBALS`` does not hold. ValueError naming the file otherwise."""
+    size = path.stat().st_size
+    if size > limits.total + 2 * PICKLE_MAX_BYTES:
+        raise _refused(path, f"it is {size} bytes, over the {limits.total} bytes a checkpoint of the network holds")
+    try:
+        zf = zipfile.ZipFile(path)
+    except zipfile.BadZipFile:
+        zf = None
+    except (ValueError, EOFError, NotImplementedError, RuntimeError, struct.error):
+        raise ValueError(f"checkpoint {path} is unreadable: a damaged checkpoint (its zip archive is broken or "
+                         "cut short)") from None
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot read {path}: {utils.os_reason(exc)}", path) from exc
+    if zf is None:  # a plain pickle, or torch's legacy format (which allocates what its header declares)
+        names = []
+        with contextlib.suppress(Exception):
+            names = [n for n in _pickle_globals(path.read_bytes()) if not _safe_global(n)]
+        if names:
+            raise _unsafe(path, names)
+        raise ValueError(f"checkpoint {path} is unreadable: not a checkpoint written by torch.save (not its zip "
+                         "format: a damaged file, another kind of file, or torch's legacy format)")
+    with zf:
+        try:
+            info = _checked_records(path, zf, limits)
+            data = zf.read(info) if info is not None else None
+        except (zipfile.BadZipFile, ValueError, EOFError, OSError, struct.error, NotImplementedError) as exc:
+            if isinstance(exc, ValueError) and "is refused" in str(exc):
+                raise
+            raise ValueError(f"checkpoint {path} is unreadable: a damaged checkpoint (its zip archive is broken "
+                             "or cut short)") from None
+    if data is None:
+        return []  # no pickle: torch names what is missing
+    try:
+        return [n for n in _pickle_globals(data) if not _safe_global(n)]
+    except Exception:  # noqa: BLE001 - a pickle that cannot be parsed cannot be loaded either
+        raise ValueError(f"checkpoint {path} is unreadable: a damaged checkpoint (its pickle cannot be "
+                         "parsed)") from None
+
+
+def _unsafe(path: Path, names: list[str]) -> ValueError:
+    return ValueError(f"checkpoint {path} is refused: it holds more than tensors and plain values, which could "
+                      f"run code or take any amount of memory when loaded ({names[0][:100]}); nothing in it was run")
+
+
+def tensor_problem(obj: Any, limits: Limits) -> str | None:
+    """Why the tensors in ``obj`` cannot be used, or None: each must be a dense CPU tensor viewing no more
+    bytes than its storage holds (no expanded or overlapping view larger than its data), and all of them
+    together within ``limits.total``. Only shapes are read: nothing is allocated."""
+    seen: set[int] = set()
+    todo, total = [obj], 0
+    while todo:
+        item = todo.pop()
+        if id(item) in seen:
+            continue
+        seen.add(id(item))
+        if isinstance(item, dict):
+            todo += list(item.keys()) + list(item.values())
+        elif isinstance(item, (list, tuple, set, frozenset)):
+            todo += list(item)
+        elif isinstance(item, torch.Tensor):
+            if item.layout != torch.strided or item.device.type != "cpu" or item.is_quantized:
+                return f"a {item.layout} tensor on {item.device} (a checkpoint holds dense CPU tensors)"
+            need = item.numel() * item.element_size()
+            held = item.untyped_storage().nbytes()
+            if need > held:
+                return (f"a tensor of shape {tuple(item.shape)} and strides {tuple(item.stride())} ({need} bytes) "
+                        f"that views {held} bytes of data (an expanded or overlapping view)")
+            total += need
+            if total > limits.total:
+                return f"tensors of over {limits.total} bytes together (views of the same data counted each time)"
+    return None
+
+
+def _load_safely(path: Path, limits: Limits | None = None) -> Any:
     """``torch.load`` with ``weights_only=True``: tensors and plain types only, no code can run.
 
     A file that needs anything else is refused, naming the file. A checkpoint of the first
     format (its numpy RNG state pickled as numpy objects) is told apart, so the message can
-    point at the one-time conversion instead.
+    point at the one-time conversion instead. Nothing is read before :func:`check_archive`
+    passed, and no tensor is returned before :func:`tensor_problem` passed (``limits``:
+    DepthNet's, ``network_limits()``, unless given).
     """
+    limits = limits or network_limits()
+    try:
+        unsafe = check_archive(path, limits)
+    except PermissionError as exc:
+        raise utils.FileProblem(f"cannot read {path}: {utils.os_reason(exc)}", path) from exc
+    if unsafe and set(unsafe) <= set(NUMPY_ARRAY_GLOBALS):
+        problem = _old_format_problem(path, limits)
+        if problem:
+            raise ValueError(f"checkpoint {path} is refused: {problem}; nothing in it was run") from None
+        raise OldCheckpoint(
+            f"checkpoint {path} has the first checkpoint format (numpy objects inside), which this "
+            f"version does not unpickle; if you trust where it came from, convert it once with "
+            f"`python -m geodepth_lite convert-checkpoint {path}`") from None
+    if unsafe:
+        raise _unsafe(path, unsafe)
     try:
         with warnings.catch_warnings():  # torch warns about pickle protocols it reads all the same
             warnings.simplefilter("ignore", UserWarning)
-            return torch.load(path, map_location="cpu", weights_only=True)
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except PermissionError as exc:
         raise utils.FileProblem(f"cannot read {path}: {utils.os_reason(exc)}", path) from exc
     except Exception as exc:  # noqa: BLE001 - any unpickling failure is a bad or unsafe file
         text = str(exc)
-        if "numpy" in text and "weights_only" in text and _only_numpy_arrays(path):
-            problem = _old_format_problem(path)
-            if problem:
-                raise ValueError(f"checkpoint {path} is refused: {problem}; nothing in it was run") from None
-            raise OldCheckpoint(
-                f"checkpoint {path} has the first checkpoint format (numpy objects inside), which this "
-                f"version does not unpickle; if you trust where it came from, convert it once with "
-                f"`python -m geodepth_lite convert-checkpoint {path}`") from None
         if "weights_only" in text.lower() or "unsupported" in text.lower():
             what = next((ln.strip().rstrip(".") for ln in text.splitlines()
                          if "unsupported" in ln.lower() and "weights_only" not in ln), "")
@@ -111,21 +298,16 @@ def _load_safely(path: Path) -> Any:
                              f"which could run code when loaded ({what or 'an unsupported object'}); "
                              f"nothing in it was run") from None
         raise ValueError(f"checkpoint {path} is unreadable: {_unreadable_reason(exc)}") from None
+    problem = tensor_problem(ckpt, limits)
+    if problem:
+        raise ValueError(f"checkpoint {path} is refused: it holds {problem}")
+    return ckpt
 
 
 # what the first checkpoint format pickled besides tensors: numpy's RNG keys (an ndarray); read
 # only through the stand-ins of read_old_checkpoint, never numpy's own reconstruction
 NUMPY_ARRAY_GLOBALS = ("numpy._core.multiarray._reconstruct", "numpy.core.multiarray._reconstruct",
                        "numpy.ndarray", "numpy.dtype")
-
-
-def _only_numpy_arrays(path: Path) -> bool:
-    """Whether every global the pickle names is one that only rebuilds a numpy array."""
-    try:
-        names = torch.serialization.get_unsafe_globals_in_checkpoint(path)
-    except Exception:  # noqa: BLE001 - not a zip checkpoint: not the first format either
-        return False
-    return bool(names) and set(names) <= set(NUMPY_ARRAY_GLOBALS)
 
 
 def convert_checkpoint(path: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
@@ -153,18 +335,27 @@ def convert_checkpoint(path: str | os.PathLike, out: str | os.PathLike | None = 
     data = read_old_checkpoint(path)
     keep = path.with_name(path.name + OLD_SUFFIX)
     if out is None:
-        if keep.exists():
-            raise utils.FileProblem(f"cannot convert {path}: {keep}, where the original would be kept, exists "
-                                    "already and is left as it is (move it away, or pass --out)", keep)
-        try:
-            os.link(path, keep)  # the original, kept whole under its new name before anything is written
-        except FileExistsError as exc:
-            raise utils.FileProblem(f"cannot convert {path}: {keep} exists already", keep) from exc
-        except OSError:
-            utils.write_bytes_atomic(keep, path.read_bytes())
+        if not _kept_already(path, keep):
+            try:
+                os.link(path, keep)  # the original, kept whole under its new name before anything is written
+            except FileExistsError as exc:
+                raise utils.FileProblem(f"cannot convert {path}: {keep} exists already", keep) from exc
+            except OSError:
+                utils.write_bytes_atomic(keep, path.read_bytes())
         target = path
     utils.write_bytes_atomic(target, data)
     return target
+
+
+def _kept_already(path: Path, keep: Path) -> bool:
+    """Whether ``keep`` holds the original of ``path`` already, byte for byte (what a conversion that failed
+    after keeping it left); a different file there is refused, naming it; no file there: False."""
+    if not os.path.lexists(keep):
+        return False
+    if keep.is_file() and not keep.is_symlink() and filecmp.cmp(path, keep, shallow=False):
+        return True
+    raise utils.FileProblem(f"cannot convert {path}: {keep}, where the original would be kept, exists already "
+                            "and differs from it, so it is left as it is (move it away, or pass --out)", keep)
 
 
 OLD_SUFFIX = ".first-format"  # the original of a checkpoint converted without --out, kept beside it
@@ -276,14 +467,22 @@ def _old_plain(obj: Any, budget: list, depth: int = 0) -> Any:
     return obj
 
 
-def _read_old_in_child(path: Path) -> bytes:
-    """Read a first-format checkpoint, check it, and return it in the current format (bytes of torch.save)."""
+def _read_old_in_child(path: Path, limits: Limits | None = None) -> bytes:
+    """Read a first-format checkpoint, check it, and return it in the current format (bytes of torch.save),
+    at most ``limits.total`` plus ``PICKLE_MAX_BYTES``."""
+    limits = limits or network_limits()
+    unsafe = check_archive(path, limits)
+    if not set(unsafe) <= set(NUMPY_ARRAY_GLOBALS):
+        raise ValueError(f"it holds {unsafe[0][:100]}, which is neither a tensor, a plain value nor a numpy array")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         with torch.serialization.safe_globals(_OLD_STAND_INS):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
         raise ValueError("it lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
+    problem = tensor_problem(ckpt, limits)
+    if problem:
+        raise ValueError(f"it holds {problem}")
     ckpt = _old_plain(ckpt, [OLD_ARRAYS_MAX_BYTES])
     rng = ckpt.get("rng")
     if isinstance(rng, dict):
@@ -299,6 +498,9 @@ def _read_old_in_child(path: Path) -> bytes:
     ckpt["format"] = FORMAT
     buf = io.BytesIO()
     torch.save(ckpt, buf)
+    if buf.tell() > limits.total + PICKLE_MAX_BYTES:
+        raise ValueError(f"its conversion takes {buf.tell()} bytes, over the {limits.total + PICKLE_MAX_BYTES} "
+                         "bytes a checkpoint of the network holds")
     return buf.getvalue()
 
 
@@ -310,7 +512,9 @@ def _address_space() -> int:
         return 0
 
 
-def _old_child(path: Path, conn) -> None:
+def _old_child(path: Path, conn, limits: Limits, parent_end=None) -> None:
+    if parent_end is not None:
+        parent_end.close()  # this process's copy of the reading end: the parent alone reads, or nobody does
     try:
         limit = _address_space() + OLD_READ_MEMORY_BYTES
         if resource is not None:
@@ -318,7 +522,9 @@ def _old_child(path: Path, conn) -> None:
     except (ValueError, OSError):
         pass
     try:
-        conn.send(("ok", _read_old_in_child(path)))
+        data = _read_old_in_child(path, limits)
+        conn.send(("ok", len(data)))
+        conn.send_bytes(data)  # read by the parent with a bound on its length
     except MemoryError:
         conn.send(("error", f"reading it needs more than {OLD_READ_MEMORY_BYTES // 2**30} GiB of memory"))
     except BaseException as exc:  # noqa: BLE001 - every failure is reported as one line
@@ -330,27 +536,38 @@ def _old_child(path: Path, conn) -> None:
         conn.close()
 
 
-def read_old_checkpoint(path: str | os.PathLike) -> bytes:
+def read_old_checkpoint(path: str | os.PathLike, limits: Limits | None = None) -> bytes:
     """A first-format checkpoint in the current format (the bytes to write), or ValueError naming
-    the file and what is wrong. Read in a child process with bounded memory, so a hostile file can
-    neither crash nor exhaust the caller."""
+    the file and what is wrong. Its archive is checked first (``check_archive``), then it is read in
+    a child process with bounded memory, so a hostile file can neither crash nor exhaust the caller;
+    the converted bytes are received only up to ``limits.total`` plus ``PICKLE_MAX_BYTES``."""
     path = Path(path)
+    limits = limits or network_limits()
     if "fork" not in multiprocessing.get_all_start_methods():  # Windows: in this process (stand-ins only)
         try:
-            return _read_old_in_child(path)
+            return _read_old_in_child(path, limits)
         except Exception as exc:  # noqa: BLE001 - every failure is reported as one line
             raise ValueError(f"checkpoint {path} cannot be converted: {' '.join(str(exc).split())[:300]}") from None
+    check_archive(path, limits)  # declared sizes and compression, before the child reads a record
     ctx = multiprocessing.get_context("fork")
     recv, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_old_child, args=(path, send), daemon=True)
+    child = ctx.Process(target=_old_child, args=(path, send, limits, recv), daemon=True)
     child.start()
     send.close()
+    cap = limits.total + PICKLE_MAX_BYTES
     try:
         status, value = recv.recv()
+        if status == "ok":
+            try:
+                value = recv.recv_bytes(cap)  # OSError past the cap: nothing more is read
+            except OSError:
+                status, value = "error", f"its conversion is over {cap} bytes, more than the network's checkpoint holds"
     except (EOFError, OSError):
         status, value = "error", None
     finally:
         recv.close()
+        if status != "ok" and child.is_alive():
+            child.kill()
         child.join()
     if status == "ok":
         try:
@@ -373,10 +590,10 @@ def _check_bytes_load(data: bytes) -> None:
         raise ValueError("no 'model'/'cfg' entries")
 
 
-def _old_format_problem(path: Path) -> str | None:
+def _old_format_problem(path: Path, limits: Limits | None = None) -> str | None:
     """None when :func:`read_old_checkpoint` would convert ``path``; else what is wrong with it."""
     try:
-        read_old_checkpoint(path)
+        read_old_checkpoint(path, limits)
     except ValueError as exc:
         return str(exc).partition(": ")[2] or str(exc)
     return None
@@ -417,16 +634,18 @@ def _plain(obj: Any) -> Any:
 RESUME_KEYS = ("optimizer", "scaler", "schedule", "epoch", "rng", "history")
 
 
-def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False) -> dict:
-    """A checkpoint dict; a clear error for a missing, unreadable, foreign or unsafe file.
+def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False, limits: Limits | None = None) -> dict:
+    """A checkpoint dict; a clear error for a missing, unreadable, foreign, unsafe or oversized file.
 
-    The file is loaded with ``weights_only=True``: a crafted checkpoint cannot run code.
+    The file is loaded with ``weights_only=True``: a crafted checkpoint cannot run code. Its declared
+    sizes are checked against ``limits`` (DepthNet's, ``network_limits()``, unless given) before a
+    record is read, and its tensors against their storage before any is used (``_load_safely``).
     for_resume: also require what continuing a run needs (``RESUME_KEYS``).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    ckpt = _load_safely(path)
+    ckpt = _load_safely(path, limits)
     if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
         raise ValueError(f"checkpoint {path} lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
     if not isinstance(ckpt["model"], dict) or not isinstance(ckpt["cfg"], dict):
@@ -541,10 +760,18 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
 def load_weights(model: torch.nn.Module, state: dict, path: str | os.PathLike) -> None:
     """``model.load_state_dict(state)``, with an error naming ``path`` and the first missing,
     unexpected or misshapen tensor instead of torch's multi-line report."""
-    own = model.state_dict()
+    check_fits({k: tuple(v.shape) for k, v in model.state_dict().items()}, state, path)
+    model.load_state_dict(state)
+
+
+def check_fits(own: dict[str, tuple[int, ...]] | None, state: dict, path: str | os.PathLike) -> None:
+    """ValueError naming ``path`` and the first missing, unexpected or misshapen tensor when ``state``
+    does not fit a network whose tensors have the shapes ``own`` (None: DepthNet's, ``network_sizes()``)."""
+    if own is None:
+        own = {k: shape for k, (shape, _) in network_sizes().items()}
     missing = [k for k in own if k not in state]
     unexpected = [k for k in state if k not in own]
-    shapes = [k for k in own if k in state and getattr(state[k], "shape", None) != own[k].shape]
+    shapes = [k for k in own if k in state and tuple(getattr(state[k], "shape", (None,))) != tuple(own[k])]
     problems = []
     if missing:
         problems.append(f"{len(missing)} missing tensor(s), first {missing[0]}")
@@ -553,10 +780,9 @@ def load_weights(model: torch.nn.Module, state: dict, path: str | os.PathLike) -
     if shapes:
         k = shapes[0]
         problems.append(f"{len(shapes)} tensor(s) of another shape, first {k} "
-                        f"({tuple(getattr(state[k], 'shape', ()))} instead of {tuple(own[k].shape)})")
+                        f"({tuple(getattr(state[k], 'shape', ()))} instead of {tuple(own[k])})")
     if problems:
         raise ValueError(f"checkpoint {path} does not fit this network: {'; '.join(problems)}")
-    model.load_state_dict(state)
 
 
 # --------------------------------------------------------------------------- command line

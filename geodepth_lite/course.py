@@ -37,7 +37,7 @@ from geodepth_lite import exercises, utils
 COURSE_ID = "geodepth"
 TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the machine that executed notebooks/
 TIMEOUT_MIN_S = 120  # a notebook without execution records (or only fast cells) still gets two minutes a cell
-STUDENT_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$")
+STUDENT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # whole names only: fullmatch
 CONFIG = "nbgrader_config.py"
 GRADE_COLUMNS = ["student", "assignment", "points", "max_points", "needs_manual_grading", "pending_max_points"]
 
@@ -129,7 +129,7 @@ def init(out: Path, notebooks: list[Path] | None = None, course_id: str = COURSE
     notebooks = exercises.notebook_paths() if notebooks is None else [Path(p) for p in notebooks]
     if not notebooks:
         raise FileNotFoundError(f"no notebook with exercises under {exercises.NOTEBOOK_DIR}")
-    if not re.match(r"^[A-Za-z0-9_-]{1,64}$", course_id):
+    if not isinstance(course_id, str) or not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", course_id):
         raise ValueError(f"course id must be 1-64 letters, digits, '_' or '-', got {course_id!r}")
     names = [assignment_name(nb) for nb in notebooks]
     if len(set(names)) != len(names):
@@ -290,9 +290,9 @@ def _returned_notebooks(subs: Path, course: Path, names: list[str]) -> tuple[lis
         if student_dir.is_symlink() or not student_dir.is_dir():
             raise utils.FileProblem(f"cannot collect {student_dir}: expected a folder named after a student "
                                     "(a link or a file is refused)", student_dir)
-        if not STUDENT_ID.match(student_dir.name):
-            raise utils.FileProblem(f"cannot collect {student_dir}: a student folder is named by 1-64 letters, "
-                                    "digits, '_' or '-'", student_dir)
+        if not STUDENT_ID.fullmatch(student_dir.name):  # the name quoted: it may hold a newline
+            raise utils.FileProblem(f"cannot collect {str(student_dir)!r}: a student folder is named by 1-64 "
+                                    "letters, digits, '_' or '-'", student_dir)
         for path in _files_under(student_dir):
             if path.is_symlink() or root not in path.resolve().parents:
                 raise utils.FileProblem(f"cannot collect {path}: a link, or a file outside {subs}", path)
@@ -388,6 +388,7 @@ def grade_rows(course: Path) -> list[dict]:
     """One row per student and assignment from the gradebook: points (auto and hand grades so far), max
     points, how many answers still need a hand grade and the points they are worth."""
     # nbgrader's gradebook (SQLAlchemy): heavy, needed by this command only
+    import sqlalchemy.exc
     from nbgrader.api import Gradebook, MissingEntry
 
     course = Path(course)
@@ -395,13 +396,39 @@ def grade_rows(course: Path) -> list[dict]:
     if not db.is_file():
         raise utils.FileProblem(f"cannot read the grades of {course}: no gradebook.db; run `course release` and "
                                 "`course autograde` first", course)
+    _check_gradebook(db)
+    try:
+        return _rows(Gradebook, MissingEntry, db)
+    except sqlalchemy.exc.SQLAlchemyError as exc:  # a damaged database, or not nbgrader's
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise utils.FileProblem(f"cannot read the grades from {db}: not nbgrader's gradebook ({first[:160]})",
+                                db) from None
+
+
+SQLITE_HEADER = b"SQLite format 3\x00"  # the first 16 bytes of every SQLite database file
+
+
+def _check_gradebook(db: Path) -> None:
+    """A FileProblem naming ``db`` unless it begins as an SQLite database does (nbgrader's gradebook is one)."""
+    try:
+        with open(db, "rb") as f:
+            head = f.read(len(SQLITE_HEADER))
+    except OSError as exc:
+        raise utils.FileProblem(f"cannot read {db}: {utils.os_reason(exc)}", db) from exc
+    if head != SQLITE_HEADER:
+        raise utils.FileProblem(f"cannot read the grades from {db}: not an SQLite database (nbgrader's gradebook); "
+                                "it is left as it is", db)
+
+
+def _rows(gradebook_class, missing_entry, db: Path) -> list[dict]:
+    """The rows of ``grade_rows`` (nbgrader's classes passed in: imported only by that command)."""
     rows = []
-    with Gradebook(f"sqlite:///{db.resolve()}") as gb:
+    with gradebook_class(f"sqlite:///{db.resolve()}") as gb:
         for assignment in sorted(gb.assignments, key=lambda a: a.name):
             for student in sorted(gb.students, key=lambda s: s.id):
                 try:
                     sub = gb.find_submission(assignment.name, student.id)
-                except MissingEntry:
+                except missing_entry:
                     continue
                 pending = [g for nb in sub.notebooks for g in nb.grades if g.needs_manual_grade]
                 rows.append({"student": student.id, "assignment": assignment.name, "points": round(sub.score, 4),

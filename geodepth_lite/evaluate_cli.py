@@ -76,6 +76,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     second evaluation into it is refused, naming this one's PID) before the model is loaded; a run
     that fails leaves no folder it created behind, and never part of a result set
     (``tables.write_results``)."""
+    if args.device is not None:
+        utils.parse_device(args.device)  # a bad --device: one line, before any work
     public = args.dataset in datasets.REGISTRY
     kw = {k: getattr(args, k) for k in ("group", "organ", "limit") if getattr(args, k) is not None}
     if kw and not public:

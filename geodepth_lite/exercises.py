@@ -37,7 +37,7 @@ from geodepth_lite import utils
 
 NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
 EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks with a graded section
-GRADE_ID = re.compile(r"^ex(\d\d)-(\d+)-(answer|check)$")
+GRADE_ID = re.compile(r"ex(\d\d)-(\d+)-(answer|check)")  # whole ids only: fullmatch
 SOLUTION_MARKERS = ("### BEGIN SOLUTION", "### END SOLUTION")
 HIDDEN_MARKERS = ("### BEGIN HIDDEN TESTS", "### END HIDDEN TESTS")
 OPEN_LEVEL = re.compile(r"\(open,")  # the prompt's level marker of an open-ended exercise
@@ -75,7 +75,7 @@ def collect(nb: dict) -> dict[str, Exercise]:
     cells = nb["cells"]
     for i, cell in enumerate(cells):
         grade_id = cell.get("metadata", {}).get("nbgrader", {}).get("grade_id", "")
-        m = GRADE_ID.match(grade_id)
+        m = GRADE_ID.fullmatch(grade_id)
         if not m:
             continue
         ex = out.setdefault(f"{m.group(1)}-{m.group(2)}", Exercise(f"{m.group(1)}-{m.group(2)}"))
@@ -217,7 +217,7 @@ def read_notebook(path: Path, solutions: bool = True) -> dict:
         grading = meta.get("nbgrader", {})
         if not isinstance(grading, dict) or not isinstance(grading.get("grade_id", ""), str):
             raise ValueError(f"cannot read {path}: cell {i} has damaged nbgrader metadata")
-        if GRADE_ID.match(grading.get("grade_id", "")):
+        if GRADE_ID.fullmatch(str(grading.get("grade_id", ""))):
             try:
                 float(grading.get("points", 0))
             except (TypeError, ValueError):
@@ -253,10 +253,20 @@ def git_tracked(folder: Path) -> list[str] | None:
     return [n for n in listed.stdout.split("\0") if n]
 
 
+def checkout_around(folder: Path) -> Path | None:
+    """The nearest folder holding ``folder`` (itself included) that looks like a git checkout (it holds a
+    ``.git`` folder or file), found without git; None when there is none."""
+    for candidate in (folder.resolve(), *folder.resolve().parents):
+        if os.path.lexists(candidate / ".git"):
+            return candidate
+    return None
+
+
 def check_release_folder(out: Path, force: bool = False) -> None:
     """Refuse a folder the release must not write into, before anything is made: the notebooks folder
-    (or one inside it, or one holding it), a folder holding files git tracks, and, without ``force``,
-    any folder that is not empty (the student may have edited a notebook there)."""
+    (or one inside it, or one holding it), a folder holding files git tracks (any folder inside a
+    checkout when git cannot list them), and, without ``force``, any folder that is not empty (the
+    student may have edited a notebook there)."""
     out = Path(out)
     target = out.resolve()
     notebooks = NOTEBOOK_DIR.resolve()
@@ -267,6 +277,11 @@ def check_release_folder(out: Path, force: bool = False) -> None:
     if os.path.lexists(out) and not out.is_dir():
         raise utils.FileProblem(f"cannot write the student release into {out}: a file of that name exists", out)
     tracked = git_tracked(out) if out.exists() else None
+    top = checkout_around(out) if out.exists() and tracked is None else None
+    if top is not None:  # git cannot say which files are tracked there: nothing is written inside a checkout
+        raise utils.FileProblem(f"cannot write the student release into {out}: it lies in the checkout {top} "
+                                "(which holds .git), and git could not list the files it tracks there (git not "
+                                "on PATH, or refusing that checkout); choose a folder outside it", out)
     if tracked:
         raise utils.FileProblem(f"cannot write the student release into {out}: it holds {len(tracked)} file(s) "
                                 f"of the checkout tracked by git (first {tracked[0]}); choose another --out "

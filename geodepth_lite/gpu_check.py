@@ -365,7 +365,7 @@ def run_gpu_check(args: argparse.Namespace) -> int:
     for name in ("epochs", "frames", "repeats", "step_timeout", "full_timeout", "many_timeout", "many_frames"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    dev = torch.device(args.device)
+    dev = utils.parse_device(args.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError("gpu-check --device cuda: no CUDA device is available (a dry run: --device cpu --tiny)")
     out = Path(args.out)

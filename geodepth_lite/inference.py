@@ -13,6 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from geodepth_lite import utils
 from geodepth_lite.datasets import resize_image
 from geodepth_lite.distributed import dist_env
 
@@ -20,7 +21,7 @@ from geodepth_lite.distributed import dist_env
 def pick_device(device: str | torch.device | None = None) -> torch.device:
     """``device`` as given; else CUDA when available (one GPU per torchrun process), else the CPU."""
     if device is not None:
-        return torch.device(device)
+        return utils.parse_device(device)
     if torch.cuda.is_available():
         return torch.device("cuda", dist_env()[2] % torch.cuda.device_count())
     return torch.device("cpu")

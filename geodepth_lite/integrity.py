@@ -198,7 +198,28 @@ def verify(root: str | Path) -> list[str]:
     if (root / RENDERER_FILE).exists() and not any(ln.endswith(f"  {RENDERER_FILE}") for ln in text.splitlines()):
         problems.append(f"changed: {RENDERER_FILE} (not listed in checksums.sha256: the frames were made by VTK, "
                         "the file says otherwise)")
-    return problems
+    return problems + _record_problems(root, text, problems)
+
+
+def _record_problems(root: Path, text: str, problems: list[str]) -> list[str]:
+    """Each unchanged ``<split>/frames.jsonl`` read as ``train`` and ``evaluate`` read it
+    (``datasets.synthetic.read_frames``: every record's files inside the folder, regular, listed in
+    checksums.sha256); 'unreadable: <split>/frames.jsonl (why)' for the first record refused in a split.
+    A split with a problem already (a missing or changed file) is left to those lines."""
+    from geodepth_lite.datasets.synthetic import read_frames  # torch: only once the checksums are read
+
+    flagged = {Path(p.partition(": ")[2].split(" ", 1)[0]).parts[0] for p in problems if ": " in p}
+    found = []
+    for line in text.splitlines():
+        rel = line.partition("  ")[2]
+        parts = Path(rel).parts
+        if len(parts) != 2 or parts[1] != "frames.jsonl" or parts[0] in flagged or Path(rel).is_absolute():
+            continue
+        try:
+            read_frames(root, parts[0])
+        except (OSError, ValueError) as exc:
+            found.append(f"unreadable: {rel} ({' '.join(str(exc).split())[:300]})")
+    return found
 
 
 def _complete_splits(root: Path, splits) -> bool:

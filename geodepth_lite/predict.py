@@ -714,6 +714,8 @@ def run_predict(args: argparse.Namespace) -> int:
     """The ``predict`` command: inputs and options checked, then --out made and probed, then the
     model loaded and every frame written (the module docstring says what fails how); exit status."""
     _check_options(args)
+    if args.device is not None:
+        utils.parse_device(args.device)  # a bad --device: one line, before any work
     calib = load_intrinsics(args.intrinsics) if args.intrinsics else None
     files, kind = list_inputs(args.input)
     check_out_is_not_input(args.out, args.input)

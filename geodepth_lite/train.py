@@ -244,7 +244,8 @@ class Trainer:
             if not resume:
                 raise FileExistsError(f"{self.ckpt_path} exists: pass --resume to continue it, "
                                       "or choose another --run-dir")
-            state = ckpt_io.read_checkpoint(self.ckpt_path, for_resume=True)
+            state = ckpt_io.read_checkpoint(self.ckpt_path, for_resume=True,
+                                            limits=None if self.network is None else ckpt_io.ANY_NETWORK)
             saved = config.validate_config(state["cfg"])  # keys added since it was saved: at their defaults
             if config.config_identity(saved) != config.config_identity(cfg):
                 diff = [k for k in config.IDENTITY_KEYS if saved.get(k) != cfg.get(k)]

@@ -76,6 +76,8 @@ def setting_overrides(args: argparse.Namespace) -> dict:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    if args.device is not None:
+        utils.parse_device(args.device)  # a bad --device: one line, before any work
     cfg = config.make_config(args.profile, args.case, args.seed, **setting_overrides(args))
     run_dir = (Path(args.run_dir) if args.run_dir
                else utils.runs_dir() / args.profile / "train" / f"case{args.case}_seed{args.seed}")

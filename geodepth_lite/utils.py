@@ -28,6 +28,24 @@ def seed_everything(seed: int) -> None:
         torch.cuda.manual_seed_all(seed)
 
 
+DEVICE_TYPES = ("cpu", "cuda", "mps")  # what a --device flag may name (cuda:N picks one GPU)
+
+
+def parse_device(device: str | torch.device, flag: str = "--device") -> torch.device:
+    """``device`` as a torch.device, or ValueError naming ``flag`` and what it accepts (one line,
+    instead of torch's RuntimeError listing every backend it knows)."""
+    if isinstance(device, torch.device):
+        return device
+    text = str(device)
+    try:
+        parsed = torch.device(text) if text == text.strip() else None
+    except (RuntimeError, ValueError):
+        parsed = None
+    if parsed is None or parsed.type not in DEVICE_TYPES:
+        raise ValueError(f"{flag} {text[:40]!r} is not a device: cpu, cuda or cuda:N (N a GPU's index)")
+    return parsed
+
+
 def worker_init(worker_id: int) -> None:
     """DataLoader ``worker_init_fn``: derive numpy/python seeds from torch's per-worker seed."""
     seed = torch.initial_seed() % 2**32
@@ -102,7 +120,7 @@ def fsync_dir(path: str | os.PathLike) -> None:
 
 TEMP_PREFIX = ".geodepth-"  # every temporary file this project writes: .geodepth-<pid>-<name>.<random>.tmp
 TEMP_GLOB = TEMP_PREFIX + "*.tmp"  # the names atomic_path's temporary files match (for removing stale ones)
-_TEMP_NAME = re.compile(r"^\.geodepth-(\d+)-.*\.tmp$")
+_TEMP_NAME = re.compile(r"\.geodepth-(\d+)-.*\.tmp")  # whole names only: fullmatch
 NAME_PART_MAX = 120  # characters of the final name kept in a temporary file's name (file names hold 255 bytes)
 
 
@@ -128,7 +146,7 @@ def stale_temp(path: Path, locked: bool = False) -> bool:
     """Whether ``path`` is a temporary file of this project left by an interrupted writer: its name is
     ``.geodepth-<pid>-...tmp`` and its writer is gone (or, with ``locked`` -- the caller holds the
     folder's lock -- it is any process but this one). A file of any other name is never stale."""
-    m = _TEMP_NAME.match(path.name)
+    m = _TEMP_NAME.fullmatch(path.name)
     if not m:
         return False
     pid = int(m.group(1))

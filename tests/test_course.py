@@ -216,6 +216,31 @@ def test_collect_refuses_a_fifo_named_like_a_notebook_without_hanging(tiny_cours
         course._read_regular(fifo)
 
 
+def test_an_identifier_with_a_trailing_newline_is_refused(tiny_course, tmp_path, capsys):
+    """``^...$`` with ``re.match`` lets a name end in a newline ('$' matches before it): ids are fullmatched."""
+    subs = _submissions(tmp_path, {f"ana\n/{TINY}.ipynb": (tmp_path / f"{TINY}.ipynb").read_bytes()})
+    assert cli.main(["course", "collect", str(subs), "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, repr(str(subs / "ana\n")), "a student folder is named by")
+    assert not (tiny_course / "submitted").exists()
+    out = tmp_path / "new-course"
+    assert cli.main(["course", "init", "--out", str(out), "--course-id", "a\n"]) == 2
+    one_line_error(capsys, "course id must be", repr("a\n"))
+    assert not out.exists()
+    assert course.STUDENT_ID.fullmatch("ana") and exercises.GRADE_ID.fullmatch("ex01-2-answer")  # the plain ids pass
+    assert not exercises.GRADE_ID.fullmatch("ex01-2-answer\n")
+
+
+@pytest.mark.parametrize("content, needle", [(b"grades, not a database\n" * 4, "not an SQLite database"),
+                                             (course.SQLITE_HEADER + b"\xff" * 200, "not nbgrader's gradebook")])
+def test_grades_from_a_gradebook_that_is_not_a_database_is_one_line(tiny_course, tmp_path, capsys, content, needle):
+    db = tiny_course / "gradebook.db"
+    db.write_bytes(content)
+    out = tmp_path / "grades.csv"
+    assert cli.main(["course", "grades", "--course", str(tiny_course), "--out", str(out)]) == 2
+    one_line_error(capsys, str(db), needle)
+    assert not out.exists() and db.read_bytes() == content
+
+
 # ----------------------------------------------------------------------------------------- the round trip
 @pytest.mark.slow
 def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path, capsys):

@@ -150,7 +150,7 @@ def test_the_reader_bounds_its_own_memory(tmp_path, monkeypatch):
     path = _first_format_file(tmp_path / "checkpoint.pt", np.arange(624, dtype=np.uint32))
     checkpoint.read_old_checkpoint(path)  # within the limit: read
     monkeypatch.setattr(checkpoint, "OLD_READ_MEMORY_BYTES", 0)  # no room at all above the parent's size
-    monkeypatch.setattr(checkpoint, "_read_old_in_child", lambda p: bytes(2**31))
+    monkeypatch.setattr(checkpoint, "_read_old_in_child", lambda p, limits: bytes(2**31))
     with pytest.raises(ValueError, match="needs more than 0 GiB of memory"):
         checkpoint.read_old_checkpoint(path)
 
@@ -188,10 +188,11 @@ def test_the_conversion_never_rewrites_its_input(tmp_path, capsys):
     assert kept.read_bytes() == original
     assert checkpoint.read_checkpoint(path)["format"] == checkpoint.FORMAT
     capsys.readouterr()
-    path.write_bytes(original)  # again, with the kept copy in the way: refused, nothing replaced
+    kept.write_bytes(original[:-1] + bytes([original[-1] ^ 1]))  # another file in the kept copy's place
+    path.write_bytes(original)  # again: refused, naming the file in the way, nothing replaced
     assert cli.main(["convert-checkpoint", str(path)]) == 2
-    one_line_error(capsys, str(kept), "exists already")
-    assert path.read_bytes() == original and kept.read_bytes() == original
+    one_line_error(capsys, str(kept), "exists already", "differs")
+    assert path.read_bytes() == original and kept.read_bytes() != original
 
 
 def test_a_junk_checkpoint_says_what_is_wrong(tmp_path, capsys):
@@ -231,7 +232,8 @@ def test_a_frame_path_outside_the_dataset_is_refused(smoke_copy, untrained_check
         (smoke_copy / "test" / "rgb" / "link.png").symlink_to(outside)
         recs[0]["rgb"] = "test/rgb/link.png"
     frames = _write_records(smoke_copy, "test", [json.dumps(r) for r in recs])
-    assert integrity.verify(smoke_copy) == []  # the checksums agree: only the paths give it away
+    problems = integrity.verify(smoke_copy)  # the checksums agree: verify reads the paths as train does
+    assert len(problems) == 1 and problems[0].startswith("unreadable: test/frames.jsonl (") and "line 1" in problems[0]
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_copy, tmp_path / "eval")) == 2
     one_line_error(capsys, str(frames), "line 1", "outside the dataset folder")
     assert not (tmp_path / "eval").exists()
