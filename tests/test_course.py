@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import zipfile
@@ -20,7 +21,7 @@ from pathlib import Path
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import cli, course, exercises
+from geodepth_lite import autograde, cli, course, exercises, sandbox
 
 TINY = "99_tiny"
 
@@ -82,6 +83,17 @@ def _returned(release_nb: Path, answers: dict[int, str] | None) -> bytes:
 
 def _solution(answer: str) -> str:
     return "\n".join(ln for ln in answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
+
+
+@pytest.fixture
+def needs_sandbox():
+    """Autograding runs each kernel in bubblewrap: skipped, saying why, where it cannot; with
+    GEODEPTH_REQUIRE_SANDBOX=1 (CI) it fails instead."""
+    why = sandbox.unavailable()
+    if why and os.environ.get(sandbox.REQUIRE_ENV) == "1":
+        pytest.fail(f"no sandbox for autograding: {why}")
+    if why:
+        pytest.skip(f"no sandbox for autograding: {why}")
 
 
 @pytest.fixture
@@ -191,8 +203,8 @@ def test_collect_refuses_with_one_line_naming_the_file(tiny_course, tmp_path, ca
 
 # ----------------------------------------------------------------------------------------- the round trip
 @pytest.mark.slow
-def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path, capsys):
-    """release -> collect -> autograde -> feedback -> grades, with nbgrader itself (about 30 s)."""
+def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path, capsys, needs_sandbox):
+    """release -> collect -> autograde -> feedback -> grades, with nbgrader itself (about a minute)."""
     run = ["--course", str(tiny_course)]
     config = tiny_course / course.CONFIG
     assert f"c.Execute.timeout = {course.TIMEOUT_MIN_S}\n" in config.read_text()
@@ -208,8 +220,13 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert cli.main(["course", "collect", str(subs), *run]) == 0
     assert cli.main(["course", "autograde", *run]) == 0
     assert cli.main(["course", "feedback", *run]) == 0
-    for who in ("right", "wrong", "untouched"):
-        assert (tiny_course / "feedback" / who / TINY / f"{TINY}.html").is_file()
+    pages = {who: (tiny_course / "feedback" / who / TINY / f"{TINY}.html").read_text()
+             for who in ("right", "wrong", "untouched")}
+    assert feedback_leaks(pages, tiny_course) == []
+    assert "99.2 Square</td><td>3 / 3</td><td class=\"passed\">" in pages["right"]
+    assert "99.2 Square</td><td>0 / 3</td><td class=\"failed\">failed</td><td>AssertionError</td>" in pages["wrong"]
+    assert "99.1 Add</td><td>0 / 2</td><td class=\"failed\">failed</td><td>CellTimeoutError" in pages["wrong"]
+    assert "0 / 4 (graded by hand, pending)" in pages["wrong"]
     assert "CellTimeoutError" in (tiny_course / "autograded" / "wrong" / TINY / f"{TINY}.ipynb").read_text()
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
     rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
@@ -220,7 +237,7 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert {who: (float(r["points"]), float(r["max_points"]), int(r["needs_manual_grading"]),
                   float(r["pending_max_points"])) for who, r in rows.items()} == {
         "right": (5.0, 9.0, 1, 4.0), "wrong": (0.0, 9.0, 1, 4.0), "untouched": (0.0, 9.0, 0, 0.0)}
-    assert all(r["assignment"] == TINY for r in rows.values())
+    assert all(r["assignment"] == TINY and r["could_not_run"] == "" for r in rows.values())
     _grade_by_hand(tiny_course, "right", "ex99-3-answer", 4.0)  # what formgrader does
     rows = course.grade_rows(tiny_course)
     assert [(r["student"], r["points"], r["needs_manual_grading"]) for r in rows if r["student"] == "right"] == [
@@ -228,6 +245,117 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     # the table is never replaced
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 2
     one_line_error(capsys, str(tmp_path / "grades.csv"), "exists")
+    # a rerun grades nothing again
+    assert cli.main(["course", "autograde", *run]) == 0
+    assert "nothing to autograde: 3 submissions graded before" in capsys.readouterr().out
+    # nbgrader's own feedback template prints the hidden tests and loads MathJax from the web: the scan sees both
+    exercises.run_nbgrader(["generate_feedback", TINY, "--force"], tiny_course, "write nbgrader's feedback")
+    leaks = feedback_leaks({"wrong": (tiny_course / "feedback" / "wrong" / TINY / f"{TINY}.html").read_text()},
+                           tiny_course)
+    assert any("square(-4)" in x for x in leaks) and any("http" in x for x in leaks)
+
+
+def hidden_test_lines(root: Path) -> list[str]:
+    """Each line inside the hidden-test regions of the course's source notebooks."""
+    lines = []
+    for nb in (root / "source").glob("*/*.ipynb"):
+        for cell in json.loads(nb.read_text())["cells"]:
+            inside = False
+            for ln in "".join(cell["source"]).splitlines():
+                if ln.strip() in exercises.HIDDEN_MARKERS:
+                    inside = ln.strip() == exercises.HIDDEN_MARKERS[0]
+                elif inside and ln.strip():
+                    lines.append(ln.strip())
+    assert lines, "the course has hidden tests"
+    return lines
+
+
+def feedback_leaks(pages: dict[str, str], root: Path) -> list[str]:
+    """What of the hidden tests, or a web address (a CDN's script or style), the feedback pages hold."""
+    found = []
+    for name, text in pages.items():
+        found += [f"{name}: {ln}" for ln in (*hidden_test_lines(root), *exercises.HIDDEN_MARKERS) if ln in text]
+        found += [f"{name}: {m}" for m in ("http://", "https://", "//cdn", "<script") if m in text]
+    return found
+
+
+def hostile_answer(root: Path, victim: str, port: int) -> str:
+    """An answer to 99.1 (right: my_sum = 5) that first tries to read the solutions, the gradebook and
+    another student's notebook, to list and write into the course folder, and to reach a port listening
+    on this machine's loopback;
+    it prints one line per attempt, "done" or "blocked"."""
+    victim_nb = root / "submitted" / victim / TINY / f"{TINY}.ipynb"
+    attempts = {"read source": f"open({str(root / 'source' / TINY / f'{TINY}.ipynb')!r}, 'rb').read()",
+                "read gradebook": f"open({str(root / 'gradebook.db')!r}, 'rb').read()",
+                "read other student": f"open({str(victim_nb)!r}, 'rb').read()",
+                "list course": f"assert os.listdir({str(root)!r})",
+                "rewrite other student": f"open({str(victim_nb)!r}, 'wb').write(b'{{}}')",
+                "write gradebook": f"open({str(root / 'gradebook.db')!r}, 'ab').write(b'x')",
+                "write course": f"open({str(root / 'planted.txt')!r}, 'w').write('x')",
+                "network": f"socket.create_connection(('127.0.0.1', {port}), timeout=2).close()"}
+    lines = ["import os", "import socket", ""]
+    for what, code in attempts.items():
+        lines += ["try:", f"    {code}", f"    print('done: {what}')", "except Exception:",
+                  f"    print('blocked: {what}')"]
+    return "\n".join(lines + ["my_sum = 2 + 3"])
+
+
+def _printed(notebook: Path) -> str:
+    nb = json.loads(notebook.read_text())
+    return "".join("".join(o.get("text", "")) for c in nb["cells"] for o in c.get("outputs", []))
+
+
+@pytest.mark.slow
+def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, tmp_path, capsys, needs_sandbox):
+    """Three students: ana all right; bo's notebook ends Python (exit()) in exercise 99.2; cy's answers are
+    right, but 99.1 first tries to read the solutions, the gradebook and ana's notebook and to write into
+    the course folder. ana and cy are graded, bo could not run; cy's every attempt fails in the sandbox."""
+    run = ["--course", str(tiny_course)]
+    config = tiny_course / course.CONFIG
+    config.write_text(config.read_text().replace(f"timeout = {course.TIMEOUT_MIN_S}", "timeout = 8"))
+    course.release(tiny_course)
+    released = tiny_course / "release" / TINY / f"{TINY}.ipynb"
+    right = {n: _solution(a) for n, (a, _) in ANSWERS.items()}
+    dead = {**right, 2: "exit()  # Python ends once the cell is done\nimport time\n\ntime.sleep(1)\n" + right[2]}
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    hostile = {**right, 1: hostile_answer(tiny_course, "ana", port)}
+    subs = _submissions(tmp_path, {f"{who}/{TINY}.ipynb": _returned(released, answers)
+                                   for who, answers in (("ana", right), ("bo", dead), ("cy", hostile))})
+    course.collect(tiny_course, subs)
+    # the attempts are real: run in this process, outside the sandbox, on a copy of the course, each succeeds
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_course, copy)
+    outside = subprocess.run([sys.executable, "-c", hostile_answer(copy, "ana", port)], capture_output=True,
+                             text=True)
+    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()] == ["done"] * 8, outside.stdout
+    ana_nb = (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes()
+    protected = {p: p.read_bytes() for p in tiny_course.rglob("*") if p.is_file() and "gradebook" not in p.name}
+    capsys.readouterr()
+
+    with listener:
+        assert cli.main(["course", "autograde", *run]) == 0
+    captured = capsys.readouterr()
+    assert "autograded 2 submissions; 1 could not run" in captured.out
+    (line,) = [ln for ln in captured.err.splitlines() if ln.startswith("could not run")]
+    assert line.startswith(f"could not run: bo, {TINY}.ipynb: the kernel died")
+    printed = _printed(tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb")
+    assert [ln for ln in printed.splitlines() if ln.startswith(("done", "blocked"))] == [
+        f"blocked: {what}" for what in ("read source", "read gradebook", "read other student", "list course",
+                                        "rewrite other student", "write gradebook", "write course", "network")]
+    assert (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes() == ana_nb
+    assert all(p.read_bytes() == data for p, data in protected.items()) and not (tiny_course / "planted.txt").exists()
+    assert cli.main(["course", "feedback", *run]) == 0
+    pages = {who: (tiny_course / "feedback" / who / TINY / f"{TINY}.html").read_text() for who in ("ana", "bo", "cy")}
+    assert "could not run" in pages["bo"] and "kernel died" in pages["bo"] and "5 of 9 points" in pages["cy"]
+    assert feedback_leaks(pages, tiny_course) == []
+    assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
+    rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
+    assert {who: (float(r["points"]), int(r["needs_manual_grading"]), r["could_not_run"][:15])
+            for who, r in rows.items()} == {"ana": (5.0, 1, ""), "bo": (0.0, 0, "the kernel died"), "cy": (5.0, 1, "")}
+    # a rerun grades nothing again: bo waits for --retry
+    assert cli.main(["course", "autograde", *run]) == 0
+    assert "nothing to autograde: 3 submissions graded before" in capsys.readouterr().out
 
 
 def _grade_by_hand(root: Path, student: str, grade_id: str, score: float) -> None:
@@ -386,3 +514,81 @@ def test_the_student_edition_holds_no_solution(tiny_course, tmp_path, capsys):
     assert cli.main(["course", "edition", "--course", str(tiny_course), "--out", str(inside)]) == 2
     one_line_error(capsys, str(inside), "inside the checkout")
     assert not inside.exists()
+
+
+# ----------------------------------------------------------------------------------------- the sandbox, in pieces
+def test_autograde_without_a_sandbox_refuses_unless_told_and_then_warns(tiny_course, monkeypatch, capsys):
+    (tiny_course / "gradebook.db").write_bytes(b"")  # released, as far as the refusal is concerned
+    monkeypatch.setattr(sandbox, "unavailable", lambda: "bubblewrap (bwrap) is not installed")
+    assert cli.main(["course", "autograde", "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, str(tiny_course), "bubblewrap (bwrap) is not installed", "--unsafe-no-sandbox")
+    assert not (tiny_course / autograde.FAILURES).exists() and not (tiny_course / "autograded").exists()
+    assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.startswith("WARNING: autograding WITHOUT a sandbox") and "gradebook.db" in captured.err
+    assert "nothing to autograde: no submission collected" in captured.out
+
+
+def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
+    root = exercises.NOTEBOOK_DIR.parent
+    readable = sandbox.readable_paths()
+    assert root / "geodepth_lite" in readable and root / "data_manifests" in readable
+    assert not any(p == root or p in (root / "notebooks").parents or p.name in ("notebooks", "tests", ".git")
+                   for p in readable)
+    inside = root / "data_manifests" / "course"  # a course folder under a folder the kernel reads: hidden
+    cmd = sandbox.bwrap_command(["python"], tmp_path, [inside, tmp_path / "course"])
+    where = cmd.index(str(inside))
+    assert cmd[where - 1] == "--tmpfs" and cmd.index("--ro-bind", cmd.index(str(root / "data_manifests")) - 1) < where
+    assert str(tmp_path / "course") not in cmd  # not under anything bound: not there at all
+    assert "--unshare-all" in cmd and "--clearenv" in cmd and cmd[-2:] == ["--", "python"]
+    assert sandbox.readable_paths([root / "data_manifests"]).count(root / "data_manifests") == 0
+
+
+def test_feedback_page_names_exercises_and_shows_messages_not_tests():
+    nb = json.loads(tiny_notebook_text())
+    hidden = "assert isinstance(my_sum, int)"
+    for cell in nb["cells"]:
+        gid = cell["metadata"].get("nbgrader", {}).get("grade_id", "")
+        if gid == "ex99-1-check":  # failed: nbgrader keeps the traceback, which quotes the hidden line
+            cell["outputs"] = [{"output_type": "error", "ename": "AssertionError", "evalue": "my_sum",
+                                "traceback": [f"----> 3 {hidden}", "AssertionError: my_sum"]}]
+    grades = {"ex99-1-check": (0.0, 2.0, False), "ex99-2-check": (3.0, 3.0, False),
+              "ex99-3-check": (0.0, 0.0, False), "ex99-3-answer": (None, 4.0, True)}
+    rows = autograde.exercise_rows(nb, grades)
+    assert [(r["number"], r["title"], r["points"], r["max_points"], r["outcome"], r["message"]) for r in rows] == [
+        ("99.1", "Add", 0.0, 2.0, "failed", "AssertionError: my_sum"), ("99.2", "Square", 3.0, 3.0, "passed", None),
+        ("99.3", "Why", 0.0, 4.0, "passed", None)]
+    text = autograde.page("ana", TINY, f"{TINY}.ipynb", rows, None)
+    assert "99.1 Add" in text and "AssertionError: my_sum" in text and "3 of 9 points" in text
+    assert "0 / 4 (graded by hand, pending)" in text
+    assert hidden not in text and "http" not in text and "<script" not in text
+    dead = autograde.page("bo", TINY, f"{TINY}.ipynb", None, "the kernel died: DeadKernelError: Kernel died")
+    assert "could not run" in dead and "DeadKernelError" in dead
+
+
+def tiny_notebook_text() -> str:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return tiny_notebook(Path(tmp) / "t.ipynb").read_text()
+
+
+def test_a_failed_run_is_one_line_with_its_reason():
+    dead = ("Traceback ...\n    raise DeadKernelError(\"Kernel died\") from None\n"
+            "nbclient.exceptions.DeadKernelError: Kernel died\n[ERROR] There was an error processing\n")
+    assert autograde.failure_reason(dead, 1) == ("the kernel died (the notebook ended Python, crashed or ran out of "
+                                                 "memory): nbclient.exceptions.DeadKernelError: Kernel died")
+    assert autograde.failure_reason("[ERROR] no such notebook\n", 1) == (
+        "nbgrader exited with status 1: [ERROR] no such notebook")
+    rows = [{"student": "ana", "assignment": TINY, "points": 5.0, "needs_manual_grading": 1, "pending_max_points": 4.0},
+            {"student": "bo", "assignment": TINY, "points": 0.0, "needs_manual_grading": 5, "pending_max_points": 13.0}]
+    out = course.with_could_not_run(rows, {("bo", TINY): "the kernel died"})
+    assert [(r["points"], r["needs_manual_grading"], r["could_not_run"]) for r in out] == [
+        (5.0, 1, ""), (0.0, 0, "the kernel died")]
+
+
+def test_a_damaged_list_of_failed_runs_is_one_line(tiny_course, capsys):
+    (tiny_course / "gradebook.db").write_bytes(b"")
+    (tiny_course / autograde.FAILURES).write_text("[{\"student\": 1}]")
+    assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, str(tiny_course / autograde.FAILURES), "damaged")

@@ -1,0 +1,143 @@
+"""The sandbox a student's notebook runs in while ``course autograde`` grades it.
+
+nbgrader's autograde runs in the lecturer's process, outside the sandbox: it reads the gradebook,
+puts the hidden tests back into the notebook and records the scores. Only the notebook's *kernel*,
+where the student's code runs, is started inside bubblewrap (``bwrap``) by
+:class:`SandboxKernelManager`, which nbgrader's executor uses in place of jupyter's kernel manager.
+The cells, hidden tests included, reach the kernel one by one over the kernel protocol, never as a
+file the kernel could read ahead. Inside the sandbox the kernel sees:
+
+- read-only: the system's programs and libraries (``/usr``), the Python environment
+  (``sys.prefix``, ``sys.base_prefix``), the ``geodepth_lite`` package, and the checkout's folders
+  the lessons read (``data_manifests/``, ``benchmarks/``, the workspace's ``data/`` and ``runs/``)
+  without ``notebooks/`` (the solutions), ``tests/``, ``.git`` or any hidden folder, and with the
+  course folder hidden under an empty one where it lies inside them;
+- read-write: its own scratch folder (a copy of the submission's folder, thrown away afterwards),
+  an empty ``/tmp`` and the folder of its connection sockets;
+- no network (a new network namespace: not even the host's loopback), no other process (a new PID
+  namespace), the environment cleared but for a few variables.
+
+The kernel talks to the executor through Unix sockets in a private folder (``transport = ipc``), so it
+needs no network and never sees another kernel's connection file.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from jupyter_client.manager import AsyncKernelManager
+
+SCRATCH_ENV = "GEODEPTH_SANDBOX_SCRATCH"  # the per-submission scratch folder the grader made
+HIDDEN_ENV = "GEODEPTH_SANDBOX_HIDE"  # os.pathsep-separated folders hidden inside the sandbox (the course)
+REQUIRE_ENV = "GEODEPTH_REQUIRE_SANDBOX"  # "1": the tests fail, not skip, where no sandbox can be made
+LEFT_OUT = frozenset({"notebooks", "tests", "docs"})  # folders of the checkout the kernel never sees
+KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LITE_HOME", "MPLBACKEND")
+
+
+def _package_root() -> Path:
+    return Path(__file__).resolve().parent.parent
+
+
+def _inside(path: Path, folders) -> bool:
+    return any(path == f or f in path.parents for f in folders)
+
+
+def readable_paths(hidden: list[Path] = ()) -> list[Path]:
+    """What the kernel may read: the Python environment, the package, the checkout's top-level files and
+    folders (see the module docstring) and the workspace's, none of ``hidden``; each path that exists,
+    once, none under another."""
+    from geodepth_lite import utils
+
+    hidden = [Path(h).resolve() for h in hidden]
+    paths = [Path(sys.prefix), Path(sys.base_prefix), Path(sys.executable).resolve().parent.parent,
+             _package_root() / "geodepth_lite"]
+    for base in {utils.project_root(), utils.workspace()} - {None}:
+        for child in sorted(base.iterdir()) if base.is_dir() else []:
+            if not child.name.startswith(".") and child.name not in LEFT_OUT and not child.is_symlink():
+                paths.append(child)
+    out: list[Path] = []
+    for p in (p.resolve() for p in paths if p.exists()):
+        if p != Path("/") and not _inside(p, out) and not _inside(p, hidden):
+            out = [q for q in out if p not in q.parents] + [p]
+    return out
+
+
+def _system_binds() -> list[str]:
+    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", "--dev", "/dev", "--tmpfs", "/tmp"]
+    for name in ("bin", "lib", "lib64", "sbin"):
+        link = Path("/") / name
+        if link.is_symlink():
+            cmd += ["--symlink", os.readlink(link), str(link)]
+        elif link.is_dir():
+            cmd += ["--ro-bind", str(link), str(link)]
+    return cmd
+
+
+def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path]) -> list[str]:
+    """``argv`` (a kernel's command) run inside bubblewrap: see the module docstring."""
+    cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv", *_system_binds()]
+    for etc in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/passwd", "/etc/group"):
+        if Path(etc).exists():
+            cmd += ["--ro-bind", etc, etc]
+    readable = readable_paths(hidden)
+    for path in readable:
+        if not _inside(path, [Path("/usr")]):
+            cmd += ["--ro-bind", str(path), str(path)]
+    for path in (Path(h).resolve() for h in hidden):  # the course folder, where it lies under a readable one
+        if _inside(path, readable):
+            cmd += ["--tmpfs", str(path)]
+    work, sockets = scratch / "work", scratch / "kernel"
+    cmd += ["--bind", str(work), str(work), "--bind", str(sockets), str(sockets), "--chdir", str(work),
+            "--setenv", "HOME", "/tmp", "--setenv", "PATH", f"{Path(sys.executable).parent}:/usr/bin:/bin",
+            "--setenv", "PYTHONPATH", str(_package_root()), "--setenv", "MPLBACKEND", "Agg"]
+    for key in KEPT_ENV:
+        if key in os.environ and key != "MPLBACKEND":
+            cmd += ["--setenv", key, os.environ[key]]
+    return cmd + ["--", *argv]
+
+
+def unavailable() -> str | None:
+    """Why no sandbox can be made here (one line), or None when bubblewrap runs a program in one."""
+    if shutil.which("bwrap") is None:
+        return "bubblewrap (bwrap) is not installed"
+    probe = ["bwrap", "--die-with-parent", "--unshare-all", *_system_binds()]
+    try:
+        done = subprocess.run([*probe, "true"], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"bubblewrap cannot start ({exc})"
+    if done.returncode != 0:
+        lines = (done.stderr or done.stdout).strip().splitlines()
+        return f"bubblewrap cannot make a sandbox here ({lines[-1] if lines else f'exit {done.returncode}'})"
+    return None
+
+
+class SandboxKernelManager(AsyncKernelManager):
+    """jupyter's kernel manager, the kernel started inside bubblewrap and reached over Unix sockets in
+    the scratch folder's ``kernel/`` (``$GEODEPTH_SANDBOX_SCRATCH``, made by ``course autograde``)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        scratch = os.environ.get(SCRATCH_ENV)
+        if not scratch:
+            raise RuntimeError(f"cannot start a sandboxed kernel: ${SCRATCH_ENV} names no scratch folder")
+        self._scratch = Path(scratch)
+        (self._scratch / "kernel").mkdir(parents=True, exist_ok=True)
+        (self._scratch / "work").mkdir(parents=True, exist_ok=True)
+        self.transport = "ipc"
+        self.connection_file = str(self._scratch / "kernel" / "connection.json")
+        self.ip = str(self._scratch / "kernel" / "socket")
+
+    def format_kernel_cmd(self, extra_arguments: list[str] | None = None) -> list[str]:
+        argv = super().format_kernel_cmd(extra_arguments)
+        cwd = (self._launch_args or {}).get("cwd")
+        work = self._scratch / "work"
+        if cwd and Path(cwd).is_dir():  # the submission's own files, copied: the kernel writes only there
+            for item in Path(cwd).iterdir():
+                if item.is_file() and not item.is_symlink() and not (work / item.name).exists():
+                    shutil.copyfile(item, work / item.name)
+        hidden = [Path(p) for p in os.environ.get(HIDDEN_ENV, "").split(os.pathsep) if p]
+        return bwrap_command(argv, self._scratch, hidden)
