@@ -195,7 +195,8 @@ def exercise_rows(nb: dict, grades: dict) -> list[dict]:
         points, max_points, waits = 0.0, 0.0, False
         for part in ("answer", "check"):
             cell = ex.cells.get(part)
-            if cell is None or not cell.get("metadata", {}).get("nbgrader", {}).get("grade"):
+            meta = (cell or {}).get("metadata", {}).get("nbgrader", {})
+            if cell is None or not (meta.get("grade") or meta.get("grade_id") in grades):
                 continue
             got, most, hand = _score(grades, cell)
             points += got or 0.0

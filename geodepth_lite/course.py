@@ -383,18 +383,25 @@ def grade_rows(course: Path) -> list[dict]:
                 rows.append({"student": student.id, "assignment": assignment.name, "points": round(sub.score, 4),
                              "max_points": round(sub.max_score, 4), "needs_manual_grading": len(pending),
                              "pending_max_points": round(sum(g.max_score for g in pending), 4)})
-    return with_could_not_run(rows, grading_run.read_failures(course))
+        most = {a.name: round(a.max_score, 4) for a in gb.assignments}
+    return with_could_not_run(rows, grading_run.read_failures(course), most)
 
 
-def with_could_not_run(rows: list[dict], failures: dict[tuple[str, str], str]) -> list[dict]:
+def with_could_not_run(rows: list[dict], failures: dict[tuple[str, str], str], most: dict[str, float]) -> list[dict]:
     """The grade rows with the ``could_not_run`` column: empty for a graded submission; the reason for one
-    whose notebook could not run, which then has 0 points and nothing waiting for a hand grade."""
+    whose notebook could not run, which then has 0 points and nothing waiting for a hand grade (a row is
+    added where the gradebook has none; ``most``: each assignment's max points)."""
+    failures = dict(failures)
     for row in rows:
-        reason = failures.get((row["student"], row["assignment"]), "")
+        reason = failures.pop((row["student"], row["assignment"]), "")
         row["could_not_run"] = reason
         if reason:
             row.update(points=0.0, needs_manual_grading=0, pending_max_points=0.0)
-    return rows
+    for (student, assignment), reason in sorted(failures.items()):
+        rows.append({"student": student, "assignment": assignment, "points": 0.0,
+                     "max_points": most.get(assignment, 0.0), "needs_manual_grading": 0, "pending_max_points": 0.0,
+                     "could_not_run": reason})
+    return sorted(rows, key=lambda r: (r["assignment"], r["student"]))
 
 
 def write_grades(course: Path, out: Path) -> list[dict]:

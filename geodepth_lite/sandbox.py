@@ -8,10 +8,12 @@ The cells, hidden tests included, reach the kernel one by one over the kernel pr
 file the kernel could read ahead. Inside the sandbox the kernel sees:
 
 - read-only: the system's programs and libraries (``/usr``), the Python environment
-  (``sys.prefix``, ``sys.base_prefix``), the ``geodepth_lite`` package, and the checkout's folders
-  the lessons read (``data_manifests/``, ``benchmarks/``, the workspace's ``data/`` and ``runs/``)
-  without ``notebooks/`` (the solutions), ``tests/``, ``.git`` or any hidden folder, and with the
-  course folder hidden under an empty one where it lies inside them;
+  (``sys.prefix``, ``sys.base_prefix``), the ``geodepth_lite`` package, and what the lessons read of
+  the checkout (``data_manifests/``, ``benchmarks/``, ``pyproject.toml``, the folders of
+  ``notebooks/`` such as ``study/``, but not the notebooks, which hold the solutions) and of the
+  workspace (``data/``, ``runs/``); nothing else of the checkout (no ``tests/``, ``.git``, nor a
+  course folder, a returned-notebooks folder or a grade table kept there), and the course folder
+  hidden under an empty one where it lies inside a folder the kernel reads;
 - read-write: its own scratch folder (a copy of the submission's folder, thrown away afterwards),
   an empty ``/tmp`` and the folder of its connection sockets;
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
@@ -34,7 +36,9 @@ from jupyter_client.manager import AsyncKernelManager
 SCRATCH_ENV = "GEODEPTH_SANDBOX_SCRATCH"  # the per-submission scratch folder the grader made
 HIDDEN_ENV = "GEODEPTH_SANDBOX_HIDE"  # os.pathsep-separated folders hidden inside the sandbox (the course)
 REQUIRE_ENV = "GEODEPTH_REQUIRE_SANDBOX"  # "1": the tests fail, not skip, where no sandbox can be made
-LEFT_OUT = frozenset({"notebooks", "tests", "docs"})  # folders of the checkout the kernel never sees
+# what the kernel reads of the checkout (with each folder of notebooks/, never a notebook) and of the workspace
+CHECKOUT_READS = ("geodepth_lite", "data_manifests", "benchmarks", "pyproject.toml")
+WORKSPACE_READS = ("data", "runs")
 KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LITE_HOME", "MPLBACKEND")
 
 
@@ -47,20 +51,23 @@ def _inside(path: Path, folders) -> bool:
 
 
 def readable_paths(hidden: list[Path] = ()) -> list[Path]:
-    """What the kernel may read: the Python environment, the package, the checkout's top-level files and
-    folders (see the module docstring) and the workspace's, none of ``hidden``; each path that exists,
-    once, none under another."""
+    """What the kernel may read: the Python environment, the package, the checkout's data the lessons
+    read (:data:`CHECKOUT_READS`, and each folder of ``notebooks/`` but not its notebooks) and the
+    workspace's ``data/`` and ``runs/``; none of ``hidden``; each path that exists, once, none under
+    another."""
     from geodepth_lite import utils
 
     hidden = [Path(h).resolve() for h in hidden]
-    paths = [Path(sys.prefix), Path(sys.base_prefix), Path(sys.executable).resolve().parent.parent,
-             _package_root() / "geodepth_lite"]
-    for base in {utils.project_root(), utils.workspace()} - {None}:
-        for child in sorted(base.iterdir()) if base.is_dir() else []:
-            if not child.name.startswith(".") and child.name not in LEFT_OUT and not child.is_symlink():
-                paths.append(child)
+    paths = [Path(sys.prefix), Path(sys.base_prefix), Path(sys.executable).resolve().parent.parent]
+    root = utils.project_root()
+    if root is not None:
+        paths += [root / name for name in CHECKOUT_READS]
+        paths += [d for d in sorted((root / "notebooks").glob("*/")) if not d.name.startswith(".")]
+    else:
+        paths.append(_package_root() / "geodepth_lite")
+    paths += [utils.workspace() / name for name in WORKSPACE_READS]
     out: list[Path] = []
-    for p in (p.resolve() for p in paths if p.exists()):
+    for p in (p.resolve() for p in paths if p.exists() and not p.is_symlink()):
         if p != Path("/") and not _inside(p, out) and not _inside(p, hidden):
             out = [q for q in out if p not in q.parents] + [p]
     return out
@@ -132,6 +139,8 @@ class SandboxKernelManager(AsyncKernelManager):
         self.ip = str(self._scratch / "kernel" / "socket")
 
     def format_kernel_cmd(self, extra_arguments: list[str] | None = None) -> list[str]:
+        # a signal would reach bwrap, not the kernel: a cell past the timeout is interrupted by a message
+        self.kernel_spec.interrupt_mode = "message"
         argv = super().format_kernel_cmd(extra_arguments)
         cwd = (self._launch_args or {}).get("cwd")
         work = self._scratch / "work"

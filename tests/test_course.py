@@ -535,6 +535,9 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
     assert root / "geodepth_lite" in readable and root / "data_manifests" in readable
     assert not any(p == root or p in (root / "notebooks").parents or p.name in ("notebooks", "tests", ".git")
                    for p in readable)
+    assert root / "notebooks" / "study" in readable  # the committed tables notebook 05 reads
+    of_checkout = [p for p in readable if root in p.parents]
+    assert not [nb for p in of_checkout for nb in ([p] if p.is_file() else p.rglob("*")) if nb.suffix == ".ipynb"]
     inside = root / "data_manifests" / "course"  # a course folder under a folder the kernel reads: hidden
     cmd = sandbox.bwrap_command(["python"], tmp_path, [inside, tmp_path / "course"])
     where = cmd.index(str(inside))
@@ -546,6 +549,7 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
 
 def test_feedback_page_names_exercises_and_shows_messages_not_tests():
     nb = json.loads(tiny_notebook_text())
+    course.grade_by_hand(nb)  # as the course's source/ and autograded/ hold it: 99.3's answer graded by hand
     hidden = "assert isinstance(my_sum, int)"
     for cell in nb["cells"]:
         gid = cell["metadata"].get("nbgrader", {}).get("grade_id", "")
@@ -582,9 +586,11 @@ def test_a_failed_run_is_one_line_with_its_reason():
         "nbgrader exited with status 1: [ERROR] no such notebook")
     rows = [{"student": "ana", "assignment": TINY, "points": 5.0, "needs_manual_grading": 1, "pending_max_points": 4.0},
             {"student": "bo", "assignment": TINY, "points": 0.0, "needs_manual_grading": 5, "pending_max_points": 13.0}]
-    out = course.with_could_not_run(rows, {("bo", TINY): "the kernel died"})
-    assert [(r["points"], r["needs_manual_grading"], r["could_not_run"]) for r in out] == [
-        (5.0, 1, ""), (0.0, 0, "the kernel died")]
+    out = course.with_could_not_run(rows, {("bo", TINY): "the kernel died", ("cy", TINY): "nbgrader exited"},
+                                    {TINY: 9.0})
+    assert [(r["student"], r["points"], r["max_points"] if r["student"] == "cy" else None, r["needs_manual_grading"],
+             r["could_not_run"]) for r in out] == [
+        ("ana", 5.0, None, 1, ""), ("bo", 0.0, None, 0, "the kernel died"), ("cy", 0.0, 9.0, 0, "nbgrader exited")]
 
 
 def test_a_damaged_list_of_failed_runs_is_one_line(tiny_course, capsys):
