@@ -12,7 +12,8 @@ on. A rerun skips what is graded (``autograded/<student>/<assignment>/``) and wh
 Feedback is written here, not by nbgrader's template (which prints the hidden tests and loads
 MathJax from the web): one page per notebook, each exercise by its number and title with its
 points, passed or failed, and the failed check's message (the exception's name and text, never the
-check's source or its traceback). The page holds no script and no link: no prompt text is shown, so
+check's source or its traceback; an error of the student's own answer cell, such as the cell timeout,
+comes first). The page holds no script and no link: no prompt text is shown, so
 there is no math to render.
 """
 
@@ -202,8 +203,10 @@ def exercise_rows(nb: dict, grades: dict) -> list[dict]:
             points += got or 0.0
             max_points += most
             waits = waits or hand
-        message = _message(ex.cells["check"]) if "check" in ex.cells else None
-        outcome = "failed" if message else "passed"
+        stopped = _message(ex.cells["answer"]) if "answer" in ex.cells else None  # the student's own cell
+        failed = _message(ex.cells["check"]) if "check" in ex.cells else None
+        outcome = "failed" if failed else "passed"
+        message = "; ".join(m for m in (stopped and f"your answer cell stopped: {stopped}", failed) if m) or None
         rows.append({"number": number, "title": title, "points": points, "max_points": max_points,
                      "outcome": outcome, "message": message, "waits": waits})
     return rows

@@ -87,7 +87,7 @@ def _system_binds() -> list[str]:
 def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path]) -> list[str]:
     """``argv`` (a kernel's command) run inside bubblewrap: see the module docstring."""
     cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv", *_system_binds()]
-    for etc in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/passwd", "/etc/group"):
+    for etc in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/passwd", "/etc/group", "/etc/fonts"):
         if Path(etc).exists():
             cmd += ["--ro-bind", etc, etc]
     readable = readable_paths(hidden)

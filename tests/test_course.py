@@ -225,7 +225,8 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert feedback_leaks(pages, tiny_course) == []
     assert "99.2 Square</td><td>3 / 3</td><td class=\"passed\">" in pages["right"]
     assert "99.2 Square</td><td>0 / 3</td><td class=\"failed\">failed</td><td>AssertionError</td>" in pages["wrong"]
-    assert "99.1 Add</td><td>0 / 2</td><td class=\"failed\">failed</td><td>CellTimeoutError" in pages["wrong"]
+    assert ("99.1 Add</td><td>0 / 2</td><td class=\"failed\">failed</td><td>your answer cell stopped: "
+            "CellTimeoutError; NameError: name &#x27;my_sum&#x27; is not defined</td>") in pages["wrong"]
     assert "0 / 4 (graded by hand, pending)" in pages["wrong"]
     assert "CellTimeoutError" in (tiny_course / "autograded" / "wrong" / TINY / f"{TINY}.ipynb").read_text()
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
