@@ -169,13 +169,18 @@ def grade_class(course: Path, names: list[str], *, sandboxed: bool = True, retry
 
 # ----------------------------------------------------------------------------------------- feedback
 def _message(cell: dict) -> str | None:
-    """The failed check's message (exception name and text, one line each at most), or None if it passed."""
-    for out in cell.get("outputs", []):
-        if out.get("output_type") == "error":
-            text = " ".join(str(out.get("evalue", "")).split())
-            text = text if len(text) <= MESSAGE_MAX else text[:MESSAGE_MAX] + "..."
-            return f"{out.get('ename', 'Error')}: {text}" if text else str(out.get("ename", "Error"))
-    return None
+    """A cell's error as one line (exception name and text), or None if it ran without one. The last
+    error counts: after a cell timeout, the kernel's KeyboardInterrupt comes before nbgrader's
+    CellTimeoutError."""
+    errors = [out for out in cell.get("outputs", []) if out.get("output_type") == "error"]
+    if not errors:
+        return None
+    name = str(errors[-1].get("ename", "Error"))
+    text = " ".join(str(errors[-1].get("evalue", "")).split())
+    if name == "CellTimeoutError" and not text:
+        text = "the cell ran longer than the course's cell timeout and was stopped"
+    text = text if len(text) <= MESSAGE_MAX else text[:MESSAGE_MAX] + "..."
+    return f"{name}: {text}" if text else name
 
 
 def _score(grades: dict, cell: dict) -> tuple[float | None, float, bool]:

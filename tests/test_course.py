@@ -9,8 +9,10 @@ cell with hidden tests per exercise, the last one open-ended."""
 
 import csv
 import hashlib
+import html
 import json
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -226,7 +228,8 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert "99.2 Square</td><td>3 / 3</td><td class=\"passed\">" in pages["right"]
     assert "99.2 Square</td><td>0 / 3</td><td class=\"failed\">failed</td><td>AssertionError</td>" in pages["wrong"]
     assert ("99.1 Add</td><td>0 / 2</td><td class=\"failed\">failed</td><td>your answer cell stopped: "
-            "CellTimeoutError; NameError: name &#x27;my_sum&#x27; is not defined</td>") in pages["wrong"]
+            "CellTimeoutError: the cell ran longer than the course&#x27;s cell timeout and was stopped; "
+            "NameError: name &#x27;my_sum&#x27; is not defined</td>") in pages["wrong"]
     assert "0 / 4 (graded by hand, pending)" in pages["wrong"]
     assert "CellTimeoutError" in (tiny_course / "autograded" / "wrong" / TINY / f"{TINY}.ipynb").read_text()
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
@@ -274,9 +277,11 @@ def hidden_test_lines(root: Path) -> list[str]:
 def feedback_leaks(pages: dict[str, str], root: Path) -> list[str]:
     """What of the hidden tests, or a web address (a CDN's script or style), the feedback pages hold."""
     found = []
-    for name, text in pages.items():
-        found += [f"{name}: {ln}" for ln in (*hidden_test_lines(root), *exercises.HIDDEN_MARKERS) if ln in text]
-        found += [f"{name}: {m}" for m in ("http://", "https://", "//cdn", "<script") if m in text]
+    for name, page in pages.items():  # read as text: tags (a highlighter's spans) removed, entities decoded
+        text = " ".join(html.unescape(re.sub(r"<[^>]*>", "", page)).split())
+        found += [f"{name}: {ln}" for ln in (*hidden_test_lines(root), *exercises.HIDDEN_MARKERS)
+                  if " ".join(ln.split()) in text]
+        found += [f"{name}: {m}" for m in ("http://", "https://", "//cdn", "<script") if m in page]
     return found
 
 
@@ -557,11 +562,16 @@ def test_feedback_page_names_exercises_and_shows_messages_not_tests():
         if gid == "ex99-1-check":  # failed: nbgrader keeps the traceback, which quotes the hidden line
             cell["outputs"] = [{"output_type": "error", "ename": "AssertionError", "evalue": "my_sum",
                                 "traceback": [f"----> 3 {hidden}", "AssertionError: my_sum"]}]
+        if gid == "ex99-2-answer":  # past the cell timeout: the kernel's interrupt, then nbgrader's error
+            cell["outputs"] = [{"output_type": "error", "ename": ename, "evalue": "", "traceback": []}
+                               for ename in ("KeyboardInterrupt", "CellTimeoutError")]
     grades = {"ex99-1-check": (0.0, 2.0, False), "ex99-2-check": (3.0, 3.0, False),
               "ex99-3-check": (0.0, 0.0, False), "ex99-3-answer": (None, 4.0, True)}
     rows = autograde.exercise_rows(nb, grades)
     assert [(r["number"], r["title"], r["points"], r["max_points"], r["outcome"], r["message"]) for r in rows] == [
-        ("99.1", "Add", 0.0, 2.0, "failed", "AssertionError: my_sum"), ("99.2", "Square", 3.0, 3.0, "passed", None),
+        ("99.1", "Add", 0.0, 2.0, "failed", "AssertionError: my_sum"),
+        ("99.2", "Square", 3.0, 3.0, "passed", "your answer cell stopped: CellTimeoutError: the cell ran longer "
+                                               "than the course's cell timeout and was stopped"),
         ("99.3", "Why", 0.0, 4.0, "passed", None)]
     text = autograde.page("ana", TINY, f"{TINY}.ipynb", rows, None)
     assert "99.1 Add" in text and "AssertionError: my_sum" in text and "3 of 9 points" in text
