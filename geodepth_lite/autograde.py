@@ -71,15 +71,7 @@ def failure_reason(output: str, returncode: int) -> str:
 
 
 # ----------------------------------------------------------------------------------------- one submission
-def course_timeout(course: Path) -> int:
-    """The cell timeout in the course's ``nbgrader_config.py`` (``c.Execute.timeout``)."""
-    from geodepth_lite.course import CONFIG, TIMEOUT_MIN_S
-
-    m = re.search(r"^c\.Execute\.timeout\s*=\s*(\d+)\s*$", (Path(course) / CONFIG).read_text(), re.M)
-    return int(m.group(1)) if m else TIMEOUT_MIN_S
-
-
-def run_limit(course: Path, folder: Path) -> int:
+def run_limit(folder: Path, cell_timeout: int) -> int:
     """Seconds one submission's whole run may take: every code cell at the cell timeout, plus a start."""
     cells = 0
     for nb in folder.glob("*.ipynb"):
@@ -87,11 +79,12 @@ def run_limit(course: Path, folder: Path) -> int:
             cells += sum(c.get("cell_type") == "code" for c in exercises.read_notebook(nb, solutions=False)["cells"])
         except (ValueError, OSError):
             cells += 1
-    return course_timeout(course) * max(cells, 1) + KERNEL_START_S
+    return cell_timeout * max(cells, 1) + KERNEL_START_S
 
 
 def _environment(scratch: Path, course: Path) -> dict:
-    env = exercises._nbgrader_env()
+    env = dict(os.environ)  # nbgrader runs alembic from this interpreter's scripts folder: first on PATH
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     env[sandbox.SCRATCH_ENV] = str(scratch)
     env[sandbox.HIDDEN_ENV] = str(Path(course).resolve())
     root = str(Path(__file__).resolve().parent.parent)
@@ -106,7 +99,7 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
     cmd = [sys.executable, "-m", "nbgrader", "autograde", assignment, f"--student={student}",
            f"--CourseDirectory.root={course}", "--log-level=WARN"]
     if sandboxed:
-        cmd.append("--Execute.kernel_manager_class=geodepth_lite.sandbox.SandboxKernelManager")
+        cmd.append("--Execute.kernel_manager_class=geodepth_lite.sandbox_kernel.SandboxKernelManager")
     scratch = Path(tempfile.mkdtemp(prefix="geodepth-grade-"))
     try:
         proc = subprocess.Popen(cmd, cwd=course, env=_environment(scratch, course), stdout=subprocess.PIPE,
@@ -133,11 +126,12 @@ def submissions(course: Path, names: list[str]) -> list[tuple[str, str]]:
     return sorted(found, key=lambda sa: (names.index(sa[1]), sa[0]))
 
 
-def grade_class(course: Path, names: list[str], *, sandboxed: bool = True, retry: bool = False,
+def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed: bool = True, retry: bool = False,
                 echo=None) -> dict:
     """Grade every collected submission not graded yet (see the module docstring); the caller holds the
-    course lock. ``echo``: called with one line per submission that could not run. Returns the
-    submissions graded now, those that could not run (with the reason), and those skipped."""
+    course lock. ``cell_timeout``: the course's, in seconds; ``echo``: called with one line per
+    submission that could not run. Returns the submissions graded now, those that could not run (with
+    the reason), and those skipped."""
     course = Path(course)
     if sandboxed:
         why = sandbox.unavailable()
@@ -153,7 +147,7 @@ def grade_class(course: Path, names: list[str], *, sandboxed: bool = True, retry
             skipped.append(key)
             continue
         folder = course / "submitted" / student / assignment
-        reason = grade_one(course, student, assignment, sandboxed, run_limit(course, folder))
+        reason = grade_one(course, student, assignment, sandboxed, run_limit(folder, cell_timeout))
         failures.pop(key, None)
         if reason is None:
             graded.append(key)
@@ -219,6 +213,7 @@ def exercise_rows(nb: dict, grades: dict) -> list[dict]:
 
 def notebook_grades(course: Path, student: str, assignment: str, notebook: str) -> dict:
     """grade_id -> (points, max points, waits for a hand grade) from the gradebook."""
+    # nbgrader's gradebook (SQLAlchemy): heavy, needed by this command only
     from nbgrader.api import Gradebook, MissingEntry
 
     out = {}

@@ -347,7 +347,15 @@ def autograde(course: Path, *, sandboxed: bool = True, retry: bool = False, echo
     if not (course / "gradebook.db").is_file():
         raise utils.FileProblem(f"cannot autograde {course}: no gradebook yet; run `course release` first", course)
     with course_lock(course):
-        return grading_run.grade_class(course, names, sandboxed=sandboxed, retry=retry, echo=echo)
+        return grading_run.grade_class(course, names, configured_timeout(course), sandboxed=sandboxed, retry=retry,
+                                       echo=echo)
+
+
+def configured_timeout(course: Path) -> int:
+    """The cell timeout in the course's ``nbgrader_config.py`` (``c.Execute.timeout``, as ``init`` wrote it
+    or the lecturer set it); ``TIMEOUT_MIN_S`` where none is set."""
+    m = re.search(r"^c\.Execute\.timeout\s*=\s*(\d+)\s*$", (Path(course) / CONFIG).read_text(), re.M)
+    return int(m.group(1)) if m else TIMEOUT_MIN_S
 
 
 def feedback(course: Path) -> list[Path]:

@@ -3,9 +3,9 @@
 nbgrader's autograde runs in the lecturer's process, outside the sandbox: it reads the gradebook,
 puts the hidden tests back into the notebook and records the scores. Only the notebook's *kernel*,
 where the student's code runs, is started inside bubblewrap (``bwrap``) by
-:class:`SandboxKernelManager`, which nbgrader's executor uses in place of jupyter's kernel manager.
-The cells, hidden tests included, reach the kernel one by one over the kernel protocol, never as a
-file the kernel could read ahead. Inside the sandbox the kernel sees:
+:class:`geodepth_lite.sandbox_kernel.SandboxKernelManager`, which nbgrader's executor uses in place
+of jupyter's kernel manager. The cells, hidden tests included, reach the kernel one by one over the
+kernel protocol, never as a file the kernel could read ahead. Inside the sandbox the kernel sees:
 
 - read-only: the system's programs and libraries (``/usr``), the Python environment
   (``sys.prefix``, ``sys.base_prefix``), the ``geodepth_lite`` package, and what the lessons read of
@@ -31,7 +31,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from jupyter_client.manager import AsyncKernelManager
+from geodepth_lite import utils
 
 SCRATCH_ENV = "GEODEPTH_SANDBOX_SCRATCH"  # the per-submission scratch folder the grader made
 HIDDEN_ENV = "GEODEPTH_SANDBOX_HIDE"  # os.pathsep-separated folders hidden inside the sandbox (the course)
@@ -55,8 +55,6 @@ def readable_paths(hidden: list[Path] = ()) -> list[Path]:
     read (:data:`CHECKOUT_READS`, and each folder of ``notebooks/`` but not its notebooks) and the
     workspace's ``data/`` and ``runs/``; none of ``hidden``; each path that exists, once, none under
     another."""
-    from geodepth_lite import utils
-
     hidden = [Path(h).resolve() for h in hidden]
     paths = [Path(sys.prefix), Path(sys.base_prefix), Path(sys.executable).resolve().parent.parent]
     root = utils.project_root()
@@ -120,33 +118,3 @@ def unavailable() -> str | None:
         lines = (done.stderr or done.stdout).strip().splitlines()
         return f"bubblewrap cannot make a sandbox here ({lines[-1] if lines else f'exit {done.returncode}'})"
     return None
-
-
-class SandboxKernelManager(AsyncKernelManager):
-    """jupyter's kernel manager, the kernel started inside bubblewrap and reached over Unix sockets in
-    the scratch folder's ``kernel/`` (``$GEODEPTH_SANDBOX_SCRATCH``, made by ``course autograde``)."""
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        scratch = os.environ.get(SCRATCH_ENV)
-        if not scratch:
-            raise RuntimeError(f"cannot start a sandboxed kernel: ${SCRATCH_ENV} names no scratch folder")
-        self._scratch = Path(scratch)
-        (self._scratch / "kernel").mkdir(parents=True, exist_ok=True)
-        (self._scratch / "work").mkdir(parents=True, exist_ok=True)
-        self.transport = "ipc"
-        self.connection_file = str(self._scratch / "kernel" / "connection.json")
-        self.ip = str(self._scratch / "kernel" / "socket")
-
-    def format_kernel_cmd(self, extra_arguments: list[str] | None = None) -> list[str]:
-        # a signal would reach bwrap, not the kernel: a cell past the timeout is interrupted by a message
-        self.kernel_spec.interrupt_mode = "message"
-        argv = super().format_kernel_cmd(extra_arguments)
-        cwd = (self._launch_args or {}).get("cwd")
-        work = self._scratch / "work"
-        if cwd and Path(cwd).is_dir():  # the submission's own files, copied: the kernel writes only there
-            for item in Path(cwd).iterdir():
-                if item.is_file() and not item.is_symlink() and not (work / item.name).exists():
-                    shutil.copyfile(item, work / item.name)
-        hidden = [Path(p) for p in os.environ.get(HIDDEN_ENV, "").split(os.pathsep) if p]
-        return bwrap_command(argv, self._scratch, hidden)
