@@ -609,3 +609,30 @@ def test_a_damaged_list_of_failed_runs_is_one_line(tiny_course, capsys):
     (tiny_course / autograde.FAILURES).write_text("[{\"student\": 1}]")
     assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 2
     one_line_error(capsys, str(tiny_course / autograde.FAILURES), "damaged")
+
+
+def test_a_rerun_skips_what_is_graded_and_retry_runs_the_failed_again(tmp_path, monkeypatch):
+    """The class loop alone, nbgrader replaced by a stand-in that records whom it grades."""
+    root = tmp_path / "course"
+    for student in ("ana", "bo", "cy"):
+        (root / "submitted" / student / TINY).mkdir(parents=True)
+        (root / "submitted" / student / TINY / f"{TINY}.ipynb").write_text('{"cells": []}')
+    (root / "autograded" / "ana" / TINY).mkdir(parents=True)  # graded before
+    (root / autograde.FAILURES).write_text(json.dumps([{"student": "bo", "assignment": TINY, "reason": "died"}]))
+    calls = []
+
+    def stand_in(course_dir, student, assignment, sandboxed, limit_s):
+        calls.append((student, limit_s))
+        return "the kernel died again" if student == "bo" else None
+
+    monkeypatch.setattr(autograde, "grade_one", stand_in)
+    monkeypatch.setattr(sandbox, "unavailable", lambda: None)
+    lines = []
+    info = autograde.grade_class(root, [TINY], 8, echo=lines.append)
+    assert calls == [("cy", 8 + autograde.KERNEL_START_S)] and info["graded"] == [("cy", TINY)]
+    assert info["skipped"] == [("ana", TINY), ("bo", TINY)] and lines == []
+    calls.clear()
+    info = autograde.grade_class(root, [TINY], 8, retry=True, echo=lines.append)
+    assert [c[0] for c in calls] == ["bo", "cy"]  # cy has no autograded/ folder here: the stand-in wrote none
+    assert lines == [f"could not run: bo, {TINY}.ipynb: the kernel died again"]
+    assert autograde.read_failures(root) == {("bo", TINY): "the kernel died again"}
