@@ -14,7 +14,8 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   workspace (``data/``, ``runs/``); nothing else of the checkout (no ``tests/``, ``.git``, nor a
   course folder, a returned-notebooks folder or a grade table kept there), and the course folder
   hidden under an empty one where it lies inside a folder the kernel reads;
-- read-write: its own scratch folder (a copy of the submission's folder, thrown away afterwards),
+- read-write: its own scratch folder (a copy of the submission's files but the notebooks, thrown away
+  afterwards),
   an empty ``/tmp`` and the folder of its connection sockets;
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
   namespace), the environment cleared but for a few variables.

@@ -35,9 +35,12 @@ class SandboxKernelManager(AsyncKernelManager):
         argv = super().format_kernel_cmd(extra_arguments)
         cwd = (self._launch_args or {}).get("cwd")
         work = self._scratch / "work"
-        if cwd and Path(cwd).is_dir():  # the submission's own files, copied: the kernel writes only there
+        # the submission's own files, copied: the kernel writes only there. Never a notebook: nbgrader
+        # writes the one it executes into that folder first, with the hidden tests put back
+        if cwd and Path(cwd).is_dir():
             for item in Path(cwd).iterdir():
-                if item.is_file() and not item.is_symlink() and not (work / item.name).exists():
+                if (item.is_file() and not item.is_symlink() and item.suffix != ".ipynb"
+                        and not (work / item.name).exists()):
                     shutil.copyfile(item, work / item.name)
         hidden = [Path(p) for p in os.environ.get(HIDDEN_ENV, "").split(os.pathsep) if p]
         return bwrap_command(argv, self._scratch, hidden)

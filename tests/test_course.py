@@ -287,8 +287,8 @@ def feedback_leaks(pages: dict[str, str], root: Path) -> list[str]:
 
 def hostile_answer(root: Path, victim: str, port: int) -> str:
     """An answer to 99.1 (right: my_sum = 5) that first tries to read the solutions, the gradebook and
-    another student's notebook, to list and write into the course folder, and to reach a port listening
-    on this machine's loopback;
+    another student's notebook, to list and write into the course folder, to reach a port listening
+    on this machine's loopback, and to find the hidden tests in a file of its working folder;
     it prints one line per attempt, "done" or "blocked"."""
     victim_nb = root / "submitted" / victim / TINY / f"{TINY}.ipynb"
     attempts = {"read source": f"open({str(root / 'source' / TINY / f'{TINY}.ipynb')!r}, 'rb').read()",
@@ -298,7 +298,9 @@ def hostile_answer(root: Path, victim: str, port: int) -> str:
                 "rewrite other student": f"open({str(victim_nb)!r}, 'wb').write(b'{{}}')",
                 "write gradebook": f"open({str(root / 'gradebook.db')!r}, 'ab').write(b'x')",
                 "write course": f"open({str(root / 'planted.txt')!r}, 'w').write('x')",
-                "network": f"socket.create_connection(('127.0.0.1', {port}), timeout=2).close()"}
+                "network": f"socket.create_connection(('127.0.0.1', {port}), timeout=2).close()",
+                "hidden tests in the working folder": "assert [f for f in os.listdir('.') if os.path.isfile(f) "
+                                                      "and b'square(-4)' in open(f, 'rb').read()]"}
     lines = ["import os", "import socket", ""]
     for what, code in attempts.items():
         lines += ["try:", f"    {code}", f"    print('done: {what}')", "except Exception:",
@@ -333,8 +335,8 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     copy = tmp_path / "copy"
     shutil.copytree(tiny_course, copy)
     outside = subprocess.run([sys.executable, "-c", hostile_answer(copy, "ana", port)], capture_output=True,
-                             text=True)
-    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()] == ["done"] * 8, outside.stdout
+                             text=True, cwd=copy / "source" / TINY)  # a folder holding the hidden tests
+    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()] == ["done"] * 9, outside.stdout
     ana_nb = (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes()
     protected = {p: p.read_bytes() for p in tiny_course.rglob("*") if p.is_file() and "gradebook" not in p.name}
     capsys.readouterr()
@@ -348,7 +350,8 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     printed = _printed(tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb")
     assert [ln for ln in printed.splitlines() if ln.startswith(("done", "blocked"))] == [
         f"blocked: {what}" for what in ("read source", "read gradebook", "read other student", "list course",
-                                        "rewrite other student", "write gradebook", "write course", "network")]
+                                        "rewrite other student", "write gradebook", "write course", "network",
+                                        "hidden tests in the working folder")]
     assert (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes() == ana_nb
     assert all(p.read_bytes() == data for p, data in protected.items()) and not (tiny_course / "planted.txt").exists()
     assert cli.main(["course", "feedback", *run]) == 0
