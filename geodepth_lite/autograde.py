@@ -97,7 +97,7 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
     reason it could not run (its partial ``autograded/`` folder, made by this run, is removed)."""
     course = Path(course)
     cmd = [sys.executable, "-m", "nbgrader", "autograde", assignment, f"--student={student}",
-           f"--CourseDirectory.root={course}", "--log-level=WARN"]
+           f"--CourseDirectory.root={course.resolve()}", "--log-level=WARN"]
     if sandboxed:
         cmd.append("--Execute.kernel_manager_class=geodepth_lite.sandbox_kernel.SandboxKernelManager")
     scratch = Path(tempfile.mkdtemp(prefix="geodepth-grade-"))
