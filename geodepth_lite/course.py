@@ -29,9 +29,11 @@ import os
 import re
 import shutil
 import stat
+import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+from geodepth_lite import autograde as grading_run
 from geodepth_lite import exercises, utils
 
 COURSE_ID = "geodepth"
@@ -39,7 +41,8 @@ TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the ma
 TIMEOUT_MIN_S = 120  # a notebook without execution records (or only fast cells) still gets two minutes a cell
 STUDENT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # whole names only: fullmatch
 CONFIG = "nbgrader_config.py"
-GRADE_COLUMNS = ["student", "assignment", "points", "max_points", "needs_manual_grading", "pending_max_points"]
+GRADE_COLUMNS = ["student", "assignment", "points", "max_points", "needs_manual_grading", "pending_max_points",
+                 "could_not_run"]
 
 
 # ----------------------------------------------------------------------------------------- the timeout
@@ -353,35 +356,36 @@ def collect(course: Path, submissions: Path) -> dict:
 
 
 # ----------------------------------------------------------------------------------------- grade
-def _submitted(course: Path, names: list[str]) -> list[str]:
-    folder = course / "submitted"
-    found = {p.name for p in folder.glob("*/*") if p.is_dir()} if folder.is_dir() else set()
-    return [n for n in names if n in found]
-
-
-def autograde(course: Path) -> list[str]:
-    """nbgrader's ``autograde`` of every assignment with collected submissions (hidden tests put back,
-    each notebook executed with the course's cell timeout); a submission graded before is left as it is."""
+def autograde(course: Path, *, sandboxed: bool = True, retry: bool = False, echo=None) -> dict:
+    """nbgrader's ``autograde`` of each collected submission on its own, its kernel in a sandbox (see
+    :mod:`geodepth_lite.autograde`): hidden tests put back, the notebook executed with the course's cell
+    timeout. A submission graded before is left as it is; one whose kernel dies or hangs is recorded as
+    "could not run" (``echo`` gets one line naming it) and the others are graded. Without bubblewrap it
+    refuses unless ``sandboxed`` is False. Returns graded, could_not_run and skipped submissions."""
     course = Path(course)
     names = open_course(course)
     if not (course / "gradebook.db").is_file():
         raise utils.FileProblem(f"cannot autograde {course}: no gradebook yet; run `course release` first", course)
     with course_lock(course):
-        done = _submitted(course, names)
-        for name in done:
-            exercises.run_nbgrader(["autograde", name], course, f"autograde {name} in {course}")
-    return done
+        return grading_run.grade_class(course, names, configured_timeout(course), sandboxed=sandboxed, retry=retry,
+                                       echo=echo)
+
+
+def configured_timeout(course: Path) -> int:
+    """The cell timeout in the course's ``nbgrader_config.py`` (``c.Execute.timeout``, as ``init`` wrote it
+    or the lecturer set it); ``TIMEOUT_MIN_S`` where none is set."""
+    m = re.search(r"^c\.Execute\.timeout\s*=\s*(\d+)\s*$", (Path(course) / CONFIG).read_text(), re.M)
+    return int(m.group(1)) if m else TIMEOUT_MIN_S
 
 
 def feedback(course: Path) -> list[Path]:
-    """nbgrader's ``generate_feedback``: one HTML page per graded notebook in ``feedback/<student>/<assignment>/``."""
+    """One HTML page per graded notebook (or per notebook that could not run) in
+    ``feedback/<student>/<assignment>/``: each exercise by number and title, its points, passed or failed
+    and the check's message; never the hidden tests (see :mod:`geodepth_lite.autograde`)."""
     course = Path(course)
     names = open_course(course)
     with course_lock(course):
-        graded = [n for n in names if any((course / "autograded").glob(f"*/{n}"))]
-        for name in graded:
-            exercises.run_nbgrader(["generate_feedback", name], course, f"write the feedback of {name}")
-    return sorted((course / "feedback").glob("*/*/*.html"))
+        return grading_run.write_feedback(course, names)
 
 
 def grade_rows(course: Path) -> list[dict]:
@@ -398,11 +402,12 @@ def grade_rows(course: Path) -> list[dict]:
                                 "`course autograde` first", course)
     _check_gradebook(db)
     try:
-        return _rows(Gradebook, MissingEntry, db)
+        rows, most = _rows(Gradebook, MissingEntry, db)
     except sqlalchemy.exc.SQLAlchemyError as exc:  # a damaged database, or not nbgrader's
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise utils.FileProblem(f"cannot read the grades from {db}: not nbgrader's gradebook ({first[:160]})",
                                 db) from None
+    return with_could_not_run(rows, grading_run.read_failures(course), most)
 
 
 SQLITE_HEADER = b"SQLite format 3\x00"  # the first 16 bytes of every SQLite database file
@@ -420,8 +425,9 @@ def _check_gradebook(db: Path) -> None:
                                 "it is left as it is", db)
 
 
-def _rows(gradebook_class, missing_entry, db: Path) -> list[dict]:
-    """The rows of ``grade_rows`` (nbgrader's classes passed in: imported only by that command)."""
+def _rows(gradebook_class, missing_entry, db: Path) -> tuple[list[dict], dict[str, float]]:
+    """The gradebook's rows of ``grade_rows`` and each assignment's max points (nbgrader's classes passed
+    in: imported only by that command)."""
     rows = []
     with gradebook_class(f"sqlite:///{db.resolve()}") as gb:
         for assignment in sorted(gb.assignments, key=lambda a: a.name):
@@ -434,7 +440,25 @@ def _rows(gradebook_class, missing_entry, db: Path) -> list[dict]:
                 rows.append({"student": student.id, "assignment": assignment.name, "points": round(sub.score, 4),
                              "max_points": round(sub.max_score, 4), "needs_manual_grading": len(pending),
                              "pending_max_points": round(sum(g.max_score for g in pending), 4)})
-    return rows
+        most = {a.name: round(a.max_score, 4) for a in gb.assignments}
+    return rows, most
+
+
+def with_could_not_run(rows: list[dict], failures: dict[tuple[str, str], str], most: dict[str, float]) -> list[dict]:
+    """The grade rows with the ``could_not_run`` column: empty for a graded submission; the reason for one
+    whose notebook could not run, which then has 0 points and nothing waiting for a hand grade (a row is
+    added where the gradebook has none; ``most``: each assignment's max points)."""
+    failures = dict(failures)
+    for row in rows:
+        reason = failures.pop((row["student"], row["assignment"]), "")
+        row["could_not_run"] = reason
+        if reason:
+            row.update(points=0.0, needs_manual_grading=0, pending_max_points=0.0)
+    for (student, assignment), reason in sorted(failures.items()):
+        rows.append({"student": student, "assignment": assignment, "points": 0.0,
+                     "max_points": most.get(assignment, 0.0), "needs_manual_grading": 0, "pending_max_points": 0.0,
+                     "could_not_run": reason})
+    return sorted(rows, key=lambda r: (r["assignment"], r["student"]))
 
 
 def write_grades(course: Path, out: Path) -> list[dict]:
@@ -465,7 +489,7 @@ def add_arguments_course(p: argparse.ArgumentParser) -> None:
     helps = {"release": "write the student release (release/<assignment>/) and enter it into the gradebook",
              "edition": "write the student edition: the checkout without solution notebooks, the release in its place",
              "collect": "copy returned notebooks SUBMISSIONS/<student>/... into submitted/<student>/<assignment>/",
-             "autograde": "autograde every collected submission (hidden tests put back)",
+             "autograde": "autograde every collected submission in a sandbox (hidden tests put back)",
              "feedback": "write an HTML feedback page per graded notebook (feedback/)",
              "grades": "write the grade table: points and max points per student and assignment"}
     for action, text in helps.items():
@@ -473,6 +497,12 @@ def add_arguments_course(p: argparse.ArgumentParser) -> None:
         a.add_argument("--course", type=Path, default=Path("course"), help="the course folder (default: course)")
         if action == "collect":
             a.add_argument("submissions", type=Path, help="a folder holding one folder per student")
+        if action == "autograde":
+            a.add_argument("--unsafe-no-sandbox", action="store_true",
+                           help="run the students' notebooks with your own rights where bubblewrap is missing "
+                                "(they can then read the solutions and the gradebook: see docs/teaching.md)")
+            a.add_argument("--retry", action="store_true",
+                           help="grade again the submissions that could not run before")
         if action == "grades":
             a.add_argument("--out", type=Path, default=Path("grades.csv"), help="the CSV (default: grades.csv)")
         if action == "edition":
@@ -498,13 +528,26 @@ def _report(args) -> str:
         note = f"; skipped {len(info['skipped'])} other files (first {info['skipped'][0]})" if info["skipped"] else ""
         return f"collected {len(info['collected'])} notebooks ({info['already']} already there){note}"
     if args.action == "autograde":
-        done = autograde(args.course)
-        return f"autograded {', '.join(done)}" if done else "nothing to autograde: no submission collected"
+        return _autograde_report(args)
     if args.action == "feedback":
         return f"{len(feedback(args.course))} feedback pages under {args.course / 'feedback'}"
     rows = write_grades(args.course, args.out)
     pending = sum(r["needs_manual_grading"] > 0 for r in rows)
     return f"{len(rows)} grades in {args.out}; {pending} still need a hand grade (formgrader)"
+
+
+def _autograde_report(args) -> str:
+    if args.unsafe_no_sandbox:
+        print("WARNING: autograding WITHOUT a sandbox (--unsafe-no-sandbox): every student's notebook runs with "
+              "your rights and can read the solutions in source/, the hidden tests in gradebook.db and the other "
+              "submissions, and change them", file=sys.stderr)
+    info = autograde(args.course, sandboxed=not args.unsafe_no_sandbox, retry=args.retry,
+                     echo=lambda line: print(line, file=sys.stderr))
+    if not info["graded"] and not info["could_not_run"]:
+        return (f"nothing to autograde: {len(info['skipped'])} submissions graded before" if info["skipped"]
+                else "nothing to autograde: no submission collected")
+    return (f"autograded {len(info['graded'])} submissions; {len(info['could_not_run'])} could not run; "
+            f"{len(info['skipped'])} graded before")
 
 
 def run_course(args) -> int:

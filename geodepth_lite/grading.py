@@ -32,6 +32,7 @@ tests check the committed solutions, nbgrader's autograde records the history.
 from __future__ import annotations
 
 import contextlib
+import inspect
 import io
 import sys
 import types
@@ -74,8 +75,15 @@ def _owner_of(fn) -> tuple[Any, str] | None:
 
 
 def _code_of(fn):
-    fn = getattr(fn, "__func__", fn)
-    return getattr(fn, "__code__", None)
+    """The code object that runs when ``fn`` is called, to watch: that of the function a decorator wraps
+    (``functools.wraps`` records it as ``__wrapped__``), never the decorator's wrapper, whose code every
+    function with that decorator shares (``@torch.no_grad()`` of a student's own function among them);
+    None where only a shared wrapper's code is found (its name differs from the function's)."""
+    fn = inspect.unwrap(getattr(fn, "__func__", fn))
+    code = getattr(fn, "__code__", None)
+    if code is not None and code.co_name != getattr(fn, "__name__", code.co_name):
+        return None
+    return code
 
 
 def _expand(targets) -> list[tuple[Any, str, Any]]:

@@ -9,10 +9,13 @@ cell with hidden tests per exercise, the last one open-ended."""
 
 import csv
 import hashlib
+import html
 import json
 import os
+import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import zipfile
@@ -21,7 +24,7 @@ from pathlib import Path
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import cli, course, exercises, utils
+from geodepth_lite import autograde, cli, course, exercises, sandbox, utils
 
 TINY = "99_tiny"
 
@@ -83,6 +86,17 @@ def _returned(release_nb: Path, answers: dict[int, str] | None) -> bytes:
 
 def _solution(answer: str) -> str:
     return "\n".join(ln for ln in answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
+
+
+@pytest.fixture
+def needs_sandbox():
+    """Autograding runs each kernel in bubblewrap: skipped, saying why, where it cannot; with
+    GEODEPTH_REQUIRE_SANDBOX=1 (CI) it fails instead."""
+    why = sandbox.unavailable()
+    if why and os.environ.get(sandbox.REQUIRE_ENV) == "1":
+        pytest.fail(f"no sandbox for autograding: {why}")
+    if why:
+        pytest.skip(f"no sandbox for autograding: {why}")
 
 
 @pytest.fixture
@@ -243,8 +257,8 @@ def test_grades_from_a_gradebook_that_is_not_a_database_is_one_line(tiny_course,
 
 # ----------------------------------------------------------------------------------------- the round trip
 @pytest.mark.slow
-def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path, capsys):
-    """release -> collect -> autograde -> feedback -> grades, with nbgrader itself (about 30 s)."""
+def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path, capsys, needs_sandbox):
+    """release -> collect -> autograde -> feedback -> grades, with nbgrader itself (about a minute)."""
     run = ["--course", str(tiny_course)]
     config = tiny_course / course.CONFIG
     assert f"c.Execute.timeout = {course.TIMEOUT_MIN_S}\n" in config.read_text()
@@ -260,8 +274,15 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert cli.main(["course", "collect", str(subs), *run]) == 0
     assert cli.main(["course", "autograde", *run]) == 0
     assert cli.main(["course", "feedback", *run]) == 0
-    for who in ("right", "wrong", "untouched"):
-        assert (tiny_course / "feedback" / who / TINY / f"{TINY}.html").is_file()
+    pages = {who: (tiny_course / "feedback" / who / TINY / f"{TINY}.html").read_text()
+             for who in ("right", "wrong", "untouched")}
+    assert feedback_leaks(pages, tiny_course) == []
+    assert "99.2 Square</td><td>3 / 3</td><td class=\"passed\">" in pages["right"]
+    assert "99.2 Square</td><td>0 / 3</td><td class=\"failed\">failed</td><td>AssertionError</td>" in pages["wrong"]
+    assert ("99.1 Add</td><td>0 / 2</td><td class=\"failed\">failed</td><td>your answer cell stopped: "
+            "CellTimeoutError: the cell ran longer than the course&#x27;s cell timeout and was stopped; "
+            "NameError: name &#x27;my_sum&#x27; is not defined</td>") in pages["wrong"]
+    assert "0 / 4 (graded by hand, pending)" in pages["wrong"]
     assert "CellTimeoutError" in (tiny_course / "autograded" / "wrong" / TINY / f"{TINY}.ipynb").read_text()
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
     rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
@@ -272,7 +293,7 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     assert {who: (float(r["points"]), float(r["max_points"]), int(r["needs_manual_grading"]),
                   float(r["pending_max_points"])) for who, r in rows.items()} == {
         "right": (5.0, 9.0, 1, 4.0), "wrong": (0.0, 9.0, 1, 4.0), "untouched": (0.0, 9.0, 0, 0.0)}
-    assert all(r["assignment"] == TINY for r in rows.values())
+    assert all(r["assignment"] == TINY and r["could_not_run"] == "" for r in rows.values())
     _grade_by_hand(tiny_course, "right", "ex99-3-answer", 4.0)  # what formgrader does
     rows = course.grade_rows(tiny_course)
     assert [(r["student"], r["points"], r["needs_manual_grading"]) for r in rows if r["student"] == "right"] == [
@@ -280,6 +301,122 @@ def test_three_students_through_nbgrader_get_known_scores(tiny_course, tmp_path,
     # the table is never replaced
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 2
     one_line_error(capsys, str(tmp_path / "grades.csv"), "exists")
+    # a rerun grades nothing again
+    assert cli.main(["course", "autograde", *run]) == 0
+    assert "nothing to autograde: 3 submissions graded before" in capsys.readouterr().out
+    # nbgrader's own feedback template prints the hidden tests and loads MathJax from the web: the scan sees both
+    exercises.run_nbgrader(["generate_feedback", TINY, "--force"], tiny_course, "write nbgrader's feedback")
+    leaks = feedback_leaks({"wrong": (tiny_course / "feedback" / "wrong" / TINY / f"{TINY}.html").read_text()},
+                           tiny_course)
+    assert any("square(-4)" in x for x in leaks) and any("http" in x for x in leaks)
+
+
+def hidden_test_lines(root: Path) -> list[str]:
+    """Each line inside the hidden-test regions of the course's source notebooks."""
+    lines = []
+    for nb in (root / "source").glob("*/*.ipynb"):
+        for cell in json.loads(nb.read_text())["cells"]:
+            inside = False
+            for ln in "".join(cell["source"]).splitlines():
+                if ln.strip() in exercises.HIDDEN_MARKERS:
+                    inside = ln.strip() == exercises.HIDDEN_MARKERS[0]
+                elif inside and ln.strip():
+                    lines.append(ln.strip())
+    assert lines, "the course has hidden tests"
+    return lines
+
+
+def feedback_leaks(pages: dict[str, str], root: Path) -> list[str]:
+    """What of the hidden tests, or a web address (a CDN's script or style), the feedback pages hold."""
+    found = []
+    for name, page in pages.items():  # read as text: tags (a highlighter's spans) removed, entities decoded
+        text = " ".join(html.unescape(re.sub(r"<[^>]*>", "", page)).split())
+        found += [f"{name}: {ln}" for ln in (*hidden_test_lines(root), *exercises.HIDDEN_MARKERS)
+                  if " ".join(ln.split()) in text]
+        found += [f"{name}: {m}" for m in ("http://", "https://", "//cdn", "<script") if m in page]
+    return found
+
+
+def hostile_answer(root: Path, victim: str, port: int) -> str:
+    """An answer to 99.1 (right: my_sum = 5) that first tries to read the solutions, the gradebook and
+    another student's notebook, to list and write into the course folder, to reach a port listening
+    on this machine's loopback, and to find the hidden tests in a file of its working folder;
+    it prints one line per attempt, "done" or "blocked"."""
+    victim_nb = root / "submitted" / victim / TINY / f"{TINY}.ipynb"
+    attempts = {"read source": f"open({str(root / 'source' / TINY / f'{TINY}.ipynb')!r}, 'rb').read()",
+                "read gradebook": f"open({str(root / 'gradebook.db')!r}, 'rb').read()",
+                "read other student": f"open({str(victim_nb)!r}, 'rb').read()",
+                "list course": f"assert os.listdir({str(root)!r})",
+                "rewrite other student": f"open({str(victim_nb)!r}, 'wb').write(b'{{}}')",
+                "write gradebook": f"open({str(root / 'gradebook.db')!r}, 'ab').write(b'x')",
+                "write course": f"open({str(root / 'planted.txt')!r}, 'w').write('x')",
+                "network": f"socket.create_connection(('127.0.0.1', {port}), timeout=2).close()",
+                "hidden tests in the working folder": "assert [f for f in os.listdir('.') if os.path.isfile(f) "
+                                                      "and b'square(-4)' in open(f, 'rb').read()]"}
+    lines = ["import os", "import socket", ""]
+    for what, code in attempts.items():
+        lines += ["try:", f"    {code}", f"    print('done: {what}')", "except Exception:",
+                  f"    print('blocked: {what}')"]
+    return "\n".join(lines + ["my_sum = 2 + 3"])
+
+
+def _printed(notebook: Path) -> str:
+    nb = json.loads(notebook.read_text())
+    return "".join("".join(o.get("text", "")) for c in nb["cells"] for o in c.get("outputs", []))
+
+
+@pytest.mark.slow
+def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, tmp_path, capsys, needs_sandbox):
+    """Three students: ana all right; bo's notebook ends Python (exit()) in exercise 99.2; cy's answers are
+    right, but 99.1 first tries to read the solutions, the gradebook and ana's notebook and to write into
+    the course folder. ana and cy are graded, bo could not run; cy's every attempt fails in the sandbox."""
+    run = ["--course", str(tiny_course)]
+    config = tiny_course / course.CONFIG
+    config.write_text(config.read_text().replace(f"timeout = {course.TIMEOUT_MIN_S}", "timeout = 8"))
+    course.release(tiny_course)
+    released = tiny_course / "release" / TINY / f"{TINY}.ipynb"
+    right = {n: _solution(a) for n, (a, _) in ANSWERS.items()}
+    dead = {**right, 2: "exit()  # Python ends once the cell is done\nimport time\n\ntime.sleep(1)\n" + right[2]}
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    hostile = {**right, 1: hostile_answer(tiny_course, "ana", port)}
+    subs = _submissions(tmp_path, {f"{who}/{TINY}.ipynb": _returned(released, answers)
+                                   for who, answers in (("ana", right), ("bo", dead), ("cy", hostile))})
+    course.collect(tiny_course, subs)
+    # the attempts are real: run in this process, outside the sandbox, on a copy of the course, each succeeds
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_course, copy)
+    outside = subprocess.run([sys.executable, "-c", hostile_answer(copy, "ana", port)], capture_output=True,
+                             text=True, cwd=copy / "source" / TINY)  # a folder holding the hidden tests
+    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()] == ["done"] * 9, outside.stdout
+    ana_nb = (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes()
+    protected = {p: p.read_bytes() for p in tiny_course.rglob("*") if p.is_file() and "gradebook" not in p.name}
+    capsys.readouterr()
+
+    with listener:
+        assert cli.main(["course", "autograde", *run]) == 0
+    captured = capsys.readouterr()
+    assert "autograded 2 submissions; 1 could not run" in captured.out
+    (line,) = [ln for ln in captured.err.splitlines() if ln.startswith("could not run")]
+    assert line.startswith(f"could not run: bo, {TINY}.ipynb: the kernel died")
+    printed = _printed(tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb")
+    assert [ln for ln in printed.splitlines() if ln.startswith(("done", "blocked"))] == [
+        f"blocked: {what}" for what in ("read source", "read gradebook", "read other student", "list course",
+                                        "rewrite other student", "write gradebook", "write course", "network",
+                                        "hidden tests in the working folder")]
+    assert (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes() == ana_nb
+    assert all(p.read_bytes() == data for p, data in protected.items()) and not (tiny_course / "planted.txt").exists()
+    assert cli.main(["course", "feedback", *run]) == 0
+    pages = {who: (tiny_course / "feedback" / who / TINY / f"{TINY}.html").read_text() for who in ("ana", "bo", "cy")}
+    assert "could not run" in pages["bo"] and "kernel died" in pages["bo"] and "5 of 9 points" in pages["cy"]
+    assert feedback_leaks(pages, tiny_course) == []
+    assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
+    rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
+    assert {who: (float(r["points"]), int(r["needs_manual_grading"]), r["could_not_run"][:15])
+            for who, r in rows.items()} == {"ana": (5.0, 1, ""), "bo": (0.0, 0, "the kernel died"), "cy": (5.0, 1, "")}
+    # a rerun grades nothing again: bo waits for --retry
+    assert cli.main(["course", "autograde", *run]) == 0
+    assert "nothing to autograde: 3 submissions graded before" in capsys.readouterr().out
 
 
 def _grade_by_hand(root: Path, student: str, grade_id: str, score: float) -> None:
@@ -438,3 +575,119 @@ def test_the_student_edition_holds_no_solution(tiny_course, tmp_path, capsys):
     assert cli.main(["course", "edition", "--course", str(tiny_course), "--out", str(inside)]) == 2
     one_line_error(capsys, str(inside), "inside the checkout")
     assert not inside.exists()
+
+
+# ----------------------------------------------------------------------------------------- the sandbox, in pieces
+def test_autograde_without_a_sandbox_refuses_unless_told_and_then_warns(tiny_course, monkeypatch, capsys):
+    (tiny_course / "gradebook.db").write_bytes(b"")  # released, as far as the refusal is concerned
+    monkeypatch.setattr(sandbox, "unavailable", lambda: "bubblewrap (bwrap) is not installed")
+    assert cli.main(["course", "autograde", "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, str(tiny_course), "bubblewrap (bwrap) is not installed", "--unsafe-no-sandbox")
+    assert not (tiny_course / autograde.FAILURES).exists() and not (tiny_course / "autograded").exists()
+    assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.startswith("WARNING: autograding WITHOUT a sandbox") and "gradebook.db" in captured.err
+    assert "nothing to autograde: no submission collected" in captured.out
+
+
+def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
+    root = exercises.NOTEBOOK_DIR.parent
+    readable = sandbox.readable_paths()
+    assert root / "geodepth_lite" in readable and root / "data_manifests" in readable
+    assert not any(p == root or p in (root / "notebooks").parents or p.name in ("notebooks", "tests", ".git")
+                   for p in readable)
+    assert root / "notebooks" / "study" in readable  # the committed tables notebook 05 reads
+    of_checkout = [p for p in readable if root in p.parents]
+    assert not [nb for p in of_checkout for nb in ([p] if p.is_file() else p.rglob("*")) if nb.suffix == ".ipynb"]
+    inside = root / "data_manifests" / "course"  # a course folder under a folder the kernel reads: hidden
+    cmd = sandbox.bwrap_command(["python"], tmp_path, [inside, tmp_path / "course"])
+    where = cmd.index(str(inside))
+    assert cmd[where - 1] == "--tmpfs" and cmd.index("--ro-bind", cmd.index(str(root / "data_manifests")) - 1) < where
+    assert str(tmp_path / "course") not in cmd  # not under anything bound: not there at all
+    assert "--unshare-all" in cmd and "--clearenv" in cmd and cmd[-2:] == ["--", "python"]
+    assert sandbox.readable_paths([root / "data_manifests"]).count(root / "data_manifests") == 0
+
+
+def test_feedback_page_names_exercises_and_shows_messages_not_tests():
+    nb = json.loads(tiny_notebook_text())
+    course.grade_by_hand(nb)  # as the course's source/ and autograded/ hold it: 99.3's answer graded by hand
+    hidden = "assert isinstance(my_sum, int)"
+    for cell in nb["cells"]:
+        gid = cell["metadata"].get("nbgrader", {}).get("grade_id", "")
+        if gid == "ex99-1-check":  # failed: nbgrader keeps the traceback, which quotes the hidden line
+            cell["outputs"] = [{"output_type": "error", "ename": "AssertionError", "evalue": "my_sum",
+                                "traceback": [f"----> 3 {hidden}", "AssertionError: my_sum"]}]
+        if gid == "ex99-2-answer":  # past the cell timeout: the kernel's interrupt, then nbgrader's error
+            cell["outputs"] = [{"output_type": "error", "ename": ename, "evalue": "", "traceback": []}
+                               for ename in ("KeyboardInterrupt", "CellTimeoutError")]
+    grades = {"ex99-1-check": (0.0, 2.0, False), "ex99-2-check": (3.0, 3.0, False),
+              "ex99-3-check": (0.0, 0.0, False), "ex99-3-answer": (None, 4.0, True)}
+    rows = autograde.exercise_rows(nb, grades)
+    assert [(r["number"], r["title"], r["points"], r["max_points"], r["outcome"], r["message"]) for r in rows] == [
+        ("99.1", "Add", 0.0, 2.0, "failed", "AssertionError: my_sum"),
+        ("99.2", "Square", 3.0, 3.0, "passed", "your answer cell stopped: CellTimeoutError: the cell ran longer "
+                                               "than the course's cell timeout and was stopped"),
+        ("99.3", "Why", 0.0, 4.0, "passed", None)]
+    text = autograde.page("ana", TINY, f"{TINY}.ipynb", rows, None)
+    assert "99.1 Add" in text and "AssertionError: my_sum" in text and "3 of 9 points" in text
+    assert "0 / 4 (graded by hand, pending)" in text
+    assert hidden not in text and "http" not in text and "<script" not in text
+    dead = autograde.page("bo", TINY, f"{TINY}.ipynb", None, "the kernel died: DeadKernelError: Kernel died")
+    assert "could not run" in dead and "DeadKernelError" in dead
+
+
+def tiny_notebook_text() -> str:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return tiny_notebook(Path(tmp) / "t.ipynb").read_text()
+
+
+def test_a_failed_run_is_one_line_with_its_reason():
+    dead = ("Traceback ...\n    raise DeadKernelError(\"Kernel died\") from None\n"
+            "nbclient.exceptions.DeadKernelError: Kernel died\n[ERROR] There was an error processing\n")
+    assert autograde.failure_reason(dead, 1) == ("the kernel died (the notebook ended Python, crashed or ran out of "
+                                                 "memory): nbclient.exceptions.DeadKernelError: Kernel died")
+    assert autograde.failure_reason("[ERROR] no such notebook\n", 1) == (
+        "nbgrader exited with status 1: [ERROR] no such notebook")
+    rows = [{"student": "ana", "assignment": TINY, "points": 5.0, "needs_manual_grading": 1, "pending_max_points": 4.0},
+            {"student": "bo", "assignment": TINY, "points": 0.0, "needs_manual_grading": 5, "pending_max_points": 13.0}]
+    out = course.with_could_not_run(rows, {("bo", TINY): "the kernel died", ("cy", TINY): "nbgrader exited"},
+                                    {TINY: 9.0})
+    assert [(r["student"], r["points"], r["max_points"] if r["student"] == "cy" else None, r["needs_manual_grading"],
+             r["could_not_run"]) for r in out] == [
+        ("ana", 5.0, None, 1, ""), ("bo", 0.0, None, 0, "the kernel died"), ("cy", 0.0, 9.0, 0, "nbgrader exited")]
+
+
+def test_a_damaged_list_of_failed_runs_is_one_line(tiny_course, capsys):
+    (tiny_course / "gradebook.db").write_bytes(b"")
+    (tiny_course / autograde.FAILURES).write_text("[{\"student\": 1}]")
+    assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, str(tiny_course / autograde.FAILURES), "damaged")
+
+
+def test_a_rerun_skips_what_is_graded_and_retry_runs_the_failed_again(tmp_path, monkeypatch):
+    """The class loop alone, nbgrader replaced by a stand-in that records whom it grades."""
+    root = tmp_path / "course"
+    for student in ("ana", "bo", "cy"):
+        (root / "submitted" / student / TINY).mkdir(parents=True)
+        (root / "submitted" / student / TINY / f"{TINY}.ipynb").write_text('{"cells": []}')
+    (root / "autograded" / "ana" / TINY).mkdir(parents=True)  # graded before
+    (root / autograde.FAILURES).write_text(json.dumps([{"student": "bo", "assignment": TINY, "reason": "died"}]))
+    calls = []
+
+    def stand_in(course_dir, student, assignment, sandboxed, limit_s):
+        calls.append((student, limit_s))
+        return "the kernel died again" if student == "bo" else None
+
+    monkeypatch.setattr(autograde, "grade_one", stand_in)
+    monkeypatch.setattr(sandbox, "unavailable", lambda: None)
+    lines = []
+    info = autograde.grade_class(root, [TINY], 8, echo=lines.append)
+    assert calls == [("cy", 8 + autograde.KERNEL_START_S)] and info["graded"] == [("cy", TINY)]
+    assert info["skipped"] == [("ana", TINY), ("bo", TINY)] and lines == []
+    calls.clear()
+    info = autograde.grade_class(root, [TINY], 8, retry=True, echo=lines.append)
+    assert [c[0] for c in calls] == ["bo", "cy"]  # cy has no autograded/ folder here: the stand-in wrote none
+    assert lines == [f"could not run: bo, {TINY}.ipynb: the kernel died again"]
+    assert autograde.read_failures(root) == {("bo", TINY): "the kernel died again"}

@@ -521,3 +521,74 @@ def test_rerun_answer_in_a_kernel_without_history_runs_nothing_and_with_history_
         grading.rerun_answer({"x": 1}, ["x"])
     shell.history_manager.input_hist_parsed += ["x = 2", "check"]
     assert grading.rerun_answer({"In": []}, ["x"])["x"] == 2
+
+
+# Correct answers written with ``@torch.no_grad()``: the decorator's wrapper is the same code for every
+# function it decorates, the package's forbidden ones among them, so the guard must not watch it.
+NO_GRAD_ANSWERS = {
+    "02-1": ("""
+        import torch
+
+
+        @torch.no_grad()
+        def _out(h, k, s, p):  # floor((h + 2p - k) / s) + 1
+            return (h + 2 * p - k) // s + 1
+
+
+        my_encoder = [(64, 32, 48), (64, 16, 24), (128, 8, 12), (256, 4, 6), (512, 2, 3)]
+        my_decoder = [(256, 4, 6), (128, 8, 12), (64, 16, 24), (32, 32, 48), (16, 64, 96)]
+        my_heights_250 = [_out(250, 7, 2, 3)]
+        my_heights_250.append(_out(my_heights_250[-1], 3, 2, 1))
+        for _ in range(3):
+            my_heights_250.append(_out(my_heights_250[-1], 3, 2, 1))
+        my_failing_scale = 2
+        """,),
+    "03-3": ("""
+        import torch
+
+
+        @torch.no_grad()
+        def _nearest_lattice_point(q):
+            col = np.clip(np.rint(fx * q[:, 0] / d + cx), 0, W - 1)
+            row = np.clip(np.rint(fy * q[:, 1] / d + cy), 0, H - 1)
+            return np.column_stack((d * (col - cx) / fx, d * (row - cy) / fy, np.full(len(q), float(d))))
+
+
+        nearest = _nearest_lattice_point(q)
+        to_wall = nearest - q
+        fallback = np.sign(np.einsum("ij,ij->i", to_wall, nearest))
+        z_safe = np.where(q[:, 2] > 0, q[:, 2], 1.0)
+        u_seen = np.rint(fx * q[:, 0] / z_safe + cx)
+        v_seen = np.rint(fy * q[:, 1] / z_safe + cy)
+        seen = (q[:, 2] > 0) & (u_seen >= 0) & (u_seen <= W - 1) & (v_seen >= 0) & (v_seen <= H - 1)
+        return np.where(seen, np.sign(d - q[:, 2]), fallback) * np.linalg.norm(to_wall, axis=1)
+        """,),
+}
+
+
+@pytest.mark.parametrize("ident", sorted(NO_GRAD_ANSWERS))
+def test_a_correct_answer_decorated_with_no_grad_passes_the_full_check(ident):
+    """02.1 and 03.3 forbid package functions that are themselves decorated with ``@torch.no_grad()``."""
+    ex = EXERCISES[ident]
+    answer = answer_with(ex.answer, NO_GRAD_ANSWERS[ident])
+    assert "@torch.no_grad()" in answer
+    assert outcome(answer, ex.check) is None
+
+
+def test_forbid_still_catches_a_kept_reference_to_a_decorated_function():
+    """The guard watches the code the decorator wraps: a reference to a forbidden ``@torch.no_grad()``
+    function taken before the block still fails inside it, and an own decorated function runs."""
+    import torch
+
+    from geodepth_lite import model as M
+
+    kept = M.feature_shapes
+
+    @torch.no_grad()
+    def own(x):
+        return x + 1
+
+    with grading.forbid(M.feature_shapes, task="work out the shapes"):
+        with pytest.raises(grading.ForbiddenCall, match="calling geodepth_lite.model.feature_shapes"):
+            kept(None, 64, 96)
+        assert float(own(torch.ones(1))) == 2.0
