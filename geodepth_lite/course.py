@@ -393,7 +393,7 @@ def grade_rows(course: Path) -> list[dict]:
     points, how many answers still need a hand grade and the points they are worth."""
     # nbgrader's gradebook (SQLAlchemy): heavy, needed by this command only
     import sqlalchemy.exc
-    from nbgrader.api import Gradebook, MissingEntry
+    from nbgrader.api import Gradebook, MissingEntry  # nbgrader: only the course commands need it
 
     course = Path(course)
     db = course / "gradebook.db"

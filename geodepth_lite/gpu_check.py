@@ -64,6 +64,7 @@ from geodepth_lite import (
     losses,
     manifest,
     sdf,
+    synth,
     train,
     train_many,
     utils,
@@ -409,8 +410,6 @@ def _scenario_data(dev, work: Path, counts: dict, size: int, tiny: bool) -> Path
     """The data of ``--full``: the paper manifest's scenario frames, its splits (``counts``) at
     ``size`` px, rendered into ``work`` by the torch renderer on ``dev`` (no VTK); returns the dataset
     folder. Scene building runs in one worker process per CPU core, except in the dry run (``tiny``)."""
-    from geodepth_lite import synth  # only --full renders
-
     overrides = {"splits": dict(counts)}
     if tiny:
         overrides["camera"] = {"width": size, "height": size}

@@ -21,7 +21,9 @@ import hashlib
 import json
 from pathlib import Path
 
-from .utils import MAX_DATASET_FILE_BYTES, FileProblem, inside_folder, os_reason, write_bytes_atomic
+import numpy as np
+
+from .utils import MAX_DATASET_FILE_BYTES, FileProblem, dataset_file, inside_folder, os_reason, write_bytes_atomic
 
 MAX_MANIFEST_BYTES = 4 * 2**20  # a dataset's manifest.json, at most (as manifest.MAX_MANIFEST_BYTES)
 MAX_SPLIT_FRAMES = 10_000_000  # frames of one split, at most (as manifest's check of 'splits')
@@ -203,11 +205,9 @@ def verify(root: str | Path) -> list[str]:
 
 def _record_problems(root: Path, text: str, problems: list[str]) -> list[str]:
     """Each unchanged ``<split>/frames.jsonl`` read as ``train`` and ``evaluate`` read it
-    (``datasets.synthetic.read_frames``: every record's files inside the folder, regular, listed in
+    (:func:`read_frames`: every record's files inside the folder, regular, listed in
     checksums.sha256); 'unreadable: <split>/frames.jsonl (why)' for the first record refused in a split.
     A split with a problem already (a missing or changed file) is left to those lines."""
-    from geodepth_lite.datasets.synthetic import read_frames  # torch: only once the checksums are read
-
     flagged = {Path(p.partition(": ")[2].split(" ", 1)[0]).parts[0] for p in problems if ": " in p}
     found = []
     for line in text.splitlines():
@@ -302,3 +302,86 @@ def run_verify(args) -> int:
     made = "" if rec == VTK_RECORD else f" (made by the {rec['renderer']} renderer on {rec.get('device', '?')})"
     print(f"verify: ok, {n} files match checksums.sha256{made}")
     return 0
+
+
+# --------------------------------------------------------------------------- frames.jsonl
+
+
+def read_frames(root: str | Path, split: str) -> list[dict]:
+    """The frames.jsonl records of a split (clear errors for a missing directory or split)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset directory {root} does not exist "
+                                "(generate it with synth.ensure_dataset or `python -m geodepth_lite synth`)")
+    path = root / split / "frames.jsonl"
+    if not path.is_file():
+        have = sorted(p.name for p in root.iterdir() if (p / "frames.jsonl").is_file())
+        raise FileNotFoundError(f"dataset {root} has no split {split!r} (splits present: {', '.join(have) or 'none'}); "
+                                "an unfinished dataset is completed by running synth again")
+    size = path.stat().st_size
+    if size > MAX_DATASET_FILE_BYTES:
+        raise FileProblem(f"cannot read {path}: {size} bytes, over the limit of {MAX_DATASET_FILE_BYTES} bytes "
+                          "for one file of a dataset", path)
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
+        raise FileProblem(f"cannot read {path}: not a text file", path) from exc
+    covered = _checksummed(root)
+    records = []
+    for line_no, line in enumerate(text.splitlines(), 1):
+        if line.strip():
+            records.append(_frame_record(root, path, line_no, line, covered))
+    return records
+
+
+RECORD_TEXT_KEYS = ("rgb", "depth", "organ", "group")  # what every frames.jsonl record holds, with "K" and "index"
+
+
+def _checksummed(root: Path) -> set[str] | None:
+    """The file names checksums.sha256 lists (None when the dataset has none: synth did not finish,
+    and ``integrity.check_dataset`` decides whether it may be used)."""
+    sums = root / "checksums.sha256"
+    if not sums.is_file():
+        return None
+    try:
+        if sums.stat().st_size > MAX_DATASET_FILE_BYTES:
+            raise FileProblem(f"cannot read {sums}: over the limit of {MAX_DATASET_FILE_BYTES} bytes", sums)
+        return {line.partition("  ")[2] for line in sums.read_text().splitlines() if "  " in line}
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileProblem(f"cannot read {sums}: {os_reason(exc) if isinstance(exc, OSError) else 'not a text file'}",
+                          sums) from exc
+
+
+def _frame_record(root: Path, path: Path, line_no: int, line: str, covered: set[str] | None) -> dict:
+    """One frames.jsonl record, checked: its keys and types, K a finite 3x3, and its files regular
+    files inside the dataset folder, listed in checksums.sha256. A FileProblem naming the file and line."""
+    where = f"{path} line {line_no}"
+    try:
+        rec = json.loads(line)
+    except RecursionError:
+        raise FileProblem(f"cannot read {where}: its JSON is nested too deep", path) from None
+    except ValueError as exc:
+        raise FileProblem(f"cannot read {where}: not valid JSON ({exc})", path) from None
+    if not isinstance(rec, dict):
+        raise FileProblem(f"cannot read {where}: a frame record must be a JSON object", path)
+    missing = [k for k in (*RECORD_TEXT_KEYS, "K", "index") if k not in rec]
+    if missing:
+        raise FileProblem(f"cannot read {where}: the frame record lacks {', '.join(repr(k) for k in missing)}", path)
+    bad = [k for k in RECORD_TEXT_KEYS if not isinstance(rec[k], str)]
+    if bad:
+        raise FileProblem(f"cannot read {where}: {bad[0]!r} must be a string, got {str(rec[bad[0]])[:60]}", path)
+    if not isinstance(rec["index"], int) or isinstance(rec["index"], bool):
+        raise FileProblem(f"cannot read {where}: 'index' must be an integer, got {str(rec['index'])[:60]}", path)
+    try:
+        K = np.asarray(rec["K"], dtype=np.float64)
+    except (TypeError, ValueError):
+        K = None
+    if K is None or K.shape != (3, 3) or not np.isfinite(K).all():
+        raise FileProblem(f"cannot read {where}: 'K' must be a 3x3 matrix of finite numbers, got "
+                          f"{str(rec['K'])[:60]}", path)
+    for key in ("rgb", "depth"):
+        dataset_file(root, rec[key], key, where)  # confined, regular, bounded
+        if covered is not None and str(Path(rec[key])) not in covered and rec[key] not in covered:
+            raise FileProblem(f"cannot use {where}: its {key} file {rec[key]} is not listed in "
+                              f"{root / 'checksums.sha256'}, so it cannot be verified", path)
+    return rec

@@ -214,8 +214,8 @@ def test_diverged_training_stops_at_the_first_non_finite_loss(smoke_root, tmp_pa
     real = train.compute_losses
     calls = {"n": 0}
 
-    def blow_up(pred, batch, c):
-        loss, terms = real(pred, batch, c)
+    def blow_up(pred, batch, c, *rest):
+        loss, terms = real(pred, batch, c, *rest)
         calls["n"] += 1
         if calls["n"] == 3:  # the third training step of the resumed epoch
             terms = {**terms, "smooth": float("nan")}

@@ -126,6 +126,7 @@ LATE_IMPORTS = {"pyvista", "vtk", "vtkmodules", "matplotlib", "papermill", "nbfo
                 # needed only by public datasets' readers: training and gpu-check run on GPU images without them
                 "imageio", "tifffile",
                 "pytest",  # gpu-check runs the CUDA tests only where pytest is installed
+                "sqlalchemy",  # nbgrader's gradebook: `course grades` only
                 "plotly"}  # plotly.js for a standalone 3D page only: building a 3D view needs no plotly
 _PRAGMA = re.compile(r"\b(noqa(:[\s\w,]*)?|type:\s*ignore\S*|pragma:[^#]*)", re.IGNORECASE)  # not reasons
 
