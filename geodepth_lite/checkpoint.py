@@ -727,9 +727,13 @@ def checkpoint_bytes(model: torch.nn.Module) -> int:
     return 3 * sum(t.numel() * t.element_size() for t in model.state_dict().values()) + 2**20
 
 
-def write_logs(run_dir: Path, cfg: dict, history: list[dict]) -> None:
-    """log.json (config + one row per epoch) and log.csv (the same rows), both atomic."""
-    utils.write_json_atomic(run_dir / LOG_JSON, {"cfg": cfg, "epochs": history})
+def write_logs(run_dir: Path, cfg: dict, history: list[dict], sessions: list[dict] | None = None) -> None:
+    """log.json (config + one row per epoch, and with ``sessions`` the training sessions' provenance,
+    :mod:`geodepth_lite.provenance`) and log.csv (the same rows), both atomic."""
+    log = {"cfg": cfg, "epochs": history}
+    if sessions is not None:
+        log["provenance"] = sessions
+    utils.write_json_atomic(run_dir / LOG_JSON, log)
     if not history:
         return
     fields = list(history[0])
@@ -739,6 +743,18 @@ def write_logs(run_dir: Path, cfg: dict, history: list[dict]) -> None:
     for row in history:
         w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
     utils.write_bytes_atomic(run_dir / LOG_CSV, buf.getvalue().encode())
+
+
+def read_log_file(run_dir: str | os.PathLike) -> dict | None:
+    """The whole ``log.json`` of ``run_dir`` as a dict, or None when it is missing, oversized or not one."""
+    path = Path(run_dir) / LOG_JSON
+    try:
+        if not path.is_file() or path.stat().st_size > 64 * 2**20:
+            return None
+        log = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    return log if isinstance(log, dict) else None
 
 
 def read_log(run_dir: str | os.PathLike) -> list[dict]:

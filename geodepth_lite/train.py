@@ -38,7 +38,7 @@ import torch
 from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint as ckpt_io
-from geodepth_lite import config, distributed, inference, losses, utils
+from geodepth_lite import config, distributed, inference, losses, provenance, utils
 from geodepth_lite.augment import augment_batch
 from geodepth_lite.datasets import MemoryDataset, load_split, resolve_dataset
 from geodepth_lite.metrics import METRIC_NAMES, frame_metrics_torch
@@ -271,6 +271,9 @@ class Trainer:
         # 4. resume: every state as it was after the last finished epoch
         self.history: list[dict] = []
         start = 0 if state is None else self.restore(state)
+        # this session's provenance after the earlier sessions' (a resumed run keeps theirs)
+        earlier = provenance.earlier_sessions(ckpt_io.read_log_file(self.run_dir)) if state is not None else []
+        self.sessions = [*earlier, provenance.session(cfg, self.device, start)]
         self.net = torch.nn.parallel.DistributedDataParallel(self.model) if self.distributed else self.model
         # 5. the epochs, a checkpoint after each
         for done, epoch in enumerate(range(start, cfg["epochs"]), start=1):
@@ -424,4 +427,5 @@ class Trainer:
             "history": self.history,
             "world_size": self.world,
         })
-        ckpt_io.write_logs(self.run_dir, self.cfg, self.history)
+        self.sessions[-1].update(end_utc=provenance.utc_now(), epochs_done=epoch + 1 - self.sessions[-1]["first_epoch"])
+        ckpt_io.write_logs(self.run_dir, self.cfg, self.history, self.sessions)

@@ -1,0 +1,58 @@
+"""Every training run's log.json records where and with what it was made, one record per session."""
+
+import json
+import subprocess
+
+import numpy
+import torch
+
+from geodepth_lite import config, provenance, train, utils
+
+
+def _cfg(root, **kw):
+    return config.make_config("smoke", 4, 0, dataset=str(root), batch_size=4, image_size=32, **kw)
+
+
+def _sessions(run) -> list[dict]:
+    return json.loads((run / "log.json").read_text())["provenance"]
+
+
+def test_a_fresh_run_logs_its_provenance(smoke_root, tmp_path):
+    cfg = _cfg(smoke_root, epochs=1)
+    before = provenance.utc_now()
+    train.fit(cfg, tmp_path / "run", progress=False)
+    after = provenance.utc_now()
+    (rec,) = _sessions(tmp_path / "run")
+    assert provenance.problems(rec, cfg) == []
+    assert before <= rec["start_utc"] <= rec["end_utc"] <= after
+    assert (rec["first_epoch"], rec["epochs_done"]) == (0, 1)
+    assert rec["config_hash"] == config.config_hash(cfg)
+    assert rec["torch"] == torch.__version__ and rec["numpy"] == numpy.__version__
+    assert rec["device"] == "cpu" and rec["threads"] == torch.get_num_threads() and rec["cpu"]
+    root = utils.project_root()
+    if root is not None and (root / ".git").exists():  # a checkout: the commit is HEAD's
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+        assert rec["git_commit"] == head.stdout.strip() and isinstance(rec["git_clean"], bool)
+
+
+def test_a_resumed_run_keeps_each_sessions_record(smoke_root, tmp_path):
+    cfg = _cfg(smoke_root, epochs=2)
+    train.fit(cfg, tmp_path / "run", progress=False, stop_after=1)
+    (first,) = _sessions(tmp_path / "run")
+    train.fit(cfg, tmp_path / "run", progress=False, resume=True)
+    again, second = _sessions(tmp_path / "run")
+    assert again == first and (first["first_epoch"], first["epochs_done"]) == (0, 1)
+    assert (second["first_epoch"], second["epochs_done"]) == (1, 1) and second["start_utc"] >= first["end_utc"]
+    assert provenance.problems(second, cfg) == []
+
+
+def test_the_record_check_can_fail(smoke_root):
+    cfg = _cfg(smoke_root, epochs=1)
+    good = {**provenance.session(cfg, "cpu", 0), "end_utc": "2099-01-01T00:00:00Z", "epochs_done": 1}
+    assert provenance.problems(good, cfg) == []
+    assert provenance.problems({k: v for k, v in good.items() if k != "git_commit"}, cfg) == ["no git_commit"]
+    assert provenance.problems({**good, "end_utc": None}, cfg) == ["its end is not recorded"]
+    assert "before it starts" in provenance.problems({**good, "end_utc": "2000-01-01T00:00:00Z"}, cfg)[0]
+    other = _cfg(smoke_root, epochs=2)  # another configuration's hash
+    assert "is not the run's" in provenance.problems(good, other)[0]
+    assert provenance.problems({**good, "epochs_done": 0}, cfg) == ["no epoch recorded"]
