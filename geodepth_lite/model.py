@@ -59,6 +59,20 @@ def depth_to_sigmoid(depth: torch.Tensor, min_depth: float = MIN_DEPTH, max_dept
     return (torch.log(depth) - lo) / (hi - lo)
 
 
+def check_depth_range(depth_range) -> tuple[float, float]:
+    """The head's (smallest, largest) depth: None = (MIN_DEPTH, MAX_DEPTH); else two finite numbers,
+    0 < smallest < largest; a clear error otherwise."""
+    if depth_range is None:
+        return (MIN_DEPTH, MAX_DEPTH)
+    try:
+        lo, hi = (float(v) for v in depth_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"depth_range must be two numbers (smallest, largest depth), got {depth_range!r}") from None
+    if not (0 < lo < hi < math.inf):
+        raise ValueError(f"depth_range must satisfy 0 < smallest < largest < inf, got {depth_range!r}")
+    return (lo, hi)
+
+
 # ----------------------------------------------------------------------------- encoder
 class BasicBlock(nn.Module):
     """ResNet basic block (two 3x3 convs + identity/1x1 shortcut); torchvision's names."""
@@ -182,11 +196,12 @@ class DepthNet(nn.Module):
     """
 
     def __init__(self, encoder_weights: str | os.PathLike | None = None, padding: str = "zeros",
-                 input_pad: int = 0):
+                 input_pad: int = 0, depth_range: tuple[float, float] | None = None):
         super().__init__()
         if isinstance(input_pad, bool) or not isinstance(input_pad, int) or input_pad < 0 or input_pad % (STRIDE // 2):
             raise ValueError(f"input_pad must be a non-negative multiple of {STRIDE // 2}, got {input_pad!r}")
         self.input_pad = input_pad
+        self.depth_range = check_depth_range(depth_range)
         self.encoder = ResNet18Encoder()
         self.sab = SpatialAttention()
         self.decoder = DepthDecoder()
@@ -239,13 +254,17 @@ class DepthNet(nn.Module):
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         pad = self.input_pad
         if not pad:
-            return sigmoid_to_depth(self.decoder(self.encode(image)))
+            return self.depth_from_sigmoid(self.decoder(self.encode(image)))
         self.check_input(image)
         H, W = image.shape[-2:]
         if pad >= min(H, W):
             raise ValueError(f"input_pad {pad} needs an image larger than {pad} px on each side, got {H} x {W}")
         padded = F.pad(image, (pad, pad, pad, pad), mode="reflect")  # mirrored, without repeating the edge
-        return sigmoid_to_depth(self.decoder(self.encode(padded)))[..., pad:pad + H, pad:pad + W]
+        return self.depth_from_sigmoid(self.decoder(self.encode(padded)))[..., pad:pad + H, pad:pad + W]
+
+    def depth_from_sigmoid(self, s: torch.Tensor) -> torch.Tensor:
+        """The head's sigmoid map to depth in this network's ``depth_range`` (:func:`sigmoid_to_depth`)."""
+        return sigmoid_to_depth(s, *self.depth_range)
 
 
 # ----------------------------------------------------------------------------- helpers
