@@ -55,6 +55,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a make_config setting (JSON)")
     p.add_argument("--analytic", action="store_true", help="train on analytic frames (64 px, 120/40 frames)")
     p.add_argument("--log", default=str(LOG), help="the JSONL file the row is appended to")
+    p.add_argument("--score-only", action="store_true",
+                   help="no training: score the run's checkpoint as it stands (a run stopped early)")
+    p.add_argument("--note", default="", help="a remark recorded in the row")
     args = p.parse_args(argv)
     args.settings = {}
     for item in args.set:
@@ -158,7 +161,12 @@ def main(argv=None) -> int:
     cfg = config.make_config(args.profile, args.case, args.seed, **settings)
     run_dir = utils.runs_dir() / "paper_recipe" / args.name
     start, prov, t0 = utc_now(), provenance(), time.perf_counter()
-    ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
+    ckpt = run_dir / checkpoint.CHECKPOINT_NAME
+    if args.score_only:
+        if not ckpt.is_file():
+            raise SystemExit(f"paper_recipe: --score-only: no checkpoint at {ckpt}")
+    else:
+        ckpt = train.fit(cfg, run_dir, resume=True, progress=False)
     minutes = (time.perf_counter() - t0) / 60
     end = utc_now()
     model, cfg = checkpoint.load_model(ckpt)
@@ -168,13 +176,14 @@ def main(argv=None) -> int:
     log = checkpoint.read_log(run_dir)
     row = {"name": args.name, "profile": args.profile, "case": args.case, "seed": args.seed,
            "settings": args.settings, "config_hash": config.config_hash(cfg), "epochs": cfg["epochs"],
+           "epochs_done": len(log),
            "image_size": cfg["image_size"], "val_frames_scored": len(ds), **score(pred, gt, images),
            **collapse_stats(pred, gt, model.depth_range[0]),
            "head_grad_near_far": round(head_gradient_ratio(model, ds, cfg), 5),
            "val_abs_rel_by_epoch": [round(r.get("val_abs_rel", float("nan")), 4) for r in log],
            "epoch_s_median": round(float(np.median([r["epoch_s"] for r in log])), 1),
            "minutes_this_call": round(minutes, 2), "utc_start": start, "utc_end": end,
-           "threads": cfg["threads"], **prov}
+           "threads": cfg["threads"], "score_only": args.score_only, "note": args.note, **prov}
     with open(args.log, "a") as f:
         f.write(json.dumps(row) + "\n")
     print(json.dumps(row))
