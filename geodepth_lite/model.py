@@ -15,7 +15,8 @@ Shape of the network (Manydepth/monodepth2-style, with the paper's modifications
       x = upsample x2 (nearest), concatenate skip f(i-1) when i > 0
       x = upconv(i, 1)(x)            3x3 conv + BatchNorm + LeakyReLU
     head: 3x3 conv -> sigmoid s -> depth = exp(log d_min + s (log d_max - log d_min))
-      depth: B x 1 x H x W, between d_min = 0.01 and d_max = 100 (the dataset's range, Sec. 3.A)
+      depth: B x 1 x H x W, between d_min = 0.01 and d_max = 100 (the dataset's range, Sec. 3.A),
+      or the configured head_range (the paper profile: 0.1-40, set from the scenario data)
 
 The head is this workbook's own: the paper does not say how its last layer turns features into
 depth. A sigmoid mapped to log depth keeps every prediction positive.
@@ -184,7 +185,7 @@ PADDINGS = ("zeros", "replicate")  # DepthNet.set_padding
 
 
 class DepthNet(nn.Module):
-    """Image B x 3 x H x W in [0, 1] -> z-depth B x 1 x H x W in (0.01, 100) (Sec. 3.B).
+    """Image B x 3 x H x W in [0, 1] -> z-depth B x 1 x H x W in ``depth_range`` (default (0.01, 100); Sec. 3.B).
 
     H and W must be multiples of 32. ``encoder_weights``: optional path to a torchvision
     ``resnet18`` state dict (ImageNet weights); see :func:`load_encoder_weights`.
