@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import analytic, config, losses, train, utils
+from geodepth_lite import analytic, checkpoint, config, losses, train, utils
 from geodepth_lite.model import MAX_DEPTH, MIN_DEPTH, DepthNet, sigmoid_to_depth
 
 # Depths of scenario_teach's training split (scene units), measured once over its 600 frames
@@ -59,8 +59,6 @@ def test_the_head_maps_its_sigmoid_into_its_range():
 
 
 def test_the_run_builds_and_reloads_the_network_with_its_head_range(tmp_path):
-    from geodepth_lite import checkpoint
-
     cfg = config.make_config("paper", 1, 0, image_size=64)
     net = train.build_network(cfg)
     assert net.depth_range == (0.1, 40.0)
