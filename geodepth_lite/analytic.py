@@ -12,8 +12,9 @@ along +z (:func:`depth_map`):
 Units: the shapes are drawn in millimetres (a colon-sized tube of radius 12-20 mm, a wall 15-30 mm
 away, a close-up 3-6 mm from the lens) and returned in the scenario data's scene units, one unit
 being :data:`MM_PER_SCENE_UNIT` mm (the scenario colon's radius is 2 units): every depth lies in
-0.05-24 units, inside the network head's range (``model.MIN_DEPTH``, ``model.MAX_DEPTH``) and the
-scenario manifests' near and far planes (0.01, 100), as the paper's set does (Sec. 3.A).
+0.19-21 units (by construction: no surface nearer than 1.9 mm, the wall clipped at 210 mm), inside
+the network head's ranges (``model.MIN_DEPTH``-``model.MAX_DEPTH``, and the paper profile's 0.1-40)
+and the scenario manifests' near and far planes (0.01, 100), as the paper's set does (Sec. 3.A).
 
 Images (:func:`shaded_image`) are Lambertian shading from a light at the camera with inverse-
 square fall-off and a tissue colour, so the depth is visible in the brightness, as in
