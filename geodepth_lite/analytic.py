@@ -9,6 +9,13 @@ along +z (:func:`depth_map`):
 - "wall": a tilted plane with smooth bumps, seen at a glancing angle;
 - "closeup": a curved surface a few millimetres from the lens filling the view.
 
+Units: the shapes are drawn in millimetres (a colon-sized tube of radius 12-20 mm, a wall 15-30 mm
+away, a close-up 3-6 mm from the lens) and returned in the scenario data's scene units, one unit
+being :data:`MM_PER_SCENE_UNIT` mm (the scenario colon's radius is 2 units): every depth lies in
+0.19-21 units (by construction: no surface nearer than 1.9 mm, the wall clipped at 210 mm), inside
+the network head's ranges (``model.MIN_DEPTH``-``model.MAX_DEPTH``, and the paper profile's 0.1-40)
+and the scenario manifests' near and far planes (0.01, 100), as the paper's set does (Sec. 3.A).
+
 Images (:func:`shaded_image`) are Lambertian shading from a light at the camera with inverse-
 square fall-off and a tissue colour, so the depth is visible in the brightness, as in
 endoscopy. Used by the nearest-point search's tests and benchmark and by ``gpu-check``'s data.
@@ -27,6 +34,7 @@ from PIL import Image
 from geodepth_lite import integrity, utils
 
 KINDS = ("lumen", "wall", "closeup")
+MM_PER_SCENE_UNIT = 10.0  # millimetres per scene unit: the scenario colon (radius 2 units) is 20 mm in radius
 
 
 def intrinsics(size: int, fov_deg: float = 90.0) -> np.ndarray:
@@ -43,11 +51,15 @@ def _rays(size: int, K: np.ndarray):
     return x, y  # ray (x, y, 1): z-depth t gives the point t (x, y, 1)
 
 
-def depth_map(kind: str, size: int, seed: int = 0, K: np.ndarray | None = None) -> np.ndarray:
-    """z-depth (mm, float32, size x size, all finite > 0) of an analytic view of ``kind`` (:data:`KINDS`).
+def depth_map(kind: str, size: int, seed: int = 0, K: np.ndarray | None = None,
+              mm_per_unit: float = MM_PER_SCENE_UNIT) -> np.ndarray:
+    """z-depth (float32, size x size, all finite > 0) of an analytic view of ``kind`` (:data:`KINDS`),
+    in units of ``mm_per_unit`` millimetres (default: the scenario data's scene units; 1: millimetres).
 
     ``seed`` varies the pose and shape (tilt, radius, fold phase, bumps) reproducibly.
     """
+    if not (isinstance(mm_per_unit, (int, float)) and 0 < mm_per_unit < math.inf):
+        raise ValueError(f"mm_per_unit must be a positive number, got {mm_per_unit!r}")
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     rng = np.random.default_rng(seed)
@@ -85,7 +97,7 @@ def depth_map(kind: str, size: int, seed: int = 0, K: np.ndarray | None = None) 
         z0 = rng.uniform(3.0, 6.0)
         cx, cy = rng.uniform(-0.3, 0.3, 2)
         z = z0 * (1.0 + 0.8 * ((x - cx) ** 2 + (y - cy) ** 2)) + 0.3 * np.sin(5 * x + rng.uniform(0, 6))
-    return np.maximum(z, 0.5).astype(np.float32)
+    return (np.maximum(z, 0.5) / mm_per_unit).astype(np.float32)
 
 
 def shaded_image(depth: np.ndarray, K: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -105,7 +117,8 @@ def shaded_image(depth: np.ndarray, K: np.ndarray, seed: int = 0) -> np.ndarray:
     return (img * 255 + 0.5).astype(np.uint8)
 
 
-def write_dataset(root, splits: dict, size: int = 320, seed: int = 0, workers: int = 1) -> Path:
+def write_dataset(root, splits: dict, size: int = 320, seed: int = 0, workers: int = 1,
+                  mm_per_unit: float = MM_PER_SCENE_UNIT) -> Path:
     """A dataset folder of analytic frames in the synthetic dataset's layout (``synth.py``), without VTK.
 
     ``splits``: frames per split, e.g. {"train": 40, "val": 8, "test": 8}; views cycle through
@@ -113,21 +126,22 @@ def write_dataset(root, splits: dict, size: int = 320, seed: int = 0, workers: i
     ``<split>/rgb/NNNNNN.png``, ``<split>/depth/NNNNNN.npy`` and checksums.sha256 last, so ``train``
     and ``evaluate`` check it as they check a generated dataset. ``root`` must not exist or be empty.
     ``workers`` > 1 writes the frames in that many processes; each frame depends on its index alone,
-    so the folder is byte-identical whatever the count. Returns the folder.
+    so the folder is byte-identical whatever the count. ``mm_per_unit``: the depth unit
+    (:func:`depth_map`; the manifest records it). Returns the folder.
     """
     root = Path(root)
     if root.exists() and any(root.iterdir()):
         raise utils.FileProblem(f"cannot write the analytic dataset into {root}: the folder is not empty", root)
     K = intrinsics(size)
     m = {"name": "analytic", "generator": "geodepth_lite.analytic", "size": size, "seed": seed,
-         "splits": {k: int(v) for k, v in splits.items()}}
+         "splits": {k: int(v) for k, v in splits.items()}, "mm_per_depth_unit": float(mm_per_unit)}
     jobs, frame = [], 0
     for split, n in m["splits"].items():
         (root / split / "rgb").mkdir(parents=True, exist_ok=True)
         (root / split / "depth").mkdir(parents=True, exist_ok=True)
         records = []
         for i in range(n):
-            jobs.append((str(root), split, i, frame, size, seed))
+            jobs.append((str(root), split, i, frame, size, seed, float(mm_per_unit)))
             records.append({"index": i, "rgb": f"{split}/rgb/{i:06d}.png", "depth": f"{split}/depth/{i:06d}.npy",
                             "K": K.tolist(), "organ": KINDS[frame % len(KINDS)], "group": "analytic"})
             frame += 1
@@ -145,8 +159,8 @@ def write_dataset(root, splits: dict, size: int = 320, seed: int = 0, workers: i
 
 def _write_frame(job) -> None:
     """One frame's image and depth map (a worker's unit of :func:`write_dataset`)."""
-    root, split, i, frame, size, seed = job
+    root, split, i, frame, size, seed, mm_per_unit = job
     K = intrinsics(size)
-    depth = depth_map(KINDS[frame % len(KINDS)], size, seed=seed * 100003 + frame, K=K)
+    depth = depth_map(KINDS[frame % len(KINDS)], size, seed=seed * 100003 + frame, K=K, mm_per_unit=mm_per_unit)
     Image.fromarray(shaded_image(depth, K, seed=frame)).save(Path(root) / split / "rgb" / f"{i:06d}.png")
     np.save(Path(root) / split / "depth" / f"{i:06d}.npy", depth)

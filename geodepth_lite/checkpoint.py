@@ -768,7 +768,8 @@ def read_log(run_dir: str | os.PathLike) -> list[dict]:
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
     """(DepthNet in eval mode on ``device``, its training cfg) from a checkpoint file."""
     ckpt = read_checkpoint(path)
-    model = DepthNet(padding=ckpt["cfg"].get("padding", "zeros"), input_pad=int(ckpt["cfg"].get("input_pad", 0)))
+    model = DepthNet(padding=ckpt["cfg"].get("padding", "zeros"), input_pad=int(ckpt["cfg"].get("input_pad", 0)),
+                     depth_range=ckpt["cfg"].get("head_range"))
     load_weights(model, ckpt["model"], path)
     return model.to(device).eval(), dict(ckpt["cfg"])
 

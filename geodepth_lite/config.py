@@ -19,7 +19,7 @@ import numpy as np
 
 from geodepth_lite.augment import AUGMENTS
 from geodepth_lite.losses import DEPTH_TERMS, group_weights
-from geodepth_lite.model import PADDINGS
+from geodepth_lite.model import PADDINGS, check_depth_range
 from geodepth_lite.sdf import SDF_SAMPLINGS
 
 PROFILES: dict[str, dict] = {
@@ -114,6 +114,10 @@ PROFILES: dict[str, dict] = {
         "heldout_overrides": None,     # the manifests as shipped: 364 frames at 256x256 per group
         "closeup_overrides": None,     # 300 close-ups at 256x256
         "val_sdf": False,              # validation scores the metrics, not the SDF term (no notebook plots it)
+        # the head's depth range set from the scenario data (training depths 0.11-33.5, median 1.96 scene
+        # units), not 0.01-100: with the L1 term the head must start at the data's scale, and its floor
+        # sit at the data's, or near pixels sink to the floor (docs/paper_recipe.md)
+        "head_range": (0.1, 40.0),
     },
 }
 
@@ -150,11 +154,12 @@ IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
     "threads", "lr_schedule", "optimizer", "depth_term", "augment", "padding", "border_weight",
-    "input_pad", "sdf_sampling", "sdf_sign",
+    "input_pad", "sdf_sampling", "sdf_sign", "head_range", "depth_unit",
 )
 # Keys added after checkpoints existed: part of a configuration's identity only when they differ from
 # this default, so checkpoints trained before the key was added keep their names and stay valid.
-LATER_KEY_DEFAULTS = {"border_weight": 0.0, "input_pad": 0, "sdf_sampling": "bbox", "sdf_sign": "view"}
+LATER_KEY_DEFAULTS = {"border_weight": 0.0, "input_pad": 0, "sdf_sampling": "bbox", "sdf_sign": "view",
+                      "head_range": None, "depth_unit": 1.0}
 SDF_SIGNS = ("view", "masked")  # sign rules of a training run (sdf.SIGN_RULES; "nearest" is for comparison only)
 LR_SCHEDULES = ("constant", "cosine")
 OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
@@ -191,6 +196,8 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "input_pad": p.get("input_pad", 0),     # mirrored pixels around the network's input (model.DepthNet)
         "sdf_sampling": p.get("sdf_sampling", "bbox"),  # SDF samples: bbox (the paper's Eq. 9) | frustum
         "sdf_sign": p.get("sdf_sign", "view"),  # SDF sign: view (the paper's) | masked (out-of-view points left out)
+        "head_range": p.get("head_range"),      # (smallest, largest) depth of the head; None = model.MIN/MAX_DEPTH
+        "depth_unit": p.get("depth_unit", 1.0),  # the losses see depth / depth_unit (1 = scene units)
         "seed": int(seed),
         "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
@@ -201,8 +208,8 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
     for key, value in overrides.items():
         if key not in cfg:
             raise ValueError(f"unknown training setting {key!r}: choose from {', '.join(cfg)}")
-        if (value is not None
-                or key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights", "threads")):
+        if (value is not None or key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights",
+                                         "threads", "head_range")):
             cfg[key] = value
     return validate_config(cfg)
 
@@ -210,7 +217,8 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
 CONFIG_DEFAULTS = {"dataset_overrides": None, "train_frames": None, "val_frames": None, "encoder_weights": None,
                    "threads": None, "betas": [0.9, 0.999], "lr_schedule": "constant", "optimizer": "adam",
                    "depth_term": "l1", "augment": "none", "padding": "zeros", "border_weight": 0.0, "input_pad": 0,
-                   "sdf_sampling": "bbox", "sdf_sign": "view", "val_sdf": True}
+                   "sdf_sampling": "bbox", "sdf_sign": "view", "val_sdf": True, "head_range": None,
+                   "depth_unit": 1.0}
 
 
 def validate_config(cfg: dict) -> dict:
@@ -257,6 +265,18 @@ def _check_sizes(cfg: dict) -> None:
     if isinstance(pad, bool) or not isinstance(pad, (int, np.integer)) or pad < 0 or pad % 16:
         raise ValueError(f"input_pad must be a non-negative multiple of 16 (pixels), got {pad!r}")
     cfg["input_pad"] = int(pad)
+    _check_depth_scale(cfg)
+
+
+def _check_depth_scale(cfg: dict) -> None:
+    """The head's range (None or two depths 0 < lo < hi) and the losses' depth unit (> 0), in place."""
+    if cfg["head_range"] is not None:
+        cfg["head_range"] = list(check_depth_range(cfg["head_range"]))
+    unit = cfg["depth_unit"]
+    if isinstance(unit, bool) or not isinstance(unit, (int, float, np.floating, np.integer)) or not (
+            0 < unit < float("inf")):
+        raise ValueError(f"depth_unit must be a positive number, got {unit!r}")
+    cfg["depth_unit"] = float(unit)
 
 
 def _check_optimizer(cfg: dict) -> None:

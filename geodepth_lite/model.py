@@ -15,7 +15,8 @@ Shape of the network (Manydepth/monodepth2-style, with the paper's modifications
       x = upsample x2 (nearest), concatenate skip f(i-1) when i > 0
       x = upconv(i, 1)(x)            3x3 conv + BatchNorm + LeakyReLU
     head: 3x3 conv -> sigmoid s -> depth = exp(log d_min + s (log d_max - log d_min))
-      depth: B x 1 x H x W, between d_min = 0.01 and d_max = 100 (the dataset's range, Sec. 3.A)
+      depth: B x 1 x H x W, between d_min = 0.01 and d_max = 100 (the dataset's range, Sec. 3.A),
+      or the configured head_range (the paper profile: 0.1-40, set from the scenario data)
 
 The head is this workbook's own: the paper does not say how its last layer turns features into
 depth. A sigmoid mapped to log depth keeps every prediction positive.
@@ -57,6 +58,20 @@ def depth_to_sigmoid(depth: torch.Tensor, min_depth: float = MIN_DEPTH, max_dept
     """Inverse of :func:`sigmoid_to_depth` (for tests and plots)."""
     lo, hi = math.log(min_depth), math.log(max_depth)
     return (torch.log(depth) - lo) / (hi - lo)
+
+
+def check_depth_range(depth_range) -> tuple[float, float]:
+    """The head's (smallest, largest) depth: None = (MIN_DEPTH, MAX_DEPTH); else two finite numbers,
+    0 < smallest < largest; a clear error otherwise."""
+    if depth_range is None:
+        return (MIN_DEPTH, MAX_DEPTH)
+    try:
+        lo, hi = (float(v) for v in depth_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"depth_range must be two numbers (smallest, largest depth), got {depth_range!r}") from None
+    if not (0 < lo < hi < math.inf):
+        raise ValueError(f"depth_range must satisfy 0 < smallest < largest < inf, got {depth_range!r}")
+    return (lo, hi)
 
 
 # ----------------------------------------------------------------------------- encoder
@@ -170,7 +185,7 @@ PADDINGS = ("zeros", "replicate")  # DepthNet.set_padding
 
 
 class DepthNet(nn.Module):
-    """Image B x 3 x H x W in [0, 1] -> z-depth B x 1 x H x W in (0.01, 100) (Sec. 3.B).
+    """Image B x 3 x H x W in [0, 1] -> z-depth B x 1 x H x W in ``depth_range`` (default (0.01, 100); Sec. 3.B).
 
     H and W must be multiples of 32. ``encoder_weights``: optional path to a torchvision
     ``resnet18`` state dict (ImageNet weights); see :func:`load_encoder_weights`.
@@ -182,11 +197,12 @@ class DepthNet(nn.Module):
     """
 
     def __init__(self, encoder_weights: str | os.PathLike | None = None, padding: str = "zeros",
-                 input_pad: int = 0):
+                 input_pad: int = 0, depth_range: tuple[float, float] | None = None):
         super().__init__()
         if isinstance(input_pad, bool) or not isinstance(input_pad, int) or input_pad < 0 or input_pad % (STRIDE // 2):
             raise ValueError(f"input_pad must be a non-negative multiple of {STRIDE // 2}, got {input_pad!r}")
         self.input_pad = input_pad
+        self.depth_range = check_depth_range(depth_range)
         self.encoder = ResNet18Encoder()
         self.sab = SpatialAttention()
         self.decoder = DepthDecoder()
@@ -239,13 +255,17 @@ class DepthNet(nn.Module):
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         pad = self.input_pad
         if not pad:
-            return sigmoid_to_depth(self.decoder(self.encode(image)))
+            return self.depth_from_sigmoid(self.decoder(self.encode(image)))
         self.check_input(image)
         H, W = image.shape[-2:]
         if pad >= min(H, W):
             raise ValueError(f"input_pad {pad} needs an image larger than {pad} px on each side, got {H} x {W}")
         padded = F.pad(image, (pad, pad, pad, pad), mode="reflect")  # mirrored, without repeating the edge
-        return sigmoid_to_depth(self.decoder(self.encode(padded)))[..., pad:pad + H, pad:pad + W]
+        return self.depth_from_sigmoid(self.decoder(self.encode(padded)))[..., pad:pad + H, pad:pad + W]
+
+    def depth_from_sigmoid(self, s: torch.Tensor) -> torch.Tensor:
+        """The head's sigmoid map to depth in this network's ``depth_range`` (:func:`sigmoid_to_depth`)."""
+        return sigmoid_to_depth(s, *self.depth_range)
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -60,11 +60,18 @@ def get_lr_factor(step: int, total_steps: int, schedule: str) -> float:
     return 1.0
 
 
+def in_depth_unit(pred: torch.Tensor, depth: torch.Tensor, cfg: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """(prediction, ground truth) as the losses see them: divided by ``cfg["depth_unit"]`` (untouched at 1)."""
+    unit = cfg.get("depth_unit", 1.0)
+    return (pred, depth) if unit == 1.0 else (pred / unit, depth / unit)
+
+
 def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict, frame_ids=None):
-    """(weighted total, {term: value}) of ``losses.total_loss`` for a batch, in float32. ``frame_ids``:
-    see :func:`batch_frame_ids`."""
+    """(weighted total, {term: value}) of ``losses.total_loss`` for a batch, in float32, in the
+    configuration's depth unit (``in_depth_unit``). ``frame_ids``: see :func:`batch_frame_ids`."""
     g = cfg["sdf_grid"]
-    return losses.total_loss(pred.float(), batch["depth"], batch["image"], batch["K"], lambdas=cfg["lambdas"],
+    pred, depth = in_depth_unit(pred.float(), batch["depth"], cfg)
+    return losses.total_loss(pred, depth, batch["image"], batch["K"], lambdas=cfg["lambdas"],
                              mask=batch.get("valid"), sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
                              border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
                              sdf_sign=cfg["sdf_sign"], frame_ids=frame_ids)
@@ -99,7 +106,8 @@ def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict, frame_ids=No
     the first batch); a term whose weight is zero is not evaluated, and its ``gradnorm_`` column is
     absent from the log."""
     g = cfg["sdf_grid"]
-    return losses.term_gradient_norms(pred, batch["depth"], batch["image"], batch["K"], mask=batch.get("valid"),
+    pred, depth = in_depth_unit(pred, batch["depth"], cfg)
+    return losses.term_gradient_norms(pred, depth, batch["image"], batch["K"], mask=batch.get("valid"),
                                       sdf_grid=(g, g, g), depth_term=cfg["depth_term"], terms=weighted_terms(cfg),
                                       border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
                                       sdf_sign=cfg["sdf_sign"], frame_ids=frame_ids)
@@ -166,7 +174,9 @@ def build_network(cfg: dict, network=None) -> torch.nn.Module:
     network = DepthNet if network is None else network
     if not isinstance(network, type):
         return network(cfg)
-    return network(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"], input_pad=cfg["input_pad"])
+    extra = {} if cfg.get("head_range") is None else {"depth_range": tuple(cfg["head_range"])}
+    return network(encoder_weights=cfg["encoder_weights"], padding=cfg["padding"], input_pad=cfg["input_pad"],
+                   **extra)
 
 
 def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True,
