@@ -134,14 +134,18 @@ def test_batched_loss_equals_the_per_image_one_with_the_ground_truth_cache(keyed
 
 def test_the_checks_reject_a_loss_right_but_for_rounding_and_a_wrong_gradient():
     """With a frame without valid pixels, the batched view loss sums 4 rows, the last zero, where the
-    per-image one sums 3: the same number up to rounding, and on this batch not the same bits. assert_same
-    rejects it, assert_close accepts it; a gradient off by one nearest point fails assert_close."""
-    gt, K = views(4, 20)
-    pred0 = prediction(gt)
-    mask = masks(gt)["empty frame"]
-    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 5, mask, cache=None)
-    padded = loss_and_grad(L.sdf_loss, pred0, gt, K, 5, mask, cache=None)
-    assert not torch.equal(ref[0], padded[0])
+    per-image one sums 3: the same number up to rounding, and on some batches not the same bits (the first
+    such batch of a few seeds is taken). assert_same rejects it, assert_close accepts it; a gradient off by
+    one nearest point fails assert_close."""
+    for seed in range(40):
+        gt, K = views(4, 20, seed)
+        pred0 = prediction(gt, seed + 1)
+        mask = masks(gt)["empty frame"]
+        ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 5, mask, cache=None)
+        padded = loss_and_grad(L.sdf_loss, pred0, gt, K, 5, mask, cache=None)
+        if not torch.equal(ref[0], padded[0]):
+            break
+    assert not torch.equal(ref[0], padded[0]), "no batch of 40 shows the rounding difference"
     with pytest.raises(AssertionError, match="loss"):
         assert_same(ref, padded)
     assert_close(ref, padded)
