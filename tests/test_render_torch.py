@@ -41,7 +41,8 @@ def test_straight_tube_depth_matches_the_analytic_cylinder(K, width, height):
         rgb, depth = r.render(render.sequence_poses(tm, 1, s, 0.0)[0])
         assert rgb.shape == (height, width, 3) and rgb.dtype == np.uint8
         assert depth.shape == (height, width) and depth.dtype == np.float32
-        xn, yn = camera.normalized_grid(K, height, width).numpy()
+        grid = camera.normalized_grid(K, height, width).numpy()  # (2, H, W): x and y over z
+        xn, yn = grid[0], grid[1]
         with np.errstate(divide="ignore"):
             expected = R / np.sqrt(xn**2 + yn**2)
         wall = expected < 0.95 * (L - s)
