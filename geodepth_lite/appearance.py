@@ -27,6 +27,8 @@ import math
 import numpy as np
 from PIL import Image
 
+from geodepth_lite.errors import UserError
+
 APPEARANCE_DEFAULTS: dict = {
     "exposure_stops": [0.0, 0.0],   # gain 2**stops, then sensor clipping at 1 (over-exposure saturates)
     "gamma": [1.0, 1.0],            # camera response out = in ** (1 / gamma)
@@ -87,28 +89,28 @@ def _is_number(v) -> bool:
 def check_appearance(field: str, a: dict) -> None:
     """Validate a fully merged ``appearance`` section; raises ValueError naming ``f"{field}.{key}"``."""
     if not isinstance(a, dict):
-        raise ValueError(f"manifest field '{field}' must be an object, got {type(a).__name__}")
+        raise UserError(f"manifest field '{field}' must be an object, got {type(a).__name__}")
     unknown = [k for k in a if k not in APPEARANCE_DEFAULTS]
     if unknown:
-        raise ValueError(f"manifest has an unknown key '{field}.{unknown[0]}' "
+        raise UserError(f"manifest has an unknown key '{field}.{unknown[0]}' "
                          f"(allowed: {', '.join(APPEARANCE_DEFAULTS)})")
     missing = [k for k in APPEARANCE_DEFAULTS if k not in a]
     if missing:
-        raise ValueError(f"manifest field '{field}' is missing {', '.join(missing)}")
+        raise UserError(f"manifest field '{field}' is missing {', '.join(missing)}")
     for key, (lo, hi, lo_open, integer) in _PAIRS.items():
         name, v = f"{field}.{key}", a[key]
         if not isinstance(v, (list, tuple)) or len(v) != 2 or not all(_is_number(x) for x in v):
-            raise ValueError(f"manifest field '{name}' must be a [min, max] pair of numbers, got {v!r}")
+            raise UserError(f"manifest field '{name}' must be a [min, max] pair of numbers, got {v!r}")
         if integer and not all(isinstance(x, int) for x in v):
-            raise ValueError(f"manifest field '{name}' must be a [min, max] pair of integers, got {v!r}")
+            raise UserError(f"manifest field '{name}' must be a [min, max] pair of integers, got {v!r}")
         if any((x <= lo if lo_open else x < lo) or x > hi for x in v):
-            raise ValueError(f"manifest field '{name}' must lie in {'(' if lo_open else '['}{lo}, {hi}], got {v!r}")
+            raise UserError(f"manifest field '{name}' must lie in {'(' if lo_open else '['}{lo}, {hi}], got {v!r}")
         if v[0] > v[1]:
-            raise ValueError(f"manifest field '{name}' must have min <= max, got {v!r}")
+            raise UserError(f"manifest field '{name}' must have min <= max, got {v!r}")
     for key in _PROBS:
         v = a[key]
         if not _is_number(v) or not 0.0 <= v <= 1.0:
-            raise ValueError(f"manifest field '{field}.{key}' must be a probability in [0, 1], got {v!r}")
+            raise UserError(f"manifest field '{field}.{key}' must be a probability in [0, 1], got {v!r}")
 
 
 def sample_appearance(a: dict, rng: np.random.Generator) -> dict:

@@ -32,6 +32,7 @@ import tempfile
 from pathlib import Path
 
 from geodepth_lite import exercises, sandbox, utils
+from geodepth_lite.errors import UserError
 
 FAILURES = "could_not_run.json"  # (student, assignment) -> why the submission could not run
 KERNEL_START_S = 120  # on top of the cells' timeouts: starting the kernel and nbgrader itself
@@ -136,7 +137,7 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
     if sandboxed:
         why = sandbox.unavailable()
         if why:
-            raise ValueError(f"cannot autograde {course}: no sandbox for the students' code ({why}); install "
+            raise UserError(f"cannot autograde {course}: no sandbox for the students' code ({why}); install "
                              "bubblewrap (apt-get install bubblewrap) or, knowing that each notebook then runs "
                              "with your rights, pass --unsafe-no-sandbox")
     failures = read_failures(course)

@@ -57,6 +57,7 @@ from pygments.token import STANDARD_TYPES, Name, Operator, Text
 from pygments.util import ClassNotFound
 
 from geodepth_lite import recon, utils
+from geodepth_lite.errors import UserError
 from geodepth_lite.exercises import HIDDEN_MARKERS, SOLUTION_MARKERS, git_tracked
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -141,7 +142,7 @@ MATHML_CSS = """
 """
 
 
-class BookError(ValueError):
+class BookError(UserError):
     """A failure of the book build; printed as one line ``error: ...`` with exit status 2."""
 
 

@@ -34,6 +34,7 @@ import torch
 
 from geodepth_lite import checkpoint, config, utils
 from geodepth_lite import manifest as mf
+from geodepth_lite.errors import UserError
 
 BUNDLE_FORMAT = 1
 INDEX = "bundle.json"
@@ -115,8 +116,8 @@ CHUNK = 2**20
 SUPPORTED = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
 
 
-def _refuse(path: Path, reason: str) -> ValueError:
-    return ValueError(f"cannot unpack {path}: {reason}")
+def _refuse(path: Path, reason: str) -> UserError:
+    return UserError(f"cannot unpack {path}: {reason}")
 
 
 def _declared_size(info: zipfile.ZipInfo, cap: int, path: Path) -> None:
@@ -175,11 +176,11 @@ def _read_index(zf: zipfile.ZipFile, path: Path) -> dict:
     try:
         info = zf.getinfo(INDEX)
     except KeyError:
-        raise ValueError(f"{path} is not a geodepth-lite bundle: it has no {INDEX}") from None
+        raise UserError(f"{path} is not a geodepth-lite bundle: it has no {INDEX}") from None
     _declared_size(info, INDEX_MAX, path)
     index = _parse_json(_read_small(zf, info, path), INDEX, path)
     if not isinstance(index, dict) or index.get("format") != BUNDLE_FORMAT or not isinstance(index.get("files"), dict):
-        raise ValueError(f"{path}: {INDEX} is not a bundle index of format {BUNDLE_FORMAT}")
+        raise UserError(f"{path}: {INDEX} is not a bundle index of format {BUNDLE_FORMAT}")
     profile, runs = index.get("profile"), index.get("runs")
     if not isinstance(profile, str):
         raise _refuse(path, f"{INDEX} names profile {profile!r}, not a profile name")
@@ -199,7 +200,7 @@ def _member_target(name: str, path: Path) -> tuple[str, ...]:
     ok = ((len(parts) == 3 and parts[0] == "checkpoints" and parts[2] in RUN_FILES)
           or (len(parts) == 2 and parts[0] == "manifests" and parts[1].endswith(".json")))
     if not ok or any(p in ("", ".", "..") or "\\" in p for p in parts) or PurePosixPath(name).as_posix() != name:
-        raise ValueError(f"{path}: refused member {name!r} (a bundle holds checkpoints/<run>/<file> and "
+        raise UserError(f"{path}: refused member {name!r} (a bundle holds checkpoints/<run>/<file> and "
                          "manifests/<file> only)")
     if parts[0] == "checkpoints" and not RUN_NAME.fullmatch(parts[1]):
         raise _refuse(path, f"member {name!r}: run name {parts[1][:40]!r}{'...' if len(parts[1]) > 40 else ''} "
@@ -223,14 +224,14 @@ def _checked_infos(zf: zipfile.ZipFile, index: dict, path: Path) -> dict[str, zi
     listed = set(index["files"])
     extra = sorted(set(names) - listed - {INDEX})
     if extra:
-        raise ValueError(f"{path}: member {extra[0]!r} is not listed in {INDEX}")
+        raise UserError(f"{path}: member {extra[0]!r} is not listed in {INDEX}")
     by_name = {i.filename: i for i in infos}
     out = {}
     runs = set()
     for name in index["files"]:
         parts = _member_target(name, path)
         if name not in by_name:
-            raise ValueError(f"{path}: {name} is listed in {INDEX} but missing")
+            raise UserError(f"{path}: {name} is listed in {INDEX} but missing")
         _declared_size(by_name[name], MEMBER_MAX[parts[2] if parts[0] == "checkpoints" else "manifest"], path)
         out[name] = by_name[name]
         if parts[0] == "checkpoints":
@@ -253,7 +254,7 @@ def _check_manifests(zf: zipfile.ZipFile, infos: dict[str, zipfile.ZipInfo], ind
             continue
         blob = _read_small(zf, info, path)
         if _sha256(blob) != index["files"][name]:
-            raise ValueError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
+            raise UserError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
         theirs = _parse_json(blob, f"member {name}", path)
         local = utils.manifests_dir() / parts[1]
         if not local.is_file():
@@ -263,7 +264,7 @@ def _check_manifests(zf: zipfile.ZipFile, infos: dict[str, zipfile.ZipInfo], ind
         except (OSError, ValueError) as exc:
             raise utils.FileProblem(f"cannot read {local}: {utils.os_reason(exc)}", local) from exc
         if theirs != ours:
-            raise ValueError(f"{path}: its {parts[1]} differs from this checkout's {local}: the models were "
+            raise UserError(f"{path}: its {parts[1]} differs from this checkout's {local}: the models were "
                              "trained on another dataset recipe (use the checkout the bundle was made from)")
 
 
@@ -325,7 +326,7 @@ def unpack_bundle(path: str | Path) -> list[Path]:
     try:
         zf = zipfile.ZipFile(path)
     except zipfile.BadZipFile:
-        raise ValueError(f"{path} is not a zip file (a bundle is made by `python -m geodepth_lite bundle`)") from None
+        raise UserError(f"{path} is not a zip file (a bundle is made by `python -m geodepth_lite bundle`)") from None
     except (ValueError, EOFError, NotImplementedError, RuntimeError) as exc:
         raise _refuse(path, f"damaged zip file ({exc})") from None
     except OSError as exc:
@@ -336,7 +337,7 @@ def unpack_bundle(path: str | Path) -> list[Path]:
         _check_manifests(zf, infos, index, path)
         for name, info in infos.items():  # every checksum, before the first write
             if PurePosixPath(name).parts[0] == "checkpoints" and _stream(zf, info, path) != index["files"][name]:
-                raise ValueError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
+                raise UserError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
         root = utils.runs_dir() / index["profile"] / "checkpoints"
         _remove_stale_staging(root)  # what a killed unbundle left: writers that are gone
         if not _plan(root, infos, index, path):
@@ -372,7 +373,7 @@ def _write_runs(zf: zipfile.ZipFile, infos: dict[str, zipfile.ZipInfo], index: d
                         raise
                     raise utils.FileProblem(f"cannot write {target}: {utils.os_reason(exc)}", target) from exc
                 if digest != index["files"][name]:
-                    raise ValueError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
+                    raise UserError(f"{path}: {name} is damaged (its SHA-256 differs from {INDEX})")
             ckpt = next(t for t in files if t.name == checkpoint.CHECKPOINT_NAME)
             try:
                 state = checkpoint.read_checkpoint(temps[ckpt])  # loads safely, or is refused before it is in place

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
+from geodepth_lite.errors import UserError
 
 try:
     import resource  # POSIX only: bounds the memory of the process that reads a first-format checkpoint
@@ -84,7 +85,7 @@ def save_checkpoint(path: Path, payload: dict) -> None:
     utils.write_bytes_atomic(path, buf.getvalue())
 
 
-class OldCheckpoint(ValueError):
+class OldCheckpoint(UserError):
     """A checkpoint of the first format (numpy objects inside): loadable only through ``convert``."""
 
 
@@ -127,8 +128,8 @@ def network_limits() -> Limits:
     return Limits(record=max(max(sizes), RECORD_SLACK_BYTES), total=3 * sum(sizes) + TOTAL_SLACK_BYTES)
 
 
-def _refused(path: Path, reason: str) -> ValueError:
-    return ValueError(f"checkpoint {path} is refused: {reason}; nothing in it was read")
+def _refused(path: Path, reason: str) -> UserError:
+    return UserError(f"checkpoint {path} is refused: {reason}; nothing in it was read")
 
 
 def _checked_records(path: Path, zf: zipfile.ZipFile, limits: Limits) -> zipfile.ZipInfo | None:
@@ -195,7 +196,7 @@ def check_archive(path: Path, limits: Limits) -> list[str]:
     except zipfile.BadZipFile:
         zf = None
     except (ValueError, EOFError, NotImplementedError, RuntimeError, struct.error):
-        raise ValueError(f"checkpoint {path} is unreadable: a damaged checkpoint (its zip archive is broken or "
+        raise UserError(f"checkpoint {path} is unreadable: a damaged checkpoint (its zip archive is broken or "
                          "cut short)") from None
     except OSError as exc:
         raise utils.FileProblem(f"cannot read {path}: {utils.os_reason(exc)}", path) from exc
@@ -205,7 +206,7 @@ def check_archive(path: Path, limits: Limits) -> list[str]:
             names = [n for n in _pickle_globals(path.read_bytes()) if not _safe_global(n)]
         if names:
             raise _unsafe(path, names)
-        raise ValueError(f"checkpoint {path} is unreadable: not a checkpoint written by torch.save (not its zip "
+        raise UserError(f"checkpoint {path} is unreadable: not a checkpoint written by torch.save (not its zip "
                          "format: a damaged file, another kind of file, or torch's legacy format)")
     with zf:
         try:
@@ -214,19 +215,19 @@ def check_archive(path: Path, limits: Limits) -> list[str]:
         except (zipfile.BadZipFile, ValueError, EOFError, OSError, struct.error, NotImplementedError) as exc:
             if isinstance(exc, ValueError) and "is refused" in str(exc):
                 raise
-            raise ValueError(f"checkpoint {path} is unreadable: a damaged checkpoint (its zip archive is broken "
+            raise UserError(f"checkpoint {path} is unreadable: a damaged checkpoint (its zip archive is broken "
                              "or cut short)") from None
     if data is None:
         return []  # no pickle: torch names what is missing
     try:
         return [n for n in _pickle_globals(data) if not _safe_global(n)]
     except Exception:  # noqa: BLE001 - a pickle that cannot be parsed cannot be loaded either
-        raise ValueError(f"checkpoint {path} is unreadable: a damaged checkpoint (its pickle cannot be "
+        raise UserError(f"checkpoint {path} is unreadable: a damaged checkpoint (its pickle cannot be "
                          "parsed)") from None
 
 
-def _unsafe(path: Path, names: list[str]) -> ValueError:
-    return ValueError(f"checkpoint {path} is refused: it holds more than tensors and plain values, which could "
+def _unsafe(path: Path, names: list[str]) -> UserError:
+    return UserError(f"checkpoint {path} is refused: it holds more than tensors and plain values, which could "
                       f"run code or take any amount of memory when loaded ({names[0][:100]}); nothing in it was run")
 
 
@@ -276,7 +277,7 @@ def _load_safely(path: Path, limits: Limits | None = None) -> Any:
     if unsafe and set(unsafe) <= set(NUMPY_ARRAY_GLOBALS):
         problem = _old_format_problem(path, limits)
         if problem:
-            raise ValueError(f"checkpoint {path} is refused: {problem}; nothing in it was run") from None
+            raise UserError(f"checkpoint {path} is refused: {problem}; nothing in it was run") from None
         raise OldCheckpoint(
             f"checkpoint {path} has the first checkpoint format (numpy objects inside), which this "
             f"version does not unpickle; if you trust where it came from, convert it once with "
@@ -294,13 +295,13 @@ def _load_safely(path: Path, limits: Limits | None = None) -> Any:
         if "weights_only" in text.lower() or "unsupported" in text.lower():
             what = next((ln.strip().rstrip(".") for ln in text.splitlines()
                          if "unsupported" in ln.lower() and "weights_only" not in ln), "")
-            raise ValueError(f"checkpoint {path} is refused: it holds more than tensors and plain values, "
+            raise UserError(f"checkpoint {path} is refused: it holds more than tensors and plain values, "
                              f"which could run code when loaded ({what or 'an unsupported object'}); "
                              f"nothing in it was run") from None
-        raise ValueError(f"checkpoint {path} is unreadable: {_unreadable_reason(exc)}") from None
+        raise UserError(f"checkpoint {path} is unreadable: {_unreadable_reason(exc)}") from None
     problem = tensor_problem(ckpt, limits)
     if problem:
-        raise ValueError(f"checkpoint {path} is refused: it holds {problem}")
+        raise UserError(f"checkpoint {path} is refused: it holds {problem}")
     return ckpt
 
 
@@ -403,24 +404,24 @@ _OLD_STAND_INS = [(_old_reconstruct, "numpy.core.multiarray._reconstruct"),
 def _old_dtype(d) -> np.dtype:
     """The plain numeric dtype a stand-in records, or ValueError saying why it is refused."""
     if not isinstance(d, _OldDtype) or not d.args or not isinstance(d.args[0], str):
-        raise ValueError("a numpy array without a readable dtype")
+        raise UserError("a numpy array without a readable dtype")
     name, st = d.args[0], d.state
     if not OLD_DTYPES.fullmatch(name):
-        raise ValueError(f"a numpy array of dtype {name[:20]!r}; only plain numbers (bool, int, uint, float, "
+        raise UserError(f"a numpy array of dtype {name[:20]!r}; only plain numbers (bool, int, uint, float, "
                          "complex) are read, never objects, raw bytes or records")
     order = "="
     if st is not None:
         if not isinstance(st, tuple) or len(st) < 5 or any(x is not None for x in st[2:5]):
-            raise ValueError(f"a numpy array of a structured or sub-array dtype ({name})")
+            raise UserError(f"a numpy array of a structured or sub-array dtype ({name})")
         order = st[1] if st[1] in ("<", ">", "|", "=") else None
         if order is None:
-            raise ValueError(f"a numpy dtype {name} with an unknown byte order")
+            raise UserError(f"a numpy dtype {name} with an unknown byte order")
     try:
         dt = np.dtype(order + name if order != "|" else name)
     except TypeError:
-        raise ValueError(f"an unknown numpy dtype {name[:20]!r}") from None
+        raise UserError(f"an unknown numpy dtype {name[:20]!r}") from None
     if dt.kind not in "biufc" or dt.fields is not None or dt.subdtype is not None:
-        raise ValueError(f"a numpy array of dtype {name!r}, not plain numbers")
+        raise UserError(f"a numpy array of dtype {name!r}, not plain numbers")
     return dt
 
 
@@ -428,38 +429,38 @@ def _old_array(a: _OldArray, budget: list) -> np.ndarray:
     """The array a stand-in records, after checking its dtype, shape and byte count against the data."""
     st = a.state
     if not isinstance(st, tuple) or len(st) != 5:
-        raise ValueError("a numpy array without its data")
+        raise UserError("a numpy array without its data")
     _, shape, dtype, fortran, raw = st
     dt = _old_dtype(dtype)
     if (not isinstance(shape, tuple) or len(shape) > OLD_ARRAY_MAX_DIMS
             or not all(type(n) is int and n >= 0 for n in shape)):
-        raise ValueError(f"a numpy array of an impossible shape {str(shape)[:60]}")
+        raise UserError(f"a numpy array of an impossible shape {str(shape)[:60]}")
     if not isinstance(raw, (bytes, bytearray)):
-        raise ValueError("a numpy array whose data is not raw numbers (a list of Python objects)")
+        raise UserError("a numpy array whose data is not raw numbers (a list of Python objects)")
     count = 1
     for n in shape:
         count *= n
     need = count * dt.itemsize
     if need != len(raw):
-        raise ValueError(f"a numpy array of shape {shape} and dtype {dt.str} ({need} bytes) whose data holds "
+        raise UserError(f"a numpy array of shape {shape} and dtype {dt.str} ({need} bytes) whose data holds "
                          f"{len(raw)} bytes")
     if need > OLD_ARRAY_MAX_BYTES:
-        raise ValueError(f"a numpy array of {need} bytes, over the {OLD_ARRAY_MAX_BYTES} bytes a first-format "
+        raise UserError(f"a numpy array of {need} bytes, over the {OLD_ARRAY_MAX_BYTES} bytes a first-format "
                          "checkpoint's arrays ever held")
     budget[0] -= need
     if budget[0] < 0:
-        raise ValueError(f"numpy arrays of over {OLD_ARRAYS_MAX_BYTES} bytes together")
+        raise UserError(f"numpy arrays of over {OLD_ARRAYS_MAX_BYTES} bytes together")
     return np.frombuffer(bytes(raw), dtype=dt).reshape(shape, order="F" if fortran is True else "C").copy()
 
 
 def _old_plain(obj: Any, budget: list, depth: int = 0) -> Any:
     """``obj`` with every stand-in replaced by its checked array, and numpy values turned into tensors."""
     if depth > 100:
-        raise ValueError("entries nested over 100 deep")
+        raise UserError("entries nested over 100 deep")
     if isinstance(obj, _OldArray):
         return torch.from_numpy(_old_array(obj, budget))
     if isinstance(obj, _OldDtype):
-        raise ValueError("a bare numpy dtype where a value belongs")
+        raise UserError("a bare numpy dtype where a value belongs")
     if isinstance(obj, dict):
         return {k: _old_plain(v, budget, depth + 1) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -473,23 +474,23 @@ def _read_old_in_child(path: Path, limits: Limits | None = None) -> bytes:
     limits = limits or network_limits()
     unsafe = check_archive(path, limits)
     if not set(unsafe) <= set(NUMPY_ARRAY_GLOBALS):
-        raise ValueError(f"it holds {unsafe[0][:100]}, which is neither a tensor, a plain value nor a numpy array")
+        raise UserError(f"it holds {unsafe[0][:100]}, which is neither a tensor, a plain value nor a numpy array")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         with torch.serialization.safe_globals(_OLD_STAND_INS):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
-        raise ValueError("it lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
+        raise UserError("it lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
     problem = tensor_problem(ckpt, limits)
     if problem:
-        raise ValueError(f"it holds {problem}")
+        raise UserError(f"it holds {problem}")
     ckpt = _old_plain(ckpt, [OLD_ARRAYS_MAX_BYTES])
     rng = ckpt.get("rng")
     if isinstance(rng, dict):
         if isinstance(rng.get("numpy"), tuple) and len(rng["numpy"]) == 5:
             kind, keys, pos, has_gauss, cached = rng["numpy"]
             if not isinstance(keys, torch.Tensor):
-                raise ValueError("its numpy random state has no key array")
+                raise UserError("its numpy random state has no key array")
             rng["numpy"] = {"kind": str(kind), "keys": keys.to(torch.int64), "pos": int(pos),
                             "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
         if isinstance(rng.get("python"), tuple) and len(rng["python"]) == 3:
@@ -499,7 +500,7 @@ def _read_old_in_child(path: Path, limits: Limits | None = None) -> bytes:
     buf = io.BytesIO()
     torch.save(ckpt, buf)
     if buf.tell() > limits.total + PICKLE_MAX_BYTES:
-        raise ValueError(f"its conversion takes {buf.tell()} bytes, over the {limits.total + PICKLE_MAX_BYTES} "
+        raise UserError(f"its conversion takes {buf.tell()} bytes, over the {limits.total + PICKLE_MAX_BYTES} "
                          "bytes a checkpoint of the network holds")
     return buf.getvalue()
 
@@ -547,7 +548,7 @@ def read_old_checkpoint(path: str | os.PathLike, limits: Limits | None = None) -
         try:
             return _read_old_in_child(path, limits)
         except Exception as exc:  # noqa: BLE001 - every failure is reported as one line
-            raise ValueError(f"checkpoint {path} cannot be converted: {' '.join(str(exc).split())[:300]}") from None
+            raise UserError(f"checkpoint {path} cannot be converted: {' '.join(str(exc).split())[:300]}") from None
     check_archive(path, limits)  # declared sizes and compression, before the child reads a record
     ctx = multiprocessing.get_context("fork")
     recv, send = ctx.Pipe(duplex=False)
@@ -573,13 +574,13 @@ def read_old_checkpoint(path: str | os.PathLike, limits: Limits | None = None) -
         try:
             _check_bytes_load(value)
         except Exception as exc:  # noqa: BLE001
-            raise ValueError(f"checkpoint {path} cannot be converted: its conversion does not load ({exc})") from None
+            raise UserError(f"checkpoint {path} cannot be converted: its conversion does not load ({exc})") from None
         return value
     if value is None:
         code = child.exitcode
         value = (f"reading it stopped the reader (signal {-code})" if code is not None and code < 0
                  else f"reading it stopped the reader (exit status {code})")
-    raise ValueError(f"checkpoint {path} cannot be converted: {value}")
+    raise UserError(f"checkpoint {path} cannot be converted: {value}")
 
 
 def _check_bytes_load(data: bytes) -> None:
@@ -587,7 +588,7 @@ def _check_bytes_load(data: bytes) -> None:
         warnings.simplefilter("ignore", UserWarning)
         ckpt = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
-        raise ValueError("no 'model'/'cfg' entries")
+        raise UserError("no 'model'/'cfg' entries")
 
 
 def _old_format_problem(path: Path, limits: Limits | None = None) -> str | None:
@@ -647,19 +648,19 @@ def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False, limits
         raise FileNotFoundError(f"checkpoint not found: {path}")
     ckpt = _load_safely(path, limits)
     if not isinstance(ckpt, dict) or "model" not in ckpt or "cfg" not in ckpt:
-        raise ValueError(f"checkpoint {path} lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
+        raise UserError(f"checkpoint {path} lacks 'model'/'cfg' entries: not a geodepth-lite checkpoint")
     if not isinstance(ckpt["model"], dict) or not isinstance(ckpt["cfg"], dict):
-        raise ValueError(f"checkpoint {path}: 'model' and 'cfg' must be dicts: not a geodepth-lite checkpoint")
+        raise UserError(f"checkpoint {path}: 'model' and 'cfg' must be dicts: not a geodepth-lite checkpoint")
     check_checkpoint_cfg(ckpt["cfg"], path)
     if for_resume:
         missing = [k for k in RESUME_KEYS if k not in ckpt]
         if missing:
-            raise ValueError(f"checkpoint {path} cannot be resumed: it lacks {', '.join(missing)} "
+            raise UserError(f"checkpoint {path} cannot be resumed: it lacks {', '.join(missing)} "
                              "(written by something other than train?)")
     bad = [k for k, v in ckpt["model"].items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
-        raise ValueError(f"checkpoint {path} holds non-finite weights (NaN or inf) in {len(bad)} tensor(s), "
+        raise UserError(f"checkpoint {path} holds non-finite weights (NaN or inf) in {len(bad)} tensor(s), "
                          f"first {bad[0]}: the model is unusable (retrain it, or resume from an earlier copy)")
     return ckpt
 
@@ -675,8 +676,8 @@ def check_checkpoint_cfg(cfg: dict, path: str | os.PathLike) -> None:
     cannot serve: ``image_size`` a positive multiple of 32, ``input_pad`` a non-negative multiple of 16,
     the input side (``image_size + 2 input_pad``) at most ``MAX_INPUT_SIDE``, ``padding`` one of
     ``model.PADDINGS``, and every number finite."""
-    def bad(field: str, want: str, value) -> ValueError:
-        return ValueError(f"checkpoint {path}: its config field '{field}' must be {want}, got {str(value)[:60]}")
+    def bad(field: str, want: str, value) -> UserError:
+        return UserError(f"checkpoint {path}: its config field '{field}' must be {want}, got {str(value)[:60]}")
 
     for key, value in cfg.items():
         if isinstance(value, float) and not np.isfinite(value):
@@ -690,7 +691,7 @@ def check_checkpoint_cfg(cfg: dict, path: str | os.PathLike) -> None:
     side = size + 2 * pad
     if side > MAX_INPUT_SIDE:
         need = side * side * FORWARD_BYTES_PER_PIXEL
-        raise ValueError(f"checkpoint {path}: its config field 'image_size' ({size}, with input_pad {pad}) asks for "
+        raise UserError(f"checkpoint {path}: its config field 'image_size' ({size}, with input_pad {pad}) asks for "
                          f"a {side} x {side} network input, about {need / 2**30:.3g} GiB for one frame; the limit "
                          f"is {MAX_INPUT_SIDE} pixels a side")
     if cfg.get("padding", "zeros") not in PADDINGS:
@@ -799,7 +800,7 @@ def check_fits(own: dict[str, tuple[int, ...]] | None, state: dict, path: str | 
         problems.append(f"{len(shapes)} tensor(s) of another shape, first {k} "
                         f"({tuple(getattr(state[k], 'shape', ()))} instead of {tuple(own[k])})")
     if problems:
-        raise ValueError(f"checkpoint {path} does not fit this network: {'; '.join(problems)}")
+        raise UserError(f"checkpoint {path} does not fit this network: {'; '.join(problems)}")
 
 
 # --------------------------------------------------------------------------- command line
@@ -831,7 +832,7 @@ def run_convert_checkpoint(args) -> int:
         raise FileNotFoundError(f"no {CHECKPOINT_NAME} under {', '.join(args.paths)}")
     out = getattr(args, "out", None)
     if out is not None and len(files) != 1:
-        raise ValueError(f"--out names one file, but {len(files)} checkpoints were found: convert them one at a time")
+        raise UserError(f"--out names one file, but {len(files)} checkpoints were found: convert them one at a time")
     for f in files:
         try:
             _load_safely(f)

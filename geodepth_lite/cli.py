@@ -4,8 +4,14 @@ Each subcommand lives in the module that does the work (``train``'s in ``train_c
 so that ``train.py`` is the training loop alone). That module defines
 ``add_arguments_<name>(parser)`` and ``run_<name>(args) -> int``; this file only
 wires them together, so ``--help`` stays in one place and a module can be read
-on its own. Every failure is one line ``error: ...`` with exit status 2 (``--debug`` or
-GEODEPTH_DEBUG=1 add the traceback).
+on its own.
+
+A failure is one line on stderr (``--debug`` or GEODEPTH_DEBUG=1 add the traceback):
+
+- the user's mistake (``UserError`` and its subclasses) or a file or device the system refused
+  (an ``OSError``, ``utils.FileProblem`` among them): ``error: ...``, exit status 2;
+- anything else is a bug in geodepth-lite: a line that says so, names the command and asks for
+  a run with ``--debug``, exit status 1.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import os
 import sys
 import traceback
 
+from geodepth_lite.errors import UserError
 from geodepth_lite.utils import FileProblem, os_reason
 
 # name -> (module, one-line help)
@@ -39,9 +46,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 DEBUG_ENV = "GEODEPTH_DEBUG"  # set to 1 for full tracebacks, as --debug does
 
-
-class UserError(Exception):
-    """An error in what the user asked for; printed as one line, exit status 2."""
+# Modules whose checks of the user's input still raise a plain ValueError rather than UserError:
+# a ValueError raised there (its innermost frame) still reads as the user's mistake, exit 2, until
+# their checks raise UserError; then the module leaves this set. A ValueError raised anywhere else
+# is a bug (exit 1).
+VALUE_ERROR_MODULES = frozenset({
+    "geodepth_lite.gpu_check", "geodepth_lite.losses", "geodepth_lite.nnsearch", "geodepth_lite.reproduce",
+    "geodepth_lite.sdf", "geodepth_lite.study", "geodepth_lite.train", "geodepth_lite.train_many",
+})
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
@@ -87,6 +99,28 @@ def error_line(exc: BaseException) -> str:
     return " ".join(lines)
 
 
+def raised_in(exc: BaseException) -> str:
+    """The module (``__name__``) of the frame that raised ``exc``: its traceback's innermost frame."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return "" if tb is None else str(tb.tb_frame.f_globals.get("__name__", ""))
+
+
+def is_user_error(exc: BaseException) -> bool:
+    """True for a failure the user can fix (exit 2), False for a bug in geodepth-lite (exit 1)."""
+    if isinstance(exc, (UserError, OSError)):  # OSError: FileNotFoundError, FileExistsError, FileProblem...
+        return True
+    return isinstance(exc, ValueError) and raised_in(exc) in VALUE_ERROR_MODULES
+
+
+def bug_line(command: str, exc: BaseException) -> str:
+    """The one line printed for a bug: what failed, in which command, and how to see more."""
+    what = f"{type(exc).__name__}: {error_line(exc)}"
+    return (f"error: this is a bug in geodepth-lite ({what}) in the command {command!r}; "
+            f"please run it again with --debug to see the traceback, and report it")
+
+
 def main(argv: list[str] | None = None, commands: tuple[str, ...] | None = None) -> int:
     """Runs one subcommand; ``commands``: the ones this call knows (all by default; ``train-many``
     starts each run as ``main(argv, commands=("train",))``, which imports ``train``'s modules alone)."""
@@ -102,11 +136,14 @@ def main(argv: list[str] | None = None, commands: tuple[str, ...] | None = None)
         print("interrupted: everything written so far is complete; run the same command again to continue",
               file=sys.stderr)
         return 130
-    except (UserError, ValueError, OSError) as exc:  # OSError: FileNotFoundError, FileExistsError, FileProblem...
+    except Exception as exc:  # noqa: BLE001 - every failure ends as one line (see the module's docstring)
         if debug:
             traceback.print_exc()
-        print(f"error: {error_line(exc)}", file=sys.stderr)
-        return 2
+        if is_user_error(exc):
+            print(f"error: {error_line(exc)}", file=sys.stderr)
+            return 2
+        print(bug_line(args.command, exc), file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

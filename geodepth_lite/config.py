@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from geodepth_lite.augment import AUGMENTS
+from geodepth_lite.errors import UserError
 from geodepth_lite.losses import DEPTH_TERMS, group_weights
 from geodepth_lite.model import PADDINGS, check_depth_range
 from geodepth_lite.sdf import SDF_SAMPLINGS
@@ -134,7 +135,7 @@ def case_lambdas(case: int, geo_weights=None) -> list[float]:
     """(lambda1, lambda2, lambda3) of ablation ``case``: the case's terms switched on, weighted by the
     profile's ``geo_weights`` = (lambda2, lambda3) (None: the paper's unstated weights taken as 1)."""
     if case not in ABLATION_CASES:
-        raise ValueError(f"case must be one of {sorted(ABLATION_CASES)}, got {case!r}")
+        raise UserError(f"case must be one of {sorted(ABLATION_CASES)}, got {case!r}")
     l2, l3 = (1.0, 1.0) if geo_weights is None else (float(geo_weights[0]), float(geo_weights[1]))
     on = ABLATION_CASES[case]
     return [on[0], on[1] * l2, on[2] * l3]
@@ -143,7 +144,7 @@ def case_lambdas(case: int, geo_weights=None) -> list[float]:
 def get_profile(name: str) -> dict:
     """The settings of profile ``name``; a clear error for an unknown one."""
     if name not in PROFILES:
-        raise ValueError(f"unknown profile {name!r}: choose one of {', '.join(PROFILES)}")
+        raise UserError(f"unknown profile {name!r}: choose one of {', '.join(PROFILES)}")
     return dict(PROFILES[name])
 
 
@@ -173,7 +174,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
     """
     p = get_profile(profile)
     if case not in ABLATION_CASES:
-        raise ValueError(f"case must be one of {sorted(ABLATION_CASES)}, got {case!r}")
+        raise UserError(f"case must be one of {sorted(ABLATION_CASES)}, got {case!r}")
     cfg = {
         "profile": profile,
         "case": int(case),
@@ -207,7 +208,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
     }
     for key, value in overrides.items():
         if key not in cfg:
-            raise ValueError(f"unknown training setting {key!r}: choose from {', '.join(cfg)}")
+            raise UserError(f"unknown training setting {key!r}: choose from {', '.join(cfg)}")
         if (value is not None or key in ("dataset_overrides", "train_frames", "val_frames", "encoder_weights",
                                          "threads", "head_range")):
             cfg[key] = value
@@ -228,12 +229,12 @@ def validate_config(cfg: dict) -> dict:
                          ("padding", PADDINGS), ("lr_schedule", LR_SCHEDULES),
                          ("sdf_sampling", tuple(SDF_SAMPLINGS)), ("sdf_sign", SDF_SIGNS)):
         if cfg[key] not in allowed:
-            raise ValueError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
+            raise UserError(f"{key} must be one of {', '.join(allowed)}, got {cfg[key]!r}")
     if not isinstance(cfg["val_sdf"], bool):
-        raise ValueError(f"val_sdf must be True or False, got {cfg['val_sdf']!r}")
+        raise UserError(f"val_sdf must be True or False, got {cfg['val_sdf']!r}")
     missing = [k for k in IDENTITY_KEYS if k not in cfg]
     if missing:
-        raise ValueError(f"training config is missing {', '.join(missing)}")
+        raise UserError(f"training config is missing {', '.join(missing)}")
     _check_sizes(cfg)
     _check_optimizer(cfg)
     _check_data(cfg)
@@ -243,7 +244,7 @@ def validate_config(cfg: dict) -> dict:
 def _positive_int(cfg: dict, key: str) -> None:
     v = cfg[key]
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
-        raise ValueError(f"{key} must be a positive integer, got {v!r}")
+        raise UserError(f"{key} must be a positive integer, got {v!r}")
     cfg[key] = int(v)
 
 
@@ -252,18 +253,18 @@ def _check_sizes(cfg: dict) -> None:
     for key in ("epochs", "batch_size", "sdf_grid", "image_size"):
         _positive_int(cfg, key)
     if cfg["image_size"] % 32:
-        raise ValueError("image_size must be a multiple of 32 (the encoder downsamples 5 times), "
+        raise UserError("image_size must be a multiple of 32 (the encoder downsamples 5 times), "
                          f"got {cfg['image_size']}")
     for key in ("train_frames", "val_frames", "threads"):
         if cfg.get(key) is not None:
             _positive_int(cfg, key)
     bw = cfg["border_weight"]
     if isinstance(bw, bool) or not isinstance(bw, (int, float, np.floating, np.integer)) or not 0 <= bw < float("inf"):
-        raise ValueError(f"border_weight must be a non-negative number, got {bw!r}")
+        raise UserError(f"border_weight must be a non-negative number, got {bw!r}")
     cfg["border_weight"] = float(bw)
     pad = cfg["input_pad"]
     if isinstance(pad, bool) or not isinstance(pad, (int, np.integer)) or pad < 0 or pad % 16:
-        raise ValueError(f"input_pad must be a non-negative multiple of 16 (pixels), got {pad!r}")
+        raise UserError(f"input_pad must be a non-negative multiple of 16 (pixels), got {pad!r}")
     cfg["input_pad"] = int(pad)
     _check_depth_scale(cfg)
 
@@ -275,7 +276,7 @@ def _check_depth_scale(cfg: dict) -> None:
     unit = cfg["depth_unit"]
     if isinstance(unit, bool) or not isinstance(unit, (int, float, np.floating, np.integer)) or not (
             0 < unit < float("inf")):
-        raise ValueError(f"depth_unit must be a positive number, got {unit!r}")
+        raise UserError(f"depth_unit must be a positive number, got {unit!r}")
     cfg["depth_unit"] = float(unit)
 
 
@@ -285,30 +286,30 @@ def _check_optimizer(cfg: dict) -> None:
         v = cfg[key]
         if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0
                 or (key == "lr" and v == 0)):
-            raise ValueError(f"{key} must be a {'positive' if key == 'lr' else 'non-negative'} number, got {v!r}")
+            raise UserError(f"{key} must be a {'positive' if key == 'lr' else 'non-negative'} number, got {v!r}")
         cfg[key] = float(v)
     betas = cfg["betas"]
     if not (isinstance(betas, (list, tuple)) and len(betas) == 2 and all(0 <= float(b) < 1 for b in betas)):
-        raise ValueError(f"betas must be two numbers in [0, 1), got {betas!r}")
+        raise UserError(f"betas must be two numbers in [0, 1), got {betas!r}")
     cfg["betas"] = [float(b) for b in betas]
     lam = cfg["lambdas"]
     if not isinstance(lam, (list, tuple, dict)):
-        raise ValueError(f"lambdas must be the loss weights by group name or in group order, got {lam!r}")
+        raise UserError(f"lambdas must be the loss weights by group name or in group order, got {lam!r}")
     cfg["lambdas"] = list(group_weights(lam).values())  # in group order: [lambda1, lambda2, lambda3]
     if not all(math.isfinite(float(w)) and float(w) >= 0 for w in cfg["lambdas"]):
-        raise ValueError(f"lambdas must be finite non-negative numbers, got {lam!r}")
+        raise UserError(f"lambdas must be finite non-negative numbers, got {lam!r}")
 
 
 def _check_data(cfg: dict) -> None:
     """Seed, dataset, its overrides and the encoder's weights file (in place)."""
     if isinstance(cfg["seed"], bool) or not isinstance(cfg["seed"], (int, np.integer)) or cfg["seed"] < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {cfg['seed']!r}")
+        raise UserError(f"seed must be a non-negative integer, got {cfg['seed']!r}")
     cfg["seed"] = int(cfg["seed"])
     if not isinstance(cfg["dataset"], (str, os.PathLike)) or not str(cfg["dataset"]):
-        raise ValueError(f"dataset must be a manifest name or a dataset directory, got {cfg['dataset']!r}")
+        raise UserError(f"dataset must be a manifest name or a dataset directory, got {cfg['dataset']!r}")
     cfg["dataset"] = str(cfg["dataset"])
     if cfg["dataset_overrides"] is not None and not isinstance(cfg["dataset_overrides"], dict):
-        raise ValueError(f"dataset_overrides must be a dict or None, got {cfg['dataset_overrides']!r}")
+        raise UserError(f"dataset_overrides must be a dict or None, got {cfg['dataset_overrides']!r}")
     if cfg["encoder_weights"] is not None:
         cfg["encoder_weights"] = str(cfg["encoder_weights"])
         if not Path(cfg["encoder_weights"]).is_file():

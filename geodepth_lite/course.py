@@ -35,6 +35,7 @@ from pathlib import Path
 
 from geodepth_lite import autograde as grading_run
 from geodepth_lite import exercises, utils
+from geodepth_lite.errors import UserError
 
 COURSE_ID = "geodepth"
 TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the machine that executed notebooks/
@@ -133,11 +134,11 @@ def init(out: Path, notebooks: list[Path] | None = None, course_id: str = COURSE
     if not notebooks:
         raise FileNotFoundError(f"no notebook with exercises under {exercises.NOTEBOOK_DIR}")
     if not isinstance(course_id, str) or not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", course_id):
-        raise ValueError(f"course id must be 1-64 letters, digits, '_' or '-', got {course_id!r}")
+        raise UserError(f"course id must be 1-64 letters, digits, '_' or '-', got {course_id!r}")
     names = [assignment_name(nb) for nb in notebooks]
     if len(set(names)) != len(names):
         twice = next(nb for nb in notebooks if names.count(assignment_name(nb)) > 1)
-        raise ValueError(f"cannot make a course of {twice}: two notebooks named {twice.name} would be one assignment")
+        raise UserError(f"cannot make a course of {twice}: two notebooks named {twice.name} would be one assignment")
     out = Path(out)
     check_new_folder(out, "course")
     sources = {nb: exercises.read_notebook(nb) for nb in notebooks}
@@ -193,7 +194,7 @@ def release(course: Path) -> list[Path]:
                 out = course / "release" / name / src.name
                 problems = exercises.leaks(exercises.read_notebook(src), exercises.read_notebook(out, solutions=False))
                 if problems:
-                    raise ValueError(f"cannot release {out}: it still holds solution text: {problems[0]}")
+                    raise UserError(f"cannot release {out}: it still holds solution text: {problems[0]}")
                 written.append(out)
     return written
 
@@ -246,7 +247,7 @@ def edition(course: Path, out: Path) -> dict:
     keep, dropped = edition_files(root)
     for nb in released:
         if holds_solutions(nb):
-            raise ValueError(f"cannot hand out {nb}: it holds a solution region")
+            raise UserError(f"cannot hand out {nb}: it holds a solution region")
     created = utils.missing_dirs(out)
     utils.check_output_dir(out)
     try:

@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 from geodepth_lite import baselines, datasets, synth
 from geodepth_lite import checkpoint as checkpoints  # evaluate_checkpoint's argument is named checkpoint
 from geodepth_lite.datasets import SyntheticDepthDataset, resolve_dataset
+from geodepth_lite.errors import UserError
 from geodepth_lite.inference import check_flips, collate, pick_device, predict_depth
 from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES, compute_depth_metrics, eval_mask
 from geodepth_lite.tables import write_results
@@ -57,7 +58,7 @@ def open_eval_dataset(name: str, *, split: str = "test", root: str | os.PathLike
     """
     if name in datasets.REGISTRY:
         if root is None:
-            raise ValueError(f"--root is required for the public dataset {name!r} (the folder you downloaded)")
+            raise UserError(f"--root is required for the public dataset {name!r} (the folder you downloaded)")
         return datasets.open_dataset(name, root, **kw)
     path = Path(name).expanduser()
     if path.is_dir() and (path / "manifest.json").exists():
@@ -66,7 +67,7 @@ def open_eval_dataset(name: str, *, split: str = "test", root: str | os.PathLike
         ds_root = Path(synth.ensure_dataset(name, overrides=kw.pop("overrides", None), progress=progress))
     if not (ds_root / split).is_dir():
         have = sorted(p.name for p in ds_root.iterdir() if (p / "frames.jsonl").exists())
-        raise ValueError(f"split {split!r} not in {ds_root}; available: {', '.join(have) or 'none'}")
+        raise UserError(f"split {split!r} not in {ds_root}; available: {', '.join(have) or 'none'}")
     return SyntheticDepthDataset(ds_root, split)
 
 
@@ -148,7 +149,7 @@ def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, 
                                      "valid": None if valid is None else valid[j]})
     if first is not None and not rows[first]:
         n = len(skipped[first])
-        raise ValueError(f"no frame of the {n} evaluated has a valid ground-truth pixel (depth in "
+        raise UserError(f"no frame of the {n} evaluated has a valid ground-truth pixel (depth in "
                          f"({min_depth:g}, {max_depth:g}), finite)" if n else "the dataset has no frame")
     results = {}
     for name, rs in rows.items():
@@ -159,7 +160,7 @@ def _evaluate(predictors: dict[str, Callable], dataset, *, batch_size: int = 8, 
     return results, examples
 
 
-class NonFiniteDepth(ValueError):
+class NonFiniteDepth(UserError):
     """A predictor returned NaN or infinite depth: its numbers would be meaningless, so nothing is written."""
 
 
@@ -354,7 +355,7 @@ def evaluate_baselines(dataset, train_root_or_mean_map: str | os.PathLike | np.n
     names = list(baselines.BASELINES) if names is None else list(names)
     unknown = [n for n in names if n not in baselines.BASELINES]
     if unknown:
-        raise ValueError(f"unknown baseline(s) {unknown}: choose from {', '.join(baselines.BASELINES)}")
+        raise UserError(f"unknown baseline(s) {unknown}: choose from {', '.join(baselines.BASELINES)}")
     notes: dict[str, list[str]] = {n: [] for n in names}
     predictors: dict[str, Any] = {}
     sizes: set[tuple[int, int]] = set()  # the frame sizes the mean depth map was applied at

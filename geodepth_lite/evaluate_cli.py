@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from geodepth_lite import datasets, evaluate, integrity, synth, tables, utils
+from geodepth_lite.errors import UserError
 from geodepth_lite.inference import FLIPS
 
 
@@ -58,12 +59,12 @@ def check_subsets(args: argparse.Namespace, public: bool, kw: dict) -> int:
     """``evaluate --check``: count the frames of a public dataset's evaluation subsets under --root and print
     expected and found counts; 0 when every subset matches, else 1. ``kw``: the --group/--organ/--limit given."""
     if not public:
-        raise ValueError(f"--check applies to the public datasets ({', '.join(datasets.REGISTRY)}), "
+        raise UserError(f"--check applies to the public datasets ({', '.join(datasets.REGISTRY)}), "
                          f"not {args.dataset!r}")
     if kw:
-        raise ValueError(f"--{', --'.join(kw)} do not apply to --check, which counts every frame under --root")
+        raise UserError(f"--{', --'.join(kw)} do not apply to --check, which counts every frame under --root")
     if args.root is None:
-        raise ValueError(f"--check needs --root, the folder of your copy of {args.dataset}")
+        raise UserError(f"--check needs --root, the folder of your copy of {args.dataset}")
     rows = datasets.check_eval_subsets(args.dataset, args.root, args.check or None)
     print(datasets.format_check(rows))
     return 0 if all(r["status"] == "ok" for r in rows) else 1
@@ -81,13 +82,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
     public = args.dataset in datasets.REGISTRY
     kw = {k: getattr(args, k) for k in ("group", "organ", "limit") if getattr(args, k) is not None}
     if kw and not public:
-        raise ValueError(f"--{', --'.join(kw)} apply to the public datasets only, not {args.dataset!r}")
+        raise UserError(f"--{', --'.join(kw)} apply to the public datasets only, not {args.dataset!r}")
     if args.check is not None:  # the subset report only: no checkpoint, no metrics
         return check_subsets(args, public, kw)
     if args.checkpoint is None:
-        raise ValueError("--checkpoint is required (except with --check)")
+        raise UserError("--checkpoint is required (except with --check)")
     if args.error_maps < 0:
-        raise ValueError(f"--error-maps must be >= 0, got {args.error_maps}")
+        raise UserError(f"--error-maps must be >= 0, got {args.error_maps}")
     out = Path(args.out) if args.out else utils.runs_dir() / "eval" / f"{Path(args.dataset).name}-{args.split}"
     created = utils.missing_dirs(out)
     # before any work: a refusal costs nothing

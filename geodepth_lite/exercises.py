@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from geodepth_lite import utils
+from geodepth_lite.errors import UserError
 
 NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
 EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks with a graded section
@@ -181,7 +182,7 @@ def run_nbgrader(args: list[str], root: Path, what: str) -> subprocess.Completed
     if proc.returncode != 0:
         lines = (proc.stderr or proc.stdout).strip().splitlines()
         errors = [ln for ln in lines if "[ERROR]" in ln or "Error" in ln] or lines
-        raise ValueError(f"cannot {what}: nbgrader {args[0]} failed: " + " | ".join(errors[-3:]))
+        raise UserError(f"cannot {what}: nbgrader {args[0]} failed: " + " | ".join(errors[-3:]))
     return proc
 
 
@@ -196,37 +197,37 @@ def read_notebook(path: Path, solutions: bool = True) -> dict:
     try:
         size = path.stat().st_size
         if size > NOTEBOOK_MAX_BYTES:
-            raise ValueError(f"cannot read {path}: {size / 2**20:.0f} MB, more than a notebook's "
+            raise UserError(f"cannot read {path}: {size / 2**20:.0f} MB, more than a notebook's "
                              f"{NOTEBOOK_MAX_BYTES / 2**20:.0f} MB")
         nb = json.loads(path.read_bytes())
     except OSError as exc:
         raise utils.FileProblem(f"cannot read {path}: {utils.os_reason(exc)}", path) from exc
     except (UnicodeDecodeError, RecursionError) as exc:
-        raise ValueError(f"cannot read {path}: not a notebook ({type(exc).__name__})") from None
+        raise UserError(f"cannot read {path}: not a notebook ({type(exc).__name__})") from None
     except json.JSONDecodeError as exc:
-        raise ValueError(f"cannot read {path}: damaged notebook, not valid JSON ({exc})") from None
+        raise UserError(f"cannot read {path}: damaged notebook, not valid JSON ({exc})") from None
     cells = nb.get("cells") if isinstance(nb, dict) else None
     if not isinstance(cells, list) or not all(isinstance(c, dict) for c in cells):
-        raise ValueError(f"cannot read {path}: not a notebook (no list of cells)")
+        raise UserError(f"cannot read {path}: not a notebook (no list of cells)")
     for i, c in enumerate(cells):
         src = c.get("source", "")
         meta = c.get("metadata", {})
         if not isinstance(c.get("cell_type"), str) or not isinstance(meta, dict) or not (
                 isinstance(src, str) or (isinstance(src, list) and all(isinstance(x, str) for x in src))):
-            raise ValueError(f"cannot read {path}: cell {i} is damaged (cell_type, metadata or source)")
+            raise UserError(f"cannot read {path}: cell {i} is damaged (cell_type, metadata or source)")
         grading = meta.get("nbgrader", {})
         if not isinstance(grading, dict) or not isinstance(grading.get("grade_id", ""), str):
-            raise ValueError(f"cannot read {path}: cell {i} has damaged nbgrader metadata")
+            raise UserError(f"cannot read {path}: cell {i} has damaged nbgrader metadata")
         if GRADE_ID.fullmatch(str(grading.get("grade_id", ""))):
             try:
                 float(grading.get("points", 0))
             except (TypeError, ValueError):
-                raise ValueError(f"cannot read {path}: cell {i} ({grading['grade_id']}) has points "
+                raise UserError(f"cannot read {path}: cell {i} ({grading['grade_id']}) has points "
                                  f"{grading.get('points')!r}, not a number") from None
             if solutions and grading["grade_id"].endswith("answer"):
                 regions = [ln.strip() for ln in _source(c).splitlines() if ln.strip() in SOLUTION_MARKERS]
                 if regions != list(SOLUTION_MARKERS) * (len(regions) // 2) or not regions:
-                    raise ValueError(f"cannot read {path}: exercise {grading['grade_id']} has unmatched "
+                    raise UserError(f"cannot read {path}: exercise {grading['grade_id']} has unmatched "
                                      f"solution markers ({' / '.join(SOLUTION_MARKERS)})")
     return nb
 
@@ -339,11 +340,11 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
         run_nbgrader(["generate_assignment", ASSIGNMENT, "--force"], Path(tmp), f"release {names}")
         released = Path(tmp, "release", ASSIGNMENT)
         if not released.is_dir():
-            raise ValueError(f"cannot release {names}: nbgrader generate_assignment wrote no release folder")
+            raise UserError(f"cannot release {names}: nbgrader generate_assignment wrote no release folder")
         for nb, source_nb in sources.items():
             problems = leaks(source_nb, read_notebook(released / nb.name, solutions=False))
             if problems:
-                raise ValueError(f"cannot release {nb}: the release still holds solution text: {problems[0]}")
+                raise UserError(f"cannot release {nb}: the release still holds solution text: {problems[0]}")
         written = []
         for nb in sources:
             utils.write_bytes_atomic(out / nb.name, (released / nb.name).read_bytes())

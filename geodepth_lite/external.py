@@ -24,6 +24,7 @@ import torch
 
 from . import camera, evaluate, inference, metrics, tables, utils
 from .datasets import MemoryDataset, SimCol3DDataset
+from .errors import UserError
 from .integrity import file_sha256
 from .predict import read_frame
 
@@ -47,12 +48,12 @@ def load_manifest(name: str) -> dict:
     m = json.loads(path.read_text())
     missing = [k for k in ("name", "dataset", "source", "licence", "files") if k not in m]
     if missing:
-        raise ValueError(f"{path}: missing field(s) {', '.join(missing)}")
+        raise UserError(f"{path}: missing field(s) {', '.join(missing)}")
     if m["dataset"] not in DECODERS:
-        raise ValueError(f"{path}: dataset {m['dataset']!r} has no decoder (known: {', '.join(DECODERS)})")
+        raise UserError(f"{path}: dataset {m['dataset']!r} has no decoder (known: {', '.join(DECODERS)})")
     for i, f in enumerate(m["files"]):
         if not {"rgb", "rgb_sha256", "depth", "depth_sha256"} <= set(f):
-            raise ValueError(f"{path}: files[{i}] needs rgb, rgb_sha256, depth, depth_sha256")
+            raise UserError(f"{path}: files[{i}] needs rgb, rgb_sha256, depth, depth_sha256")
     return m
 
 
@@ -78,7 +79,7 @@ def sample_dataset(name: str, root: str | Path) -> MemoryDataset:
     what is wrong), at their own size, as evaluation items (image, depth, valid, K, index)."""
     problems = check_copy(name, root)
     if problems:
-        raise ValueError(f"the {name} frames in {root} do not match data_manifests/external/{name}.json:\n"
+        raise UserError(f"the {name} frames in {root} do not match data_manifests/external/{name}.json:\n"
                          + "\n".join(problems))
     m = load_manifest(name)
     decode = DECODERS[m["dataset"]]
@@ -88,7 +89,7 @@ def sample_dataset(name: str, root: str | Path) -> MemoryDataset:
         depth, valid = decode(Path(root) / f["depth"])
         H, W = depth.shape
         if rgb.shape[:2] != (H, W):
-            raise ValueError(f"{Path(root) / f['rgb']}: {rgb.shape[1]}x{rgb.shape[0]}, its depth {W}x{H}")
+            raise UserError(f"{Path(root) / f['rgb']}: {rgb.shape[1]}x{rgb.shape[0]}, its depth {W}x{H}")
         items.append({"image": torch.from_numpy(rgb).permute(2, 0, 1).contiguous(),
                       "depth": torch.from_numpy(depth)[None], "valid": torch.from_numpy(valid)[None],
                       "K": camera.intrinsics(W, H), "organ": "colon", "group": m["name"], "index": i})

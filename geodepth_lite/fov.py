@@ -27,6 +27,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
+from .errors import UserError
 from .utils import FileProblem, check_pixels, os_reason
 
 # --------------------------------------------------------------------------- detection thresholds
@@ -247,10 +248,10 @@ def read_mask(path, shape: tuple[int, int] | None = None, what: str = "mask",
         reason = "not an image file, or a damaged one" if isinstance(exc, UnidentifiedImageError) else os_reason(exc)
         raise FileProblem(f"cannot read {what} {path}: {reason}", path) from exc
     if shape is not None and mask.shape != tuple(shape):
-        raise ValueError(f"{what} {path} is {mask.shape[1]} x {mask.shape[0]} pixels but the frames are "
+        raise UserError(f"{what} {path} is {mask.shape[1]} x {mask.shape[0]} pixels but the frames are "
                          f"{shape[1]} x {shape[0]}: give a mask of the frames' size")
     if not mask.any():
-        raise ValueError(f"{what} {path} has no pixel inside the field of view (all zero): "
+        raise UserError(f"{what} {path} has no pixel inside the field of view (all zero): "
                          f"nonzero pixels mark the field of view")
     return mask
 

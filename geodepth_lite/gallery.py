@@ -32,6 +32,7 @@ from tqdm.auto import tqdm
 
 from . import fov, utils
 from .baselines import shading_prior
+from .errors import UserError
 from .integrity import file_sha256
 from .predict import list_inputs, predict_frames, read_frame
 
@@ -57,7 +58,7 @@ def read_frames_csv(path: str | Path) -> list[dict]:
         reader = csv.DictReader(f)
         missing = [c for c in ("file", "view") if c not in (reader.fieldnames or [])]
         if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(missing)} (a gallery's frames.csv "
+            raise UserError(f"{path}: missing column(s) {', '.join(missing)} (a gallery's frames.csv "
                              f"needs file and view)")
         return list(reader)
 
@@ -87,7 +88,7 @@ def gallery_frames(folder: str | Path | None = None) -> list[dict]:
     problems += [f"{f['path'].name}: SHA-256 differs from frames.csv" for f in frames
                  if f["sha256"] and f["path"].is_file() and file_sha256(f["path"]) != f["sha256"]]
     if problems:
-        raise ValueError(f"gallery {folder}:\n  " + "\n  ".join(problems))
+        raise UserError(f"gallery {folder}:\n  " + "\n  ".join(problems))
     rank = {v: i for i, v in enumerate(VIEW_ORDER)}
     return sorted(frames, key=lambda f: (rank.get(f["view"], len(rank)), f["path"].name))
 

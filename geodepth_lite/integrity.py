@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import UserError
 from .utils import MAX_DATASET_FILE_BYTES, FileProblem, dataset_file, inside_folder, os_reason, write_bytes_atomic
 
 MAX_MANIFEST_BYTES = 4 * 2**20  # a dataset's manifest.json, at most (as manifest.MAX_MANIFEST_BYTES)
@@ -110,7 +111,7 @@ def _dataset_manifest(root: Path) -> tuple[dict | None, str | None]:
                       "stopped before it began: run synth again)")
     try:
         if mpath.stat().st_size > MAX_MANIFEST_BYTES:
-            raise ValueError(f"over the limit of {MAX_MANIFEST_BYTES} bytes for a manifest")
+            raise UserError(f"over the limit of {MAX_MANIFEST_BYTES} bytes for a manifest")
         m = json.loads(mpath.read_text())
     except OSError as exc:
         reason = os_reason(exc)
@@ -258,7 +259,7 @@ def check_dataset(root: str | Path, splits=None, *, limit: int = 5) -> None:
     if len(problems) > limit:
         shown += f"; and {len(problems) - limit} more"
     cmd = f"python -m geodepth_lite synth --manifest {root / 'manifest.json'} --out {root}"
-    raise ValueError(f"dataset {root} failed verification against checksums.sha256: {shown}. "
+    raise UserError(f"dataset {root} failed verification against checksums.sha256: {shown}. "
                      f"Regenerate it with `{cmd}` (renders missing and changed frames again), "
                      "or pass --no-verify to use it as it is")
 

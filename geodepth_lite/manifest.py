@@ -22,6 +22,7 @@ from . import appearance as ap
 from . import camera as cam
 from . import render as rd
 from . import tube as tb
+from .errors import UserError
 from .utils import MAX_PIXELS, FileProblem, manifests_dir, os_reason
 
 GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files (synth.py)
@@ -93,7 +94,7 @@ def _check_type(field: str, value, template) -> None:
         ok = isinstance(value, type(template))
     if not ok:
         name = _type_name(template)
-        raise ValueError(f"manifest field '{field}' must be {'an' if name[0] in 'aeiou' else 'a'} {name}, "
+        raise UserError(f"manifest field '{field}' must be {'an' if name[0] in 'aeiou' else 'a'} {name}, "
                          f"got {_type_name(value)} {value!r}")
 
 
@@ -103,12 +104,12 @@ _REPLACED = {"splits", "camera_path.views"}  # sections replaced as a whole, not
 def _merge(field: str, base: dict, update: dict) -> dict:
     """Recursive merge of ``update`` into a copy of ``base``; unknown keys and wrong types are errors."""
     if not isinstance(update, dict):
-        raise ValueError(f"manifest field '{field or 'manifest'}' must be an object, got {_type_name(update)}")
+        raise UserError(f"manifest field '{field or 'manifest'}' must be an object, got {_type_name(update)}")
     out = copy.deepcopy(base)
     for key, value in update.items():
         name = f"{field}.{key}" if field else key
         if key not in base:
-            raise ValueError(f"manifest has an unknown key '{name}' (allowed: {', '.join(base)})")
+            raise UserError(f"manifest has an unknown key '{name}' (allowed: {', '.join(base)})")
         if isinstance(base[key], dict) and base[key] and name not in _REPLACED:
             out[key] = _merge(name, base[key], value)
         else:
@@ -119,31 +120,31 @@ def _merge(field: str, base: dict, update: dict) -> dict:
 
 def _range(field: str, value, lo=None, hi=None, lo_open=False, hi_open=False) -> None:
     if isinstance(value, float) and not math.isfinite(value):
-        raise ValueError(f"manifest field '{field}' must be a finite number, got {value!r}")
+        raise UserError(f"manifest field '{field}' must be a finite number, got {value!r}")
     bad = ((lo is not None and (value <= lo if lo_open else value < lo))
            or (hi is not None and (value >= hi if hi_open else value > hi)))
     if bad:
         lo_s = "" if lo is None else f"{'>' if lo_open else '>='} {lo}"
         hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi}"
-        raise ValueError(f"manifest field '{field}' must be {' and '.join(x for x in (lo_s, hi_s) if x)}, "
+        raise UserError(f"manifest field '{field}' must be {' and '.join(x for x in (lo_s, hi_s) if x)}, "
                          f"got {value!r}")
 
 
 def _pair(field: str, value, lo=None, hi=None, lo_open=False, integer=False) -> None:
     if len(value) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-        raise ValueError(f"manifest field '{field}' must be a [min, max] pair of numbers, got {value!r}")
+        raise UserError(f"manifest field '{field}' must be a [min, max] pair of numbers, got {value!r}")
     if integer and not all(isinstance(v, int) for v in value):
-        raise ValueError(f"manifest field '{field}' must be a [min, max] pair of integers, got {value!r}")
+        raise UserError(f"manifest field '{field}' must be a [min, max] pair of integers, got {value!r}")
     for v in value:
         _range(field, v, lo, hi, lo_open=lo_open)
     if value[0] > value[1]:
-        raise ValueError(f"manifest field '{field}' must have min <= max, got {value!r}")
+        raise UserError(f"manifest field '{field}' must have min <= max, got {value!r}")
 
 
 def _rgb(field: str, value) -> None:
     if len(value) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0.0 <= v <= 1.0
                                   for v in value):
-        raise ValueError(f"manifest field '{field}' must be an [r, g, b] list of numbers in [0, 1], got {value!r}")
+        raise UserError(f"manifest field '{field}' must be an [r, g, b] list of numbers in [0, 1], got {value!r}")
 
 
 def _check_preset(field: str, p: dict) -> None:
@@ -155,7 +156,7 @@ def _check_preset(field: str, p: dict) -> None:
     _range(f"{field}.fold_depth", p["fold_depth"], hi=0.6)
     _range(f"{field}.teniae", p["teniae"], 0, 12)
     if p["fold_kind"] not in tb.FOLD_KINDS:
-        raise ValueError(f"manifest field '{field}.fold_kind' must be one of {', '.join(tb.FOLD_KINDS)}, "
+        raise UserError(f"manifest field '{field}.fold_kind' must be one of {', '.join(tb.FOLD_KINDS)}, "
                          f"got {p['fold_kind']!r}")
     for key in ("polyps", "diverticula", "ridges", "papillae"):
         _pair(f"{field}.{key}", p[key], 0, 50, integer=True)
@@ -186,15 +187,15 @@ def _check_lighting(field: str, lighting: dict) -> None:
 def check_views(field: str, shares) -> None:
     """``shares`` ({view kind: share}) must name known view kinds (render.VIEW_KINDS) with shares >= 0, one > 0."""
     if not isinstance(shares, dict) or not shares:
-        raise ValueError(f"manifest field '{field}' must be an object of view-kind shares, got {shares!r}")
+        raise UserError(f"manifest field '{field}' must be an object of view-kind shares, got {shares!r}")
     for kind, share in shares.items():
         if kind not in rd.VIEW_KINDS:
-            raise ValueError(f"manifest field '{field}' names an unknown view kind {kind!r} "
+            raise UserError(f"manifest field '{field}' names an unknown view kind {kind!r} "
                              f"(choose from {', '.join(rd.VIEW_KINDS)})")
         if not isinstance(share, (int, float)) or isinstance(share, bool) or share < 0:
-            raise ValueError(f"manifest field '{field}.{kind}' must be a number >= 0, got {share!r}")
+            raise UserError(f"manifest field '{field}.{kind}' must be a number >= 0, got {share!r}")
     if sum(shares.values()) <= 0:
-        raise ValueError(f"manifest field '{field}' must give at least one view kind a share > 0, got {shares!r}")
+        raise UserError(f"manifest field '{field}' must give at least one view kind a share > 0, got {shares!r}")
 
 
 def split_path(m: dict, split: str) -> dict:
@@ -206,7 +207,7 @@ def split_path(m: dict, split: str) -> dict:
 def _library_entries(field: str, names: list, given: dict, library: dict, check) -> dict:
     """Resolve the families named in ``names``: library defaults updated by the manifest's own entries."""
     if not isinstance(given, dict):
-        raise ValueError(f"manifest field '{field}' must be an object, got {_type_name(given)}")
+        raise UserError(f"manifest field '{field}' must be an object, got {_type_name(given)}")
     out = {}
     template_keys = next(iter(library.values()))
     for name in list(given) + [n for n in names if n not in given]:
@@ -215,11 +216,11 @@ def _library_entries(field: str, names: list, given: dict, library: dict, check)
         else:
             entry = _merge(f"{field}.{name}", template_keys, given[name]) if name in given else None
             if entry is None:
-                raise ValueError(f"manifest names an unknown {field[:-5] if field.endswith('_sets') else field} "
+                raise UserError(f"manifest names an unknown {field[:-5] if field.endswith('_sets') else field} "
                                  f"'{name}': define it under '{field}' or choose one of {', '.join(library)}")
             missing = [k for k in template_keys if k not in given[name]]
             if missing:
-                raise ValueError(f"manifest field '{field}.{name}' is missing {', '.join(missing)}")
+                raise UserError(f"manifest field '{field}.{name}' is missing {', '.join(missing)}")
         check(f"{field}.{name}", entry)
         out[name] = entry
     return {k: out[k] for k in names} | {k: v for k, v in out.items() if k not in names}
@@ -236,19 +237,19 @@ def _check_camera(c: dict) -> None:
         pp = c["principal_point"]
         if (not isinstance(pp, list) or len(pp) != 2
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pp)):
-            raise ValueError(f"manifest field 'camera.principal_point' must be null or [cx, cy] in pixels, got {pp!r}")
+            raise UserError(f"manifest field 'camera.principal_point' must be null or [cx, cy] in pixels, got {pp!r}")
     _range("camera.near", c["near"], 0.0, lo_open=True)
     _range("camera.far", c["far"], c["near"], lo_open=True)
 
 
 def _check_splits(m: dict) -> None:
     if not m["splits"]:
-        raise ValueError("manifest field 'splits' must name at least one split (train, val, test)")
+        raise UserError("manifest field 'splits' must name at least one split (train, val, test)")
     for split, n in m["splits"].items():
         if split not in SPLITS:
-            raise ValueError(f"manifest has an unknown split 'splits.{split}' (allowed: {', '.join(SPLITS)})")
+            raise UserError(f"manifest has an unknown split 'splits.{split}' (allowed: {', '.join(SPLITS)})")
         if not isinstance(n, int) or isinstance(n, bool):
-            raise ValueError(f"manifest field 'splits.{split}' must be an integer, got {_type_name(n)} {n!r}")
+            raise UserError(f"manifest field 'splits.{split}' must be an integer, got {_type_name(n)} {n!r}")
         _range(f"splits.{split}", n, 1, 10_000_000)
     _range("frames_per_scene", m["frames_per_scene"], 1, 100_000)
     _range("seed", m["seed"], 0, 2**63 - 1)
@@ -258,24 +259,24 @@ def _check_family_lists(m: dict) -> None:
     """The names in ``organs``, ``textures`` and ``lightings`` (organs must be presets of tube.py)."""
     for key, allowed in (("organs", tb.PRESETS), ("textures", None), ("lightings", None)):
         if not m[key] or not all(isinstance(v, str) for v in m[key]):
-            raise ValueError(f"manifest field '{key}' must be a non-empty list of names, got {m[key]!r}")
+            raise UserError(f"manifest field '{key}' must be a non-empty list of names, got {m[key]!r}")
         if allowed is not None:
             for v in m[key]:
                 if v not in allowed:
-                    raise ValueError(f"manifest field '{key}' names an unknown organ preset {v!r} "
+                    raise UserError(f"manifest field '{key}' names an unknown organ preset {v!r} "
                                      f"(choose from {', '.join(allowed)})")
 
 
 def _check_camera_path(p: dict) -> None:
     if p["mode"] not in ("random", "axis"):
-        raise ValueError(f"manifest field 'camera_path.mode' must be 'random' or 'axis', got {p['mode']!r}")
+        raise UserError(f"manifest field 'camera_path.mode' must be 'random' or 'axis', got {p['mode']!r}")
     _pair("camera_path.s_range", p["s_range"], 0.0, 1.0)
     _range("camera_path.jitter_pos", p["jitter_pos"], 0.0, 0.9)
     _range("camera_path.jitter_angle_deg", p["jitter_angle_deg"], 0.0, 60.0)
     check_views("camera_path.views", p["views"])
     for split, shares in p["views_by_split"].items():
         if split not in SPLITS:
-            raise ValueError(f"manifest has an unknown split 'camera_path.views_by_split.{split}' "
+            raise UserError(f"manifest has an unknown split 'camera_path.views_by_split.{split}' "
                              f"(allowed: {', '.join(SPLITS)})")
         check_views(f"camera_path.views_by_split.{split}", shares)
     _pair("camera_path.wall_angle_deg", p["wall_angle_deg"], 0.0, 89.0)
@@ -290,12 +291,12 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
     Raises ValueError with a one-line message naming the offending field.
     """
     if not isinstance(raw, dict):
-        raise ValueError(f"a manifest must be a JSON object, got {_type_name(raw)}")
+        raise UserError(f"a manifest must be a JSON object, got {_type_name(raw)}")
     m = _merge("", DEFAULTS, raw)
     if overrides:
         m = _merge("", m, overrides)
     if m["generator_version"] != GENERATOR_VERSION:
-        raise ValueError(f"manifest field 'generator_version' is {m['generator_version']}, "
+        raise UserError(f"manifest field 'generator_version' is {m['generator_version']}, "
                          f"this generator is version {GENERATOR_VERSION}")
     _check_camera(m["camera"])
     _check_splits(m)
@@ -316,9 +317,9 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
 def _check_finite(field: str, value, depth: int = 0) -> None:
     """Every number anywhere in the manifest finite (JSON readers accept NaN and Infinity)."""
     if isinstance(value, float) and not math.isfinite(value):
-        raise ValueError(f"manifest field '{field}' must be a finite number, got {value!r}")
+        raise UserError(f"manifest field '{field}' must be a finite number, got {value!r}")
     if depth > MAX_JSON_DEPTH:
-        raise ValueError(f"manifest field '{field}' is nested over {MAX_JSON_DEPTH} deep")
+        raise UserError(f"manifest field '{field}' is nested over {MAX_JSON_DEPTH} deep")
     if isinstance(value, dict):
         for k, v in value.items():
             _check_finite(f"{field}.{k}" if field else str(k), v, depth + 1)
@@ -346,12 +347,12 @@ def check_memory(m: dict) -> None:
     """A ValueError naming the field when rendering ``m`` would need more than the bounds above."""
     c = m["camera"]
     if c["width"] * c["height"] > MAX_PIXELS:
-        raise ValueError(f"manifest fields 'camera.width' x 'camera.height' give {c['width']} x {c['height']} "
+        raise UserError(f"manifest fields 'camera.width' x 'camera.height' give {c['width']} x {c['height']} "
                          f"pixels, over the limit of {MAX_PIXELS} pixels a frame")
     for organ in m["organs"]:
         n = mesh_vertices(m, organ)
         if n > MAX_MESH_VERTICES:
-            raise ValueError(f"manifest field 'resolution.ring_step' ({m['resolution']['ring_step']!r}) with "
+            raise UserError(f"manifest field 'resolution.ring_step' ({m['resolution']['ring_step']!r}) with "
                              f"'organ_presets.{organ}.length' / 'radius' asks for a tube mesh of {n} points "
                              f"(about {n * MESH_BYTES_PER_VERTEX / 2**30:.3g} GiB), over the limit of "
                              f"{MAX_MESH_VERTICES} points: use a larger ring_step or a shorter tube")
@@ -384,9 +385,9 @@ def load_manifest(name_or_path: str | Path, overrides: dict | None = None) -> di
     except FileProblem:
         raise
     except json.JSONDecodeError as exc:
-        raise ValueError(f"manifest {path.name} is not valid JSON: {exc}") from None
+        raise UserError(f"manifest {path.name} is not valid JSON: {exc}") from None
     except RecursionError:
-        raise ValueError(f"manifest {path} is not a usable manifest: its JSON is nested too deep "
+        raise UserError(f"manifest {path} is not a usable manifest: its JSON is nested too deep "
                          f"(a manifest nests at most {MAX_JSON_DEPTH} levels)") from None
     except (OSError, UnicodeDecodeError) as exc:
         reason = os_reason(exc) if isinstance(exc, OSError) else "not a text file"
@@ -394,10 +395,10 @@ def load_manifest(name_or_path: str | Path, overrides: dict | None = None) -> di
     try:
         return resolve_manifest(raw, overrides)
     except RecursionError:
-        raise ValueError(f"manifest {path}: nested too deep (a manifest nests at most {MAX_JSON_DEPTH} levels)"
+        raise UserError(f"manifest {path}: nested too deep (a manifest nests at most {MAX_JSON_DEPTH} levels)"
                          ) from None
     except ValueError as exc:
-        raise ValueError(f"manifest {path}: {exc}") from None
+        raise UserError(f"manifest {path}: {exc}") from None
 
 
 def intrinsics_of(m: dict) -> np.ndarray:

@@ -37,6 +37,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .camera import DEPTH_RANGE
+from .errors import UserError
 
 # smallest and largest depth the head can output: the scene's depth range, camera.py's (scene units; Sec. 3.A)
 MIN_DEPTH, MAX_DEPTH = DEPTH_RANGE
@@ -68,9 +69,9 @@ def check_depth_range(depth_range) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in depth_range)
     except (TypeError, ValueError):
-        raise ValueError(f"depth_range must be two numbers (smallest, largest depth), got {depth_range!r}") from None
+        raise UserError(f"depth_range must be two numbers (smallest, largest depth), got {depth_range!r}") from None
     if not (0 < lo < hi < math.inf):
-        raise ValueError(f"depth_range must satisfy 0 < smallest < largest < inf, got {depth_range!r}")
+        raise UserError(f"depth_range must satisfy 0 < smallest < largest < inf, got {depth_range!r}")
     return (lo, hi)
 
 
@@ -283,14 +284,14 @@ def load_encoder_weights(encoder: ResNet18Encoder, weights) -> None:
         try:
             state = torch.load(weights, map_location="cpu", weights_only=True)
         except Exception as exc:  # unreadable / not a torch file
-            raise ValueError(f"encoder weights {weights}: cannot read a torch state dict ({exc})") from None
+            raise UserError(f"encoder weights {weights}: cannot read a torch state dict ({exc})") from None
     else:
         state = weights
     for key in ("state_dict", "model"):
         if isinstance(state, dict) and key in state and isinstance(state[key], dict):
             state = state[key]
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError("encoder weights: expected a state dict of name -> tensor (torchvision resnet18)")
+        raise UserError("encoder weights: expected a state dict of name -> tensor (torchvision resnet18)")
     state = OrderedDict((k[len("module."):] if k.startswith("module.") else k, v) for k, v in state.items())
     state = OrderedDict((k, v) for k, v in state.items() if not k.startswith("fc."))
     own = encoder.state_dict()
@@ -302,10 +303,10 @@ def load_encoder_weights(encoder: ResNet18Encoder, weights) -> None:
             parts.append(f"missing {len(missing)} (e.g. {', '.join(missing[:3])})")
         if unexpected:
             parts.append(f"unexpected {len(unexpected)} (e.g. {', '.join(unexpected[:3])})")
-        raise ValueError("encoder weights do not match torchvision resnet18: " + "; ".join(parts))
+        raise UserError("encoder weights do not match torchvision resnet18: " + "; ".join(parts))
     for k, v in state.items():
         if tuple(v.shape) != tuple(own[k].shape):
-            raise ValueError(f"encoder weights: {k} has shape {tuple(v.shape)}, expected {tuple(own[k].shape)}")
+            raise UserError(f"encoder weights: {k} has shape {tuple(v.shape)}, expected {tuple(own[k].shape)}")
     encoder.load_state_dict(state, strict=False)
 
 

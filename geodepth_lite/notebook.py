@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from geodepth_lite import config, reproduce, utils
+from geodepth_lite.errors import UserError
 from geodepth_lite.tables import markdown_table
 
 
@@ -26,7 +27,7 @@ def check_int(name: str, value: Any, minimum: int = 0) -> int:
     """``value`` if it is an integer of at least ``minimum``, else a clear error naming the parameter."""
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         kind = {0: "a non-negative integer", 1: "a positive integer"}.get(minimum, f"an integer >= {minimum}")
-        raise ValueError(f"parameter {name} must be {kind}, got {value!r}")
+        raise UserError(f"parameter {name} must be {kind}, got {value!r}")
     return value
 
 
@@ -40,7 +41,7 @@ def setup(profile: str, run_dir: str = "", *, seed: int | None = None, case: int
     """
     prof = config.get_profile(profile)
     if case is not None and case not in config.ABLATION_CASES:
-        raise ValueError(f"parameter case must be one of {sorted(config.ABLATION_CASES)}, got {case!r}")
+        raise UserError(f"parameter case must be one of {sorted(config.ABLATION_CASES)}, got {case!r}")
     if n_examples is not None:
         check_int("n_examples", n_examples, 1)
     for name, value in positive.items():
@@ -53,9 +54,9 @@ def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: 
                title: str = "", notes: str = "", digits: int = 3) -> Path:
     """Write ``tables/<name>.json`` (+ ``.md``) under ``run_dir``; return the JSON path."""
     if not name or "/" in name or name.startswith("."):
-        raise ValueError(f"table name must be a plain file name, got {name!r}")
+        raise UserError(f"table name must be a plain file name, got {name!r}")
     if any(len(r) != len(columns) for r in rows):
-        raise ValueError(f"table {name!r}: every row needs {len(columns)} cells")
+        raise UserError(f"table {name!r}: every row needs {len(columns)} cells")
     table = {"name": name, "title": title, "columns": list(columns), "rows": [list(map(_plain, r)) for r in rows],
              "notes": notes}
     path = Path(run_dir) / "tables" / f"{name}.json"
@@ -83,10 +84,10 @@ def save_record(run_dir: str | os.PathLike, name: str, record: dict[str, float])
     no long dump of numbers.
     """
     if not name or "/" in name or name.startswith("."):
-        raise ValueError(f"record name must be a plain file name, got {name!r}")
+        raise UserError(f"record name must be a plain file name, got {name!r}")
     bad = [k for k, v in record.items() if isinstance(v, bool) or not isinstance(_plain(v), (int, float))]
     if bad:
-        raise ValueError(f"record {name!r}: entries must be numbers, not {bad[:3]}")
+        raise UserError(f"record {name!r}: entries must be numbers, not {bad[:3]}")
     path = Path(run_dir) / "records" / f"{name}.json"
     utils.write_json_atomic(path, {k: _plain(record[k]) for k in sorted(record)})
     print(f"results record: {len(record)} numbers written to records/{name}.json in the run folder")

@@ -70,6 +70,7 @@ from tqdm.auto import tqdm
 
 from . import baselines, camera, checkpoint, fov, recon, utils, viz
 from .datasets import resize_image
+from .errors import UserError
 from .inference import FLIPS, pick_device, predict_depth
 from .utils import FileProblem, os_reason
 
@@ -107,24 +108,24 @@ def load_intrinsics(path) -> dict:
         else:
             data = yaml.safe_load(text)
     except Exception as exc:  # noqa: BLE001 - any parse error is the user's file
-        raise ValueError(f"--intrinsics {path}: cannot parse ({exc.__class__.__name__}: {exc})") from None
+        raise UserError(f"--intrinsics {path}: cannot parse ({exc.__class__.__name__}: {exc})") from None
     if not isinstance(data, dict):
-        raise ValueError(f"--intrinsics {path}: expected a mapping with K or fx, fy, cx, cy")
+        raise UserError(f"--intrinsics {path}: expected a mapping with K or fx, fy, cx, cy")
     if "K" in data:
         K = np.asarray(data["K"], dtype=np.float64)
         if K.shape != (3, 3):
-            raise ValueError(f"--intrinsics {path}: K must be 3x3, got shape {K.shape}")
+            raise UserError(f"--intrinsics {path}: K must be 3x3, got shape {K.shape}")
     else:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
         if missing:
-            raise ValueError(f"--intrinsics {path}: missing {', '.join(missing)} (or give K as a 3x3 list)")
+            raise UserError(f"--intrinsics {path}: missing {', '.join(missing)} (or give K as a 3x3 list)")
         K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], dtype=np.float64)
     if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise ValueError(f"--intrinsics {path}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+        raise UserError(f"--intrinsics {path}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
     size = None
     if "width" in data or "height" in data:
         if not all(isinstance(data.get(k), int) and data[k] > 0 for k in ("width", "height")):
-            raise ValueError(f"--intrinsics {path}: width and height must both be positive integers")
+            raise UserError(f"--intrinsics {path}: width and height must both be positive integers")
         size = (data["width"], data["height"])
     return {"K": K, "size": size}
 
@@ -184,14 +185,14 @@ def list_inputs(path) -> tuple[list[Path], str]:
             raise FileProblem(f"cannot read folder {path}: {os_reason(exc)}", path) from exc
         files = [p for p in entries if _is_image_entry(p) and not is_predict_output(p)]
         if not files:
-            raise ValueError(f"--input folder {path} holds no images ({', '.join(sorted(IMAGE_EXTS))})")
+            raise UserError(f"--input folder {path} holds no images ({', '.join(sorted(IMAGE_EXTS))})")
         return files, "images"
     ext = path.suffix.lower()
     if ext in IMAGE_EXTS:
         return [path], "images"
     if ext in VIDEO_EXTS:
         return [path], "video"
-    raise ValueError(f"--input {path}: not an image ({', '.join(sorted(IMAGE_EXTS))}) "
+    raise UserError(f"--input {path}: not an image ({', '.join(sorted(IMAGE_EXTS))}) "
                      f"or a video ({', '.join(sorted(VIDEO_EXTS))})")
 
 
@@ -199,7 +200,7 @@ def check_out_is_not_input(out, input_path) -> None:
     """A ValueError when ``--out`` is the ``--input`` folder: a second run would read its own outputs."""
     src = Path(input_path)
     if src.is_dir() and Path(out).resolve() == src.resolve():
-        raise ValueError(f"--out {out} is the --input folder: the outputs would be mixed with the images "
+        raise UserError(f"--out {out} is the --input folder: the outputs would be mixed with the images "
                          f"(and read as images by the next run); choose another --out")
 
 
@@ -588,7 +589,7 @@ def _refuse_non_finite(batch, depths, ckpt: Path) -> None:
     """A ValueError if the model predicted NaN or inf for any frame of the batch (nothing of it written)."""
     for frame, depth in zip(batch, depths):
         if not np.isfinite(depth).all():
-            raise ValueError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {frame.name}: "
+            raise UserError(f"checkpoint {ckpt} predicts non-finite depth (NaN or inf) for {frame.name}: "
                              f"nothing written for it; the model is unusable")
 
 
@@ -697,17 +698,17 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
 
 
 def _check_options(args: argparse.Namespace) -> None:
-    """ValueErrors for option values that cannot work, before anything is read."""
+    """UserErrors for option values that cannot work, before anything is read."""
     if args.batch_size < 1:
-        raise ValueError(f"--batch-size must be at least 1, got {args.batch_size}")
+        raise UserError(f"--batch-size must be at least 1, got {args.batch_size}")
     if args.ply_stride < 1:
-        raise ValueError(f"--ply-stride must be at least 1, got {args.ply_stride}")
+        raise UserError(f"--ply-stride must be at least 1, got {args.ply_stride}")
     if getattr(args, "max_pixels", 1) < 1:
-        raise ValueError(f"--max-pixels must be at least 1, got {args.max_pixels}")
+        raise UserError(f"--max-pixels must be at least 1, got {args.max_pixels}")
     if args.fov is not None and not 0.0 < args.fov < 180.0:
-        raise ValueError(f"--fov must be between 0 and 180 degrees, got {args.fov}")
+        raise UserError(f"--fov must be between 0 and 180 degrees, got {args.fov}")
     if args.intrinsics is not None and args.fov is not None:
-        raise ValueError("give either --intrinsics or --fov, not both")
+        raise UserError("give either --intrinsics or --fov, not both")
 
 
 def run_predict(args: argparse.Namespace) -> int:

@@ -31,6 +31,7 @@ from PIL import Image
 from . import camera, render, utils, viz
 from . import manifest as mf
 from . import tube as tube_mod
+from .errors import UserError
 from .metrics import median_scale
 
 # A triangle between neighbouring pixels is kept only if a smooth surface could produce its
@@ -538,7 +539,7 @@ def synthetic_sequence(manifest: str = "heldout_T2L2", organ: str = "colon", n_f
         raise ValueError(f"step must be positive, got {step!r}")
     m = mf.load_manifest(manifest)
     if organ not in m["organ_presets"]:
-        raise ValueError(f"organ {organ!r} is not in manifest {manifest} (has {', '.join(m['organ_presets'])})")
+        raise UserError(f"organ {organ!r} is not in manifest {manifest} (has {', '.join(m['organ_presets'])})")
     preset = m["organ_presets"][organ]
     R = float(preset["radius"])
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5E0]))

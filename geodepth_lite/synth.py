@@ -52,6 +52,7 @@ from . import manifest as mf
 from . import render as rd
 from . import render_torch as rt
 from . import tube as tb
+from .errors import UserError
 from .utils import (
     FileProblem,
     data_dir,
@@ -314,7 +315,7 @@ def _prepare_out_dir(out: Path, m: dict, overwrite: bool, record: dict | None = 
 def resolve_renderer(name: str) -> str:
     """"vtk" or "torch" for a ``--renderer`` choice (RENDERERS); auto: vtk when vtk and pyvista import."""
     if name not in RENDERERS:
-        raise ValueError(f"--renderer must be one of {', '.join(RENDERERS)}, got {name!r}")
+        raise UserError(f"--renderer must be one of {', '.join(RENDERERS)}, got {name!r}")
     if name != "auto":
         return name
     try:
@@ -332,9 +333,9 @@ def torch_device(device):
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as exc:
-        raise ValueError(f"--device: not a torch device: {device!r}") from exc
+        raise UserError(f"--device: not a torch device: {device!r}") from exc
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: no CUDA device is available (try --device cpu)")
+        raise UserError(f"--device {device}: no CUDA device is available (try --device cpu)")
     return dev
 
 
@@ -457,7 +458,7 @@ def _process_pool(processes: int | None) -> tuple:
     ``generate``'s ``processes``; started by spawning (never forked from a process that may hold CUDA)."""
     processes = processes or 0
     if processes < 0:
-        raise ValueError(f"processes must be >= 0, got {processes}")
+        raise UserError(f"processes must be >= 0, got {processes}")
     if not processes:
         return None, SCENES_AHEAD
     return ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")), max(SCENES_AHEAD,
@@ -593,7 +594,7 @@ def preview(m: dict, organ: str, texture: str, lighting: str, *, n: int = 1, see
     for field, name, table in (("organs", organ, m["organ_presets"]), ("textures", texture, m["texture_sets"]),
                                ("lightings", lighting, m["lighting_sets"])):
         if name not in table:
-            raise ValueError(f"{field[:-1]} {name!r} is not in this manifest (has: {', '.join(table)})")
+            raise UserError(f"{field[:-1]} {name!r} is not in this manifest (has: {', '.join(table)})")
     c = m["camera"]
     K = mf.intrinsics_of(m)
     preset = m["organ_presets"][organ]

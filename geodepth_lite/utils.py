@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from PIL import Image
 
+from geodepth_lite.errors import UserError
+
 
 def seed_everything(seed: int) -> None:
     """Seed python, numpy and torch (CPU and CUDA); DataLoader workers use `worker_init`."""
@@ -42,7 +44,7 @@ def parse_device(device: str | torch.device, flag: str = "--device") -> torch.de
     except (RuntimeError, ValueError):
         parsed = None
     if parsed is None or parsed.type not in DEVICE_TYPES:
-        raise ValueError(f"{flag} {text[:40]!r} is not a device: cpu, cuda or cuda:N (N a GPU's index)")
+        raise UserError(f"{flag} {text[:40]!r} is not a device: cpu, cuda or cuda:N (N a GPU's index)")
     return parsed
 
 
@@ -380,7 +382,7 @@ def wait_for_lock(lock: FolderLock, waiting_for: str, max_wait: float | None = N
         try:
             max_wait = float(os.environ.get(LOCK_WAIT_ENV, "") or LOCK_WAIT_DEFAULT)
         except ValueError:
-            raise ValueError(f"{LOCK_WAIT_ENV} must be a number of seconds, got "
+            raise UserError(f"{LOCK_WAIT_ENV} must be a number of seconds, got "
                              f"{os.environ[LOCK_WAIT_ENV]!r}") from None
     deadline = time.monotonic() + max_wait
     told = None

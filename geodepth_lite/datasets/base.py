@@ -18,6 +18,7 @@ from PIL import Image
 from torch.utils.data import Dataset
 
 from .. import utils
+from ..errors import UserError
 from .synthetic import resize_frame
 
 
@@ -34,7 +35,7 @@ def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
         return arr.astype(np.float64) / 255.0
     if arr.dtype == np.uint16:
         return arr.astype(np.float64) / 65535.0
-    raise ValueError(f"{path}: unexpected pixel type {arr.dtype} for a depth PNG (8- or 16-bit expected)")
+    raise UserError(f"{path}: unexpected pixel type {arr.dtype} for a depth PNG (8- or 16-bit expected)")
 
 
 def read_png_raw(path: Path) -> np.ndarray:
@@ -102,7 +103,7 @@ class PublicDepthDataset(Dataset):
         else:
             hw = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
             if len(hw) != 2 or not all(isinstance(s, int) and s > 0 for s in hw):
-                raise ValueError(f"image_size must be a positive int or (H, W), got {image_size!r}")
+                raise UserError(f"image_size must be a positive int or (H, W), got {image_size!r}")
             self.image_size = hw
 
     # ------------------------------------------------------------------ what a subclass overrides
@@ -133,7 +134,7 @@ class PublicDepthDataset(Dataset):
     @classmethod
     def layout_error(cls, root: Path, why: str) -> Exception:
         msg = f"{cls.name} root {root} {why}; expected {cls.layout}"
-        return FileNotFoundError(msg) if why == "does not exist" else ValueError(msg)
+        return FileNotFoundError(msg) if why == "does not exist" else UserError(msg)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -156,7 +157,7 @@ class PublicDepthDataset(Dataset):
             reason = utils.os_reason(exc).replace(f"{rec['depth']}: ", "")
             raise utils.FileProblem(f"cannot read {rec['depth']}: {reason}", rec["depth"]) from exc
         if rgb.shape[:2] != depth.shape:
-            raise ValueError(f"{rec['rgb'].name} is {rgb.shape[1]}x{rgb.shape[0]} but its depth "
+            raise UserError(f"{rec['rgb'].name} is {rgb.shape[1]}x{rgb.shape[0]} but its depth "
                              f"{rec['depth'].name} is {depth.shape[1]}x{depth.shape[0]}")
         depth = np.where(valid, depth, 0.0).astype(np.float32)
         image = torch.from_numpy(rgb).permute(2, 0, 1).float().div_(255.0)
@@ -194,7 +195,7 @@ def register(cls: type[PublicDepthDataset]) -> type[PublicDepthDataset]:
 def dataset_class(name: str) -> type[PublicDepthDataset]:
     """The registered class of public dataset ``name`` (a ValueError listing the names otherwise)."""
     if name not in REGISTRY:
-        raise ValueError(f"unknown dataset {name!r}: choose one of {', '.join(REGISTRY)}")
+        raise UserError(f"unknown dataset {name!r}: choose one of {', '.join(REGISTRY)}")
     return REGISTRY[name]
 
 
@@ -209,7 +210,7 @@ def as_set(value, field: str) -> set[str] | None:
         vals = set(value)
         if all(isinstance(v, str) for v in vals):
             return vals
-    raise ValueError(f"{field} must be a string or a list of strings, got {value!r}")
+    raise UserError(f"{field} must be a string or a list of strings, got {value!r}")
 
 
 def open_dataset(name: str, root, *, organ=None, group=None, sequence=None, image_size=None,
@@ -241,16 +242,16 @@ def open_dataset(name: str, root, *, organ=None, group=None, sequence=None, imag
             continue
         have = sorted({f[field] for f in frames})
         if not keep & set(have):
-            raise ValueError(f"{field} {sorted(keep)} matches no frames in {root}; available: {', '.join(have)}")
+            raise UserError(f"{field} {sorted(keep)} matches no frames in {root}; available: {', '.join(have)}")
         frames = [f for f in frames if f[field] in keep]
     if limit is not None:
         if not isinstance(limit, int) or limit <= 0:
-            raise ValueError(f"limit must be a positive integer, got {limit!r}")
+            raise UserError(f"limit must be a positive integer, got {limit!r}")
         frames = frames[:limit]
     if K is not None:
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3) or not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise ValueError(f"K must be a 3x3 intrinsics matrix with positive focal lengths, got {K.tolist()}")
+            raise UserError(f"K must be a 3x3 intrinsics matrix with positive focal lengths, got {K.tolist()}")
     size_K: dict[tuple, np.ndarray] = {}
     for rec in frames:
         # Frames of one sequence share a size; read one header a sequence, not one per frame.

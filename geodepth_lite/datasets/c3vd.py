@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import camera, utils
+from ..errors import UserError
 from .base import PublicDepthDataset, numbered, pair_images_with_depths
 
 # Bobrow et al. 2023: <sequence>/<n>_color.png, <sequence>/<nnnn>_depth.tiff (16-bit,
@@ -60,14 +61,14 @@ class C3VDDataset(PublicDepthDataset):
             if not vals:
                 continue
             if len(vals) != 16:
-                raise ValueError(f"{path}:{lineno}: expected 16 numbers a line, got {len(vals)}")
+                raise UserError(f"{path}:{lineno}: expected 16 numbers a line, got {len(vals)}")
             M = np.array(vals).reshape(4, 4)
             if np.allclose(M[3], [0, 0, 0, 1]):
                 poses.append(M)
             elif np.allclose(M[:, 3], [0, 0, 0, 1]):
                 poses.append(M.T)
             else:
-                raise ValueError(f"{path}:{lineno}: not a 4x4 rigid transform (no 0 0 0 1 row or column)")
+                raise UserError(f"{path}:{lineno}: not a 4x4 rigid transform (no 0 0 0 1 row or column)")
         return poses
 
     @staticmethod
@@ -83,7 +84,7 @@ class C3VDDataset(PublicDepthDataset):
         if raw.ndim == 3:
             raw = raw[..., 0]
         if raw.dtype != np.uint16:
-            raise ValueError(f"{path}: C3VD depth must be a 16-bit TIFF, got {raw.dtype}")
+            raise UserError(f"{path}: C3VD depth must be a 16-bit TIFF, got {raw.dtype}")
         valid = ~np.isin(raw, C3VD_INVALID_RAW)
         d = np.where(valid, raw.astype(np.float64) / 65535.0 * C3VD_DEPTH_RANGE_MM, 0.0)
         return d.astype(np.float32), valid

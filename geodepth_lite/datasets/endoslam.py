@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import camera
+from ..errors import UserError
 from .base import PublicDepthDataset, norm_name, numbered, pair_images_with_depths, read_png_unit
 
 # Ozyoruk et al. 2021: UnityCam/<Organ>/Frames/image_%04d.png,
@@ -73,7 +74,7 @@ class EndoSLAMDataset(PublicDepthDataset):
                 try:
                     rows.append([float(v) for v in vals[:7]])
                 except ValueError:
-                    raise ValueError(f"{csvs[0]}: non-numeric pose row {line!r}") from None
+                    raise UserError(f"{csvs[0]}: non-numeric pose row {line!r}") from None
         if not ENDOSLAM_POSE_ROW_IS_FRAME_ORDER or len(rows) != len(frame_numbers):
             if rows:
                 warnings.warn(f"{csvs[0]}: {len(rows)} pose rows for {len(frame_numbers)} frames; poses not used")

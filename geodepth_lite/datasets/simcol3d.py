@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import camera
+from ..errors import UserError
 from .base import PublicDepthDataset, numbered, pair_images_with_depths, read_png_raw
 
 # Rau et al. 2023: SyntheticColon_X/Frames_<S|B|O><n>/FrameBuffer_%04d.png + Depth_%04d.png,
@@ -63,9 +64,9 @@ class SimCol3DDataset(PublicDepthDataset):
             fx, fy, cx, cy = vals
             K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         else:
-            raise ValueError(f"{path}: expected 9 numbers (3x3 K) or 4 (fx fy cx cy), got {len(vals)}")
+            raise UserError(f"{path}: expected 9 numbers (3x3 K) or 4 (fx fy cx cy), got {len(vals)}")
         if not (K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1):
-            raise ValueError(f"{path}: not a pinhole intrinsics matrix: {K.tolist()}")
+            raise UserError(f"{path}: not a pinhole intrinsics matrix: {K.tolist()}")
         return K
 
     @staticmethod
@@ -84,7 +85,7 @@ class SimCol3DDataset(PublicDepthDataset):
                 if not vals:
                     continue
                 if len(vals) != k:
-                    raise ValueError(f"{path}:{lineno}: expected {k} numbers, got {len(vals)}")
+                    raise UserError(f"{path}:{lineno}: expected {k} numbers, got {len(vals)}")
                 out.append([float(v) for v in vals])
             return out
 
@@ -99,7 +100,7 @@ class SimCol3DDataset(PublicDepthDataset):
         """SimCol3D ``Depth_*.png``: 16-bit value / 255 / 256 -> [0, 1] -> 0..20 cm; 0 is invalid."""
         raw = read_png_raw(Path(path))
         if raw.dtype != np.uint16:
-            raise ValueError(f"{path}: SimCol3D depth must be a 16-bit PNG, got {raw.dtype}")
+            raise UserError(f"{path}: SimCol3D depth must be a 16-bit PNG, got {raw.dtype}")
         d = raw.astype(np.float64) / SIMCOL3D_DEPTH_DIVISOR * SIMCOL3D_DEPTH_RANGE_CM
         return d.astype(np.float32), raw > 0
 

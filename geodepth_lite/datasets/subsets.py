@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 from .. import utils
+from ..errors import UserError
 from .base import REGISTRY, PublicDepthDataset, as_set, dataset_class, open_dataset
 
 
@@ -30,15 +31,15 @@ def load_subset_manifest(manifest) -> dict:
         m = json.loads(p.read_text())
     for key in ("dataset", "subsets"):
         if key not in m:
-            raise ValueError(f"subset manifest lacks {key!r}")
+            raise UserError(f"subset manifest lacks {key!r}")
     if m["dataset"] not in REGISTRY:
-        raise ValueError(f"subset manifest: unknown dataset {m['dataset']!r}")
+        raise UserError(f"subset manifest: unknown dataset {m['dataset']!r}")
     for s in m["subsets"]:
         for key in ("name", "filter", "frames"):
             if key not in s:
-                raise ValueError(f"subset manifest: a subset lacks {key!r}")
+                raise UserError(f"subset manifest: a subset lacks {key!r}")
         if not isinstance(s["frames"], int) or s["frames"] <= 0:
-            raise ValueError(f"subset {s['name']}: frames must be a positive integer")
+            raise UserError(f"subset {s['name']}: frames must be a positive integer")
     return m
 
 
@@ -68,12 +69,12 @@ def check_eval_subsets(dataset: str | type[PublicDepthDataset], root, manifest=N
     if manifest is None:
         if cls.subset_manifest is None:
             have = ", ".join(n for n, c in REGISTRY.items() if c.subset_manifest)
-            raise ValueError(f"{cls.name} has no evaluation subset manifest (the paper's subsets: {have}); "
+            raise UserError(f"{cls.name} has no evaluation subset manifest (the paper's subsets: {have}); "
                              "give a manifest JSON to check against")
         manifest = cls.subset_manifest
     m = load_subset_manifest(manifest)
     if m["dataset"] != cls.name:
-        raise ValueError(f"subset manifest {manifest} describes {m['dataset']}, not {cls.name}")
+        raise UserError(f"subset manifest {manifest} describes {m['dataset']}, not {cls.name}")
     return check_subset(m, root)
 
 

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from .. import camera as cam
 from .. import synth
+from ..errors import UserError
 from ..integrity import read_frames
 from ..utils import FileProblem, read_npy, read_rgb
 
@@ -65,7 +66,7 @@ def _size(image_size) -> tuple[int, int] | None:
     else:
         h, w = (int(v) for v in image_size)
     if h <= 0 or w <= 0:
-        raise ValueError(f"image_size must be positive, got {image_size!r}")
+        raise UserError(f"image_size must be positive, got {image_size!r}")
     return h, w
 
 
