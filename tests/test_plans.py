@@ -35,25 +35,39 @@ def _text(rel: str) -> str:
     return (root / rel).read_text(encoding="utf-8")
 
 
-@pytest.mark.parametrize("rel", sorted(PINNED))
-def test_the_plan_above_its_amendments_is_the_committed_text(rel):
-    assert body_sha256(_text(rel)) == PINNED[rel], f"{rel} was edited above '## Amendments'"
-
-
-@pytest.mark.parametrize("rel", sorted(PINNED))
-def test_amendments_are_dated_and_appended_at_the_end(rel):
-    text = _text(rel)
-    assert text.count(AMENDMENTS) == 1, "one Amendments section"
+def plan_problems(text: str, pinned: str) -> list[str]:
+    """What breaks the rule of a committed plan: its text above "## Amendments" differs from the
+    pinned SHA-256, or its Amendments section is not one, last, with every item dated."""
+    problems = [] if body_sha256(text) == pinned else ["edited above '## Amendments'"]
+    if text.count(AMENDMENTS) != 1:
+        return problems + [f"{text.count(AMENDMENTS)} Amendments sections, not one"]
     tail = text.split(AMENDMENTS, 1)[1]
-    assert "\n## " not in tail, "the Amendments section is the last one"
+    if "\n## " in tail:
+        problems.append("the Amendments section is not the last one")
     items = [line for line in tail.splitlines() if line.startswith("- ")]
-    assert all(re.match(r"- \*\*\d{4}-\d{2}-\d{2}\b", line) for line in items), "every amendment is dated"
+    dated = re.compile(r"- \*\*\d{4}-\d{2}-\d{2}\b")
+    problems += [f"undated amendment {line[:40]!r}" for line in items if not dated.match(line)]
+    return problems
 
 
-def test_an_edit_above_the_amendments_is_caught_and_one_below_is_not():
-    text = _text("docs/study_plan.md")
-    assert "48 runs in about 40 min" in text
-    edited = text.replace("48 runs in about 40 min", "48 runs in about 72 min", 1)
-    assert body_sha256(edited) != PINNED["docs/study_plan.md"]
-    amended = text.rstrip("\n") + "\n- **2099-01-01, a later fact.** Appended.\n"
-    assert body_sha256(amended) == PINNED["docs/study_plan.md"]
+@pytest.mark.parametrize("rel", sorted(PINNED))
+def test_the_plan_keeps_its_committed_text_and_dated_amendments(rel):
+    assert plan_problems(_text(rel), PINNED[rel]) == []
+
+
+def test_each_way_of_breaking_a_plan_is_caught_and_a_dated_amendment_is_not():
+    """Each defect planted in the committed plan is found; an amendment appended right is accepted."""
+    text, pinned = _text("docs/study_plan.md"), PINNED["docs/study_plan.md"]
+    assert "48 runs in about 40 min" in text and plan_problems(text, pinned) == []
+    body, tail = text.split(AMENDMENTS, 1)
+    fact = "- **2099-01-01, a later fact.** Appended.\n"
+    assert plan_problems(text.rstrip("\n") + "\n" + fact, pinned) == []
+    assert plan_problems(text.replace("48 runs in about 40 min", "48 runs in about 72 min", 1), pinned) == [
+        "edited above '## Amendments'"]
+    assert plan_problems(body.rstrip("\n") + "\n" + fact + AMENDMENTS + tail, pinned) == [  # dated, but above
+        "edited above '## Amendments'"]
+    assert plan_problems(text.rstrip("\n") + "\n- 2099-01-01 a later fact\n", pinned) == [
+        "undated amendment '- 2099-01-01 a later fact'"]
+    assert plan_problems(text.rstrip("\n") + "\n\n## Outcome\nbelow the amendments\n", pinned) == [
+        "the Amendments section is not the last one"]
+    assert plan_problems(text + AMENDMENTS, pinned) == ["2 Amendments sections, not one"]
