@@ -25,8 +25,8 @@ import torch
 from . import camera, evaluate, inference, metrics, tables, utils
 from .datasets import MemoryDataset, SimCol3DDataset
 from .errors import UserError
+from .images import read_rgb
 from .integrity import file_sha256
-from .predict import read_frame
 
 METRIC_COLUMNS = tuple(metrics.METRIC_NAMES)
 DECODERS = {"simcol3d": SimCol3DDataset.decode_depth}  # dataset -> depth PNG -> (depth, valid)
@@ -85,7 +85,7 @@ def sample_dataset(name: str, root: str | Path) -> MemoryDataset:
     decode = DECODERS[m["dataset"]]
     items = []
     for i, f in enumerate(m["files"]):
-        rgb = read_frame(Path(root) / f["rgb"]).astype(np.float32) / 255.0
+        rgb = read_rgb(Path(root) / f["rgb"]).astype(np.float32) / 255.0
         depth, valid = decode(Path(root) / f["depth"])
         H, W = depth.shape
         if rgb.shape[:2] != (H, W):

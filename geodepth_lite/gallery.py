@@ -33,8 +33,9 @@ from tqdm.auto import tqdm
 from . import fov, utils
 from .baselines import shading_prior
 from .errors import UserError
+from .images import read_rgb
 from .integrity import file_sha256
-from .predict import list_inputs, predict_frames, read_frame
+from .predict import list_inputs, predict_frames
 
 FAR_SHARE = 0.2  # the farthest fifth of the field of view is the network's "far region"
 BLOB_LIMIT = 0.5  # a far region more than half bright in the image is a far blob the image does not have
@@ -136,7 +137,7 @@ def score_gallery(model, frames: list[dict], image_size, flips: str = "none", pr
     rows = []
     for f in tqdm(frames, desc="gallery", unit="frame", disable=not progress):
         rows.append({"file": f["path"].name, "view": f["view"], "description": f["description"],
-                     **score_frame(model, read_frame(f["path"]), image_size, flips)})
+                     **score_frame(model, read_rgb(f["path"]), image_size, flips)})
     return rows
 
 

@@ -30,7 +30,7 @@ Frames of any size from 2 x 2 pixels up are resized to the network's input and t
 prediction back to the frame (``inference.predict_depth``); each depth map is the mean of
 the network's predictions for the frame and its three mirror images, mirrored back
 (``--flips hv``; ``none`` for one pass). Images of 16 bits a sample are scaled to 8 bits
-(``to_rgb8``), not clipped. Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
+(``images.to_rgb8``), not clipped. Intrinsics come from ``--intrinsics`` (YAML/JSON) or a
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
 degrees).
 
@@ -71,6 +71,7 @@ from tqdm.auto import tqdm
 from . import baselines, camera, checkpoint, fov, recon, utils, viz
 from .datasets import resize_image
 from .errors import UserError
+from .images import read_rgb
 from .inference import FLIPS, pick_device, predict_depth
 from .utils import FileProblem, os_reason
 
@@ -211,43 +212,6 @@ def _output_stems(files: list[Path]) -> dict[Path, str]:
 
 
 # --------------------------------------------------------------------------- reading images
-def _scaled_gray(a: np.ndarray, full_scale: float) -> np.ndarray:
-    """H x W x 3 uint8 from one channel whose ``full_scale`` maps to 255 (NaN and below 0: black)."""
-    v = np.nan_to_num(a.astype(np.float64) * (255.0 / full_scale), nan=0.0)
-    g = np.clip(np.rint(v), 0, 255).astype(np.uint8)
-    return np.repeat(g[..., None], 3, axis=-1)
-
-
-def to_rgb8(im) -> np.ndarray:
-    """H x W x 3 uint8 of a PIL image, samples of more than 8 bits scaled to 8, not clipped.
-
-    PIL's ``convert("RGB")`` clips 16-bit grey ("I;16") and 32-bit ("I") images to white. Here
-    16-bit data is divided by 257 (65535 -> 255); an "I" image is taken as 16-bit data when all
-    its values fit (how 16-bit files often arrive), else scaled by the int32 range; a float
-    ("F") image by 1 when its values lie in [0, 1], else as 0-255. PIL itself reduces 16-bit
-    colour PNG and TIFF to 8 bits (their high byte) when it opens them.
-    """
-    if im.mode.startswith("I;16"):
-        return _scaled_gray(np.asarray(im), 65535.0)
-    if im.mode == "I":
-        a = np.asarray(im)
-        return _scaled_gray(a, 65535.0 if a.size == 0 or 0 <= a.min() <= a.max() <= 65535 else 2.0**31 - 1)
-    if im.mode == "F":
-        a = np.asarray(im)
-        finite = a[np.isfinite(a)]
-        return _scaled_gray(a, 1.0 if finite.size and finite.min() >= 0 and finite.max() <= 1 else 255.0)
-    return np.array(im.convert("RGB"))
-
-
-def _image_reason(exc: BaseException) -> str:
-    """Why an image could not be decoded, in a few words (whatever the decoder raised)."""
-    if isinstance(exc, Image.UnidentifiedImageError):
-        return "not an image file, or a damaged one"
-    if isinstance(exc, OSError):  # unreadable, truncated ("image file is truncated")
-        return os_reason(exc)
-    return f"damaged or unsupported image ({exc.__class__.__name__}: {exc})"
-
-
 def check_frame_size(width: int, height: int, what: str, path: Path) -> None:
     """A FileProblem naming ``path`` when a frame is smaller than MIN_SIDE x MIN_SIDE pixels."""
     if width < MIN_SIDE or height < MIN_SIDE:
@@ -256,19 +220,10 @@ def check_frame_size(width: int, height: int, what: str, path: Path) -> None:
 
 
 def read_frame(path: Path, max_pixels: int | None = None) -> np.ndarray:
-    """H x W x 3 uint8 of an image file (``to_rgb8``); a FileProblem naming the file if it cannot
-    be decoded, is too small (``check_frame_size``) or too large (over ``max_pixels``, default
-    ``utils.MAX_PIXELS``, checked from its header before decoding)."""
-    try:
-        with Image.open(path) as im:
-            check_frame_size(*im.size, "image", path)
-            utils.check_pixels(*im.size, path, "image", max_pixels)
-            im.load()
-            return to_rgb8(im)
-    except FileProblem:
-        raise
-    except Exception as exc:  # noqa: BLE001 - any decoder error means this file, named, not the run
-        raise FileProblem(f"cannot read {path}: {_image_reason(exc)}", path) from exc
+    """H x W x 3 uint8 of an image file (``images.read_rgb``: 16-bit scaled to 8); a FileProblem
+    naming the file if it cannot be decoded, is too small (``check_frame_size``) or too large (over
+    ``max_pixels``, default ``utils.MAX_PIXELS``, checked from its header before decoding)."""
+    return read_rgb(path, max_pixels, check_size=lambda width, height: check_frame_size(width, height, "image", path))
 
 
 def _image_size(path: Path) -> tuple[int, int] | None:

@@ -409,22 +409,6 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2)
     write_bytes_atomic(path, (json.dumps(obj, indent=indent, sort_keys=False) + "\n").encode())
 
 
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """H x W x 3 uint8 from an image file; a :class:`FileProblem` naming the file if it cannot be decoded."""
-    try:
-        with Image.open(path) as im:
-            check_pixels(*im.size, path)  # from the header, before decoding
-            return np.array(im.convert("RGB"))
-    except FileProblem:
-        raise
-    except Image.DecompressionBombError as exc:
-        raise FileProblem(f"cannot read {path}: {exc}", path) from exc
-    except Image.UnidentifiedImageError as exc:
-        raise FileProblem(f"cannot read {path}: not an image file, or a damaged one", path) from exc
-    except OSError as exc:  # missing, unreadable, truncated ("image file is truncated")
-        raise FileProblem(f"cannot read {path}: {os_reason(exc)}", path) from exc
-
-
 def read_npy(path: str | os.PathLike) -> np.ndarray:
     """A numeric array from a ``.npy`` file (never unpickled); a :class:`FileProblem` naming the file otherwise."""
     try:

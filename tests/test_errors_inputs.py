@@ -26,7 +26,7 @@ import torch
 from conftest import one_line_error, save_untrained_checkpoint
 from numpy._core.multiarray import _reconstruct
 
-from geodepth_lite import checkpoint, cli, datasets, fov, integrity, predict, utils
+from geodepth_lite import checkpoint, cli, datasets, fov, images, integrity, predict, utils
 from geodepth_lite import manifest as mf
 from geodepth_lite.datasets import base
 
@@ -349,7 +349,7 @@ def test_the_bomb_is_a_real_image_of_that_size(bomb):
 
 def test_an_image_over_the_pixel_limit_is_refused_from_its_header(smoke_root, untrained_checkpoint, bomb, tmp_path,
                                                                    capsys):
-    for read in (utils.read_rgb, predict.read_frame, fov.read_mask, base.read_png_unit, base.read_png_raw):
+    for read in (images.read_rgb, predict.read_frame, fov.read_mask, base.read_png_unit, base.read_png_raw):
         with pytest.raises(utils.FileProblem, match="over the limit of 50000000 pixels") as info:
             read(bomb)
         assert info.value.path == bomb

@@ -19,6 +19,7 @@ from torch.utils.data import Dataset
 
 from .. import utils
 from ..errors import UserError
+from ..images import read_rgb
 from .synthetic import resize_frame
 
 
@@ -148,7 +149,7 @@ class PublicDepthDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         rec = self.frames[i]
-        rgb = utils.read_rgb(rec["rgb"])  # a damaged file is named (utils.FileProblem)
+        rgb = read_rgb(rec["rgb"])  # a damaged file is named (utils.FileProblem)
         try:
             depth, valid = self.decode_depth(rec["depth"])
         except utils.FileProblem:

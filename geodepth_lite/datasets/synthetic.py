@@ -27,8 +27,9 @@ import torch.nn.functional as F
 from .. import camera as cam
 from .. import synth
 from ..errors import UserError
+from ..images import read_rgb
 from ..integrity import read_frames
-from ..utils import FileProblem, read_npy, read_rgb
+from ..utils import FileProblem, read_npy
 
 
 def resize_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
