@@ -46,7 +46,7 @@ ALPHA = 0.05  # family-wise error rate of the verdicts (Holm), two-sided
 WIDTH_BOUND = 2 * min(abs(v) for per in PAPER_REDUCTION.values() for v in per.values())  # 20 points
 
 
-def evaluation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
+def ablation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
     """{IN_DOMAIN: the profile's test split, HELDOUT: the three held-out groups' test frames together}."""
     prof = config.get_profile(profile)
     test = evaluate.open_eval_dataset(prof["dataset"], split="test", progress=progress)
@@ -73,7 +73,7 @@ def run(profile: str, cases: list[int], seeds: list[int], *, workers: int | None
     """
     runs = [(c, s) for c in cases for s in seeds]
     paths = run_cache.ensure_checkpoints(profile, runs, workers=workers)
-    sets = evaluation_sets(profile, progress=progress)
+    sets = ablation_sets(profile, progress=progress)
     scores = {}
     for run_key, path in paths.items():
         model, cfg = checkpoint.load_model(path)

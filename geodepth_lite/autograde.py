@@ -88,7 +88,7 @@ def _environment(scratch: Path, course: Path) -> dict:
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     env[sandbox.SCRATCH_ENV] = str(scratch)
     env[sandbox.HIDDEN_ENV] = str(Path(course).resolve())
-    root = str(Path(__file__).resolve().parent.parent)
+    root = str(utils.package_parent())
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
 
@@ -190,7 +190,7 @@ def _score(grades: dict, cell: dict) -> tuple[float | None, float, bool]:
 def exercise_rows(nb: dict, grades: dict) -> list[dict]:
     """One row per exercise of a graded notebook: number, title, points, max points, outcome, message."""
     rows = []
-    for ex in exercises.collect(nb).values():
+    for ex in exercises.notebook_exercises(nb).values():
         m = HEADING.search(ex.prompt)
         number, title = (m.group(1), m.group(2)) if m else (ex.ident.replace("-", "."), "")
         points, max_points, waits = 0.0, 0.0, False

@@ -58,11 +58,10 @@ from pygments.util import ClassNotFound
 
 from geodepth_lite import recon, utils
 from geodepth_lite.errors import UserError
-from geodepth_lite.exercises import HIDDEN_MARKERS, SOLUTION_MARKERS, git_tracked
+from geodepth_lite.exercises import HIDDEN_MARKERS, NOTEBOOK_DIR, SOLUTION_MARKERS, git_tracked
 
-PACKAGE_DIR = Path(__file__).resolve().parent
-ROOT = PACKAGE_DIR.parent
-NOTEBOOK_DIR = ROOT / "notebooks"
+ROOT = utils.package_parent()
+PACKAGE_DIR = ROOT / "geodepth_lite"
 DOCS_DIR = ROOT / "docs"
 README = ROOT / "README.md"
 MARKER = ".geodepth-book.json"  # the output folder's marker: whether complete, and the files it wrote (SHA-256)
@@ -221,7 +220,7 @@ def read_marker(out: Path) -> dict | None:
     return data if isinstance(data, dict) else None
 
 
-def file_sha256(path: Path) -> str | None:
+def regular_file_sha256(path: Path) -> str | None:
     """The SHA-256 of ``path`` where it is a regular file (a link is not followed); None otherwise."""
     try:
         if not stat.S_ISREG(path.lstat().st_mode):
@@ -263,7 +262,7 @@ def owned_files(out: Path, marker: dict | None) -> dict[str, str]:
     owned = {}
     for rel, digests in recorded.items():
         path = _in_folder(out, rel)
-        digest = file_sha256(path) if path is not None else None
+        digest = regular_file_sha256(path) if path is not None else None
         if digest in digests:
             owned[rel] = digest
     return owned
@@ -272,7 +271,7 @@ def owned_files(out: Path, marker: dict | None) -> dict[str, str]:
 def _remove_owned(out: Path, rel: str, digest: str) -> None:
     """Delete ``out/rel`` if it still holds ``digest``, then the folders on its way that it left empty."""
     path = _in_folder(out, rel)
-    if path is None or file_sha256(path) != digest:
+    if path is None or regular_file_sha256(path) != digest:
         return
     path.unlink()
     for folder in path.parents:
@@ -304,7 +303,7 @@ def _plan(out: Path, new: Path) -> tuple[dict[str, str], dict[str, str]]:
     """(the files of the old site the book wrote, the files of the new site), each path -> SHA-256; a
     :class:`utils.FileProblem` where a new file would overwrite one the book did not write."""
     owned = owned_files(out, read_marker(out))
-    new_files = {p.relative_to(new).as_posix(): file_sha256(p) for p in sorted(new.rglob("*")) if p.is_file()}
+    new_files = {p.relative_to(new).as_posix(): regular_file_sha256(p) for p in sorted(new.rglob("*")) if p.is_file()}
     odd = [rel for rel in new_files if not BOOK_PATH.match(rel)]
     if odd:  # a rebuild would not know it as the book's own: never publish it
         raise BookError(f"cannot publish the book: it wrote {odd[0]}, a name outside the site's layout")
@@ -781,7 +780,7 @@ FOLD_LABEL = {"solution": "Show solution", "hidden": "Show the hidden tests"}
 INLINE_CODE = re.compile(r"^(?:geodepth_lite[./])?([A-Za-z_][\w]*(?:\.[A-Za-z_]\w*)*)(?:\(.*\))?$")
 
 
-class Renderer:
+class PageRenderer:
     """Renders one page's MyST content (mdast) to HTML, collecting the package names it links."""
 
     def __init__(self, site: "Site", slug: str, names: Names):
@@ -1156,7 +1155,7 @@ class Site:
             fm = data.get("frontmatter") or {}
             title = fm.get("title") or p.get("title") or slug
             names = self.lesson_names.get(slug, Names())
-            r = Renderer(self, slug, names)
+            r = PageRenderer(self, slug, names)
             body = r.node(data.get("mdast") or {})
             if not fm.get("content_includes_title", False):
                 body = f"<h1>{html.escape(title)}</h1>{body}"

@@ -89,7 +89,6 @@ def assignment_name(notebook: Path) -> str:
     return Path(notebook).stem
 
 
-grade_by_hand = exercises.grade_by_hand  # the release and the course mark open answers alike
 
 
 def _config_text(course_id: str, timeout: int, slowest: tuple[float, str]) -> str:
@@ -118,7 +117,7 @@ def check_new_folder(out: Path, what: str) -> None:
 def _write_source(out: Path, nb: Path, content: dict) -> list[str]:
     """``source/<assignment>/<notebook>`` of the course: open-ended exercises graded by hand, outputs
     cleared (nothing of a run goes to students). Returns the hand-graded exercises."""
-    manual = grade_by_hand(content)
+    manual = exercises.grade_by_hand(content)  # the release and the course mark open answers alike
     for cell in content["cells"]:
         if cell["cell_type"] == "code":
             cell["outputs"], cell["execution_count"] = [], None

@@ -36,7 +36,7 @@ from pathlib import Path
 from geodepth_lite import utils
 from geodepth_lite.errors import UserError
 
-NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+NOTEBOOK_DIR = utils.package_parent() / "notebooks"
 EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks with a graded section
 GRADE_ID = re.compile(r"ex(\d\d)-(\d+)-(answer|check)")  # whole ids only: fullmatch
 SOLUTION_MARKERS = ("### BEGIN SOLUTION", "### END SOLUTION")
@@ -67,7 +67,7 @@ def notebook_paths(folder: Path = NOTEBOOK_DIR) -> list[Path]:
     return [found[n] for n in EXERCISE_NOTEBOOKS if n in found]
 
 
-def collect(nb: dict) -> dict[str, Exercise]:
+def notebook_exercises(nb: dict) -> dict[str, Exercise]:
     """The exercises of a notebook (nbformat JSON as a dict), keyed by id, in notebook order.
 
     The prompt is the markdown cell just before an answer cell.
@@ -296,7 +296,7 @@ def check_release_folder(out: Path, force: bool = False) -> None:
                                     out)
 
 
-def release(out: Path, notebooks: list[Path] | None = None, *, force: bool = False) -> list[Path]:
+def write_release(out: Path, notebooks: list[Path] | None = None, *, force: bool = False) -> list[Path]:
     """Write the student release of ``notebooks`` (default: 01-07) to ``out``; returns the files.
 
     ``out`` is checked first (:func:`check_release_folder`: never the notebooks folder nor a folder of
@@ -356,7 +356,7 @@ def grade_by_hand(nb: dict) -> list[str]:
     """Mark each open-ended exercise of ``nb`` (in place) as manually graded: the answer cell becomes a
     graded solution cell with the exercise's points, the check cell a graded cell worth 0. Returns the ids."""
     marked = []
-    for ex in collect(nb).values():
+    for ex in notebook_exercises(nb).values():
         if not OPEN_LEVEL.search(ex.prompt) or set(ex.cells) != {"answer", "check"}:
             continue
         answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
@@ -371,7 +371,7 @@ def leaks(source_nb: dict, released_nb: dict) -> list[str]:
     text = "\n".join(_source(c) for c in released_nb["cells"])
     found = [m for m in (*SOLUTION_MARKERS, *HIDDEN_MARKERS) if m in text]
     released_lines = {ln.strip() for ln in text.splitlines()}
-    exercises = collect(source_nb).values()
+    exercises = notebook_exercises(source_nb).values()
     # a line that the source also has outside any solution (an import, a blank return) is no leak
     public = {ln.strip() for c in source_nb["cells"] for ln in _split_solutions(_source(c))[1]}
     for ex in exercises:
@@ -389,8 +389,8 @@ def add_arguments_exercises(p: argparse.ArgumentParser) -> None:
 
 
 def run_exercises(args) -> int:
-    written = release(args.out, force=args.force)
-    counts = {p.name: len(collect(read_notebook(p))) for p in notebook_paths()}
+    written = write_release(args.out, force=args.force)
+    counts = {p.name: len(notebook_exercises(read_notebook(p))) for p in notebook_paths()}
     print(f"student release: {len(written)} notebooks, {sum(counts.values())} exercises, in {args.out}")
     print("solutions stay in notebooks/: do not hand that folder out; a whole course (student edition, collect, "
           "autograde, grades): python -m geodepth_lite course --help, docs/teaching.md")

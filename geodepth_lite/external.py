@@ -28,20 +28,16 @@ from .errors import UserError
 from .images import read_rgb
 from .integrity import file_sha256
 
-METRIC_COLUMNS = tuple(metrics.METRIC_NAMES)
 DECODERS = {"simcol3d": SimCol3DDataset.decode_depth}  # dataset -> depth PNG -> (depth, valid)
 
 
-def manifest_path(name: str) -> Path:
-    root = utils.project_root()
-    if root is None:
-        raise FileNotFoundError("data_manifests/external/ not found: run from a checkout of geodepth-lite")
-    return root / "data_manifests" / "external" / f"{name}.json"
+def sample_manifest_path(name: str) -> Path:
+    return utils.checkout_path("data_manifests", "external") / f"{name}.json"
 
 
-def load_manifest(name: str) -> dict:
+def load_sample_manifest(name: str) -> dict:
     """The sample's manifest (``data_manifests/external/<name>.json``), checked for its fields."""
-    path = manifest_path(name)
+    path = sample_manifest_path(name)
     if not path.is_file():
         known = sorted(p.stem for p in path.parent.glob("*.json"))
         raise FileNotFoundError(f"no external sample {name!r} (known: {', '.join(known) or 'none'})")
@@ -64,7 +60,7 @@ def check_copy(name: str, root: str | Path) -> list[str]:
     if not root.is_dir():
         return [f"{root}: not a folder"]
     problems = []
-    for f in load_manifest(name)["files"]:
+    for f in load_sample_manifest(name)["files"]:
         for kind in ("rgb", "depth"):
             p = root / f[kind]
             if not p.is_file():
@@ -81,7 +77,7 @@ def sample_dataset(name: str, root: str | Path) -> MemoryDataset:
     if problems:
         raise UserError(f"the {name} frames in {root} do not match data_manifests/external/{name}.json:\n"
                          + "\n".join(problems))
-    m = load_manifest(name)
+    m = load_sample_manifest(name)
     decode = DECODERS[m["dataset"]]
     items = []
     for i, f in enumerate(m["files"]):
@@ -106,7 +102,7 @@ def score_sample(dataset, model, image_size: int, flips: str, mean_map: np.ndarr
 
     results = {model_label: evaluate.evaluate_predictor(predict, dataset)}
     results |= {f"baseline: {b}": r for b, r in evaluate.evaluate_baselines(dataset, mean_map).items()}
-    return [{"method": method, "frame": f["index"], **{k: float(f[k]) for k in (*METRIC_COLUMNS, "ratio")}}
+    return [{"method": method, "frame": f["index"], **{k: float(f[k]) for k in (*metrics.METRIC_NAMES, "ratio")}}
             for method, r in results.items() for f in r["frames"]]
 
 
@@ -115,13 +111,13 @@ def summary(rows: list[dict]) -> dict[str, dict]:
     out: dict[str, dict] = {}
     for method in dict.fromkeys(r["method"] for r in rows):
         mine = [r for r in rows if r["method"] == method]
-        out[method] = {"frames": len(mine), **{k: float(np.mean([r[k] for r in mine])) for k in METRIC_COLUMNS}}
+        out[method] = {"frames": len(mine), **{k: float(np.mean([r[k] for r in mine])) for k in metrics.METRIC_NAMES}}
     return out
 
 
 def write_scores(path: str | Path, rows: list[dict]) -> Path:
     """The rows as CSV (numbers to 6 significant digits), written whole or not at all."""
-    numbers = (*METRIC_COLUMNS, "ratio")
+    numbers = (*metrics.METRIC_NAMES, "ratio")
     text = tables.csv_bytes([{"method": r["method"], "frame": r["frame"], **{k: f"{r[k]:.6g}" for k in numbers}}
                              for r in rows])
     path = Path(path)
@@ -131,11 +127,12 @@ def write_scores(path: str | Path, rows: list[dict]) -> Path:
 
 def read_scores(path: str | Path) -> list[dict]:
     """Rows written by ``write_scores``, numbers as floats (frame as int)."""
-    return [{"method": r["method"], "frame": int(r["frame"]), **{k: float(r[k]) for k in (*METRIC_COLUMNS, "ratio")}}
+    columns = (*metrics.METRIC_NAMES, "ratio")
+    return [{"method": r["method"], "frame": int(r["frame"]), **{k: float(r[k]) for k in columns}}
             for r in tables.read_csv(path)]
 
 
 def committed_scores(name: str) -> Path:
     """``notebooks/external/<name>.csv``: the committed scores of the sample's frames."""
-    return manifest_path(name).parents[2] / "notebooks" / "external" / f"{name}.csv"
+    return sample_manifest_path(name).parents[2] / "notebooks" / "external" / f"{name}.csv"
 

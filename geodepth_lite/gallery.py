@@ -46,10 +46,7 @@ COLUMNS = ("file", "view", "description", "sha256")
 
 def gallery_dir() -> Path:
     """``notebooks/gallery/`` of the checkout (the frames shipped with the workbook)."""
-    root = utils.project_root()
-    if root is None:
-        raise FileNotFoundError("notebooks/gallery/ not found: run from a checkout of geodepth-lite")
-    return root / "notebooks" / "gallery"
+    return utils.checkout_path("notebooks", "gallery")
 
 
 def read_frames_csv(path: str | Path) -> list[dict]:

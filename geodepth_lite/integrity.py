@@ -24,9 +24,16 @@ from pathlib import Path
 import numpy as np
 
 from .errors import UserError
-from .utils import MAX_DATASET_FILE_BYTES, FileProblem, dataset_file, inside_folder, os_reason, write_bytes_atomic
+from .utils import (
+    MAX_DATASET_FILE_BYTES,
+    MAX_MANIFEST_BYTES,
+    FileProblem,
+    dataset_file,
+    inside_folder,
+    os_reason,
+    write_bytes_atomic,
+)
 
-MAX_MANIFEST_BYTES = 4 * 2**20  # a dataset's manifest.json, at most (as manifest.MAX_MANIFEST_BYTES)
 MAX_SPLIT_FRAMES = 10_000_000  # frames of one split, at most (as manifest's check of 'splits')
 MAX_CHECKSUMS_BYTES = 2**30  # checksums.sha256, at most
 RENDERER_FILE = "renderer.json"  # which renderer made the dataset; absent: VTK

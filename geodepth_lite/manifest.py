@@ -23,7 +23,7 @@ from . import camera as cam
 from . import render as rd
 from . import tube as tb
 from .errors import UserError
-from .utils import MAX_PIXELS, FileProblem, manifests_dir, os_reason
+from .utils import MAX_MANIFEST_BYTES, MAX_PIXELS, FileProblem, manifests_dir, os_reason
 
 GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files (synth.py)
 SPLITS = ("train", "val", "test")
@@ -333,7 +333,6 @@ def _check_finite(field: str, value, depth: int = 0) -> None:
 MAX_MESH_VERTICES = 4_000_000  # the shipped manifests' tubes have 20 000 to 60 000
 MESH_BYTES_PER_VERTEX = 400
 MAX_JSON_DEPTH = 64  # nesting of a manifest or a frames.jsonl record (the schema needs 4)
-MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file, at most
 
 
 def mesh_vertices(m: dict, organ: str) -> int:

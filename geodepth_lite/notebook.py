@@ -104,10 +104,7 @@ def _plain(x: Any) -> Any:
 def evidence(name: str) -> list[dict]:
     """The rows of ``benchmarks/<name>.json``: the validation runs behind the teach recipe
     ("teach_recipe", "lambda_search", "view_evidence"; their prose is docs/teach_recipe.md)."""
-    root = utils.project_root()
-    if root is None:
-        raise FileNotFoundError("benchmarks/ not found: run the notebooks from a checkout of geodepth-lite")
-    path = root / "benchmarks" / f"{name}.json"
+    path = utils.checkout_path("benchmarks") / f"{name}.json"
     if not path.is_file():
         raise FileNotFoundError(f"no evidence table {name!r}: {path} is missing")
     return json.loads(path.read_text())["rows"]

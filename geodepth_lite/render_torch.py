@@ -31,11 +31,9 @@ import numpy as np
 import torch
 
 from . import camera as cam
-from .render import Light
+from .render import DEFAULT_MATERIAL, DEFAULT_MUCOSA_COLOR, Light
 
 NEAR, FAR = cam.DEPTH_RANGE
-DEFAULT_MATERIAL = {"ambient": 0.04, "diffuse": 0.9, "specular": 0.45, "specular_power": 35.0}  # as render.py's
-DEFAULT_MUCOSA_COLOR = (0.85, 0.45, 0.4)
 MAX_CANDIDATES = 1 << 25  # candidate (pixel, triangle) pairs per rasterised chunk: bounds the memory used
 
 

@@ -44,7 +44,7 @@ KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LI
 
 
 def _package_root() -> Path:
-    return Path(__file__).resolve().parent.parent
+    return utils.package_parent()
 
 
 def _inside(path: Path, folders) -> bool:

@@ -23,29 +23,24 @@ import numpy as np
 
 from geodepth_lite import ablation, config, run_cache, study, utils
 from geodepth_lite import tables as tbl
+from geodepth_lite.ablation import ALPHA, WIDTH_BOUND  # "too wide": hi - lo > 20 points
+from geodepth_lite.study import PRIMARY, SEEDS
 
 ARM_B_SETTINGS: dict = {"sdf_sampling": "frustum"}  # arm B's SDF samples (docs/teach_recipe.md's rule)
 ARM_A_WEIGHTS = (1.0, 0.01)  # arm A's (lambda2, lambda3): the paper's implied lambda2 = 1, lambda3 as before
 ARMS = {"A": (2, 4), "B": (3,)}  # arm: its cases
 TESTS = (("A", 2), ("A", 4), ("B", 3))  # family()'s comparisons, in order, each for RMSE then Abs Rel
 REFERENCE = ("silog", 1)                # the first study's cell every comparison is paired with
-SEEDS = study.SEEDS
-PRIMARY = study.PRIMARY
 FRAMES_PER_SCENE = 20                   # scenario_study_confirm's frames_per_scene
 N_SCENES = 24                           # its 480 test frames / 20
 BOOT_REPS = 10_000
 BOOT_SEED = 2
-ALPHA = ablation.ALPHA
-WIDTH_BOUND = ablation.WIDTH_BOUND      # "too wide": hi - lo > 20 points
 MAX_SIGN_FLIP_SEEDS = 20                # the exact test enumerates 2^n assignments
 
 
 def committed_dir() -> Path:
     """``notebooks/study2/``: the committed tables of the second study."""
-    root = utils.project_root()
-    if root is None:
-        raise FileNotFoundError("notebooks/study2/ not found: run from a checkout of geodepth-lite")
-    return root / "notebooks" / "study2"
+    return utils.checkout_path("notebooks", "study2")
 
 
 def arm_settings(arm: str, case: int) -> dict:

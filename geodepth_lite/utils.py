@@ -433,18 +433,29 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
     return a
 
 
+def package_parent() -> Path:
+    """The folder that holds the ``geodepth_lite`` package: a checkout's root, or where it is installed."""
+    return Path(__file__).resolve().parent.parent
+
+
 def project_root() -> Path | None:
     """The checkout this package runs from (has pyproject.toml), or None when installed elsewhere."""
-    root = Path(__file__).resolve().parent.parent
+    root = package_parent()
     return root if (root / "pyproject.toml").exists() and (root / "data_manifests").is_dir() else None
+
+
+def checkout_path(*parts: str) -> Path:
+    """The folder ``parts`` of the checkout (``checkout_path("notebooks", "gallery")``), or a
+    FileNotFoundError saying that only a checkout of geodepth-lite has it."""
+    root = project_root()
+    if root is None:
+        raise FileNotFoundError(f"{'/'.join(parts)}/ not found: run from a checkout of geodepth-lite")
+    return root.joinpath(*parts)
 
 
 def manifests_dir() -> Path:
     """The shipped manifests (``data_manifests/``)."""
-    root = project_root()
-    if root is None:
-        raise FileNotFoundError("data_manifests/ not found: run from a checkout of geodepth-lite")
-    return root / "data_manifests"
+    return checkout_path("data_manifests")
 
 
 def workspace() -> Path:
@@ -503,6 +514,7 @@ def check_image_file(path: str | os.PathLike, what: str = "image", max_pixels: i
         check_pixels(*size, path, what, max_pixels)
 
 
+MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file (data_manifests/*.json, a dataset's manifest.json), at most
 MAX_DATASET_FILE_BYTES = 2**30  # a file a dataset names (frame, depth map, frames.jsonl, checksummed file)
 
 

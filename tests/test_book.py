@@ -85,7 +85,7 @@ def _code_block(code, tags=(), outputs=()):
 
 
 def test_solution_folds_with_its_output(tmp_path):
-    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names({"losses": "losses"}))
+    r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names({"losses": "losses"}))
     block = _code_block("answer = None\n### BEGIN SOLUTION\nanswer = losses.depth_loss(a, b)\n### END SOLUTION",
                         [book.SOLUTION_TAG], [{"output_type": "stream", "name": "stdout", "text": "0.4242\n"}])
     out = r.node(block)
@@ -99,7 +99,7 @@ def test_solution_folds_with_its_output(tmp_path):
 
 
 def test_inline_code_links_to_the_source_line(tmp_path):
-    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names())
     line = book.index_package()["losses"].symbols["sdf_loss"]
     for text in ("losses.sdf_loss", "losses.sdf_loss(pred, gt)", "geodepth_lite.losses.sdf_loss"):
         assert f'href="source/losses.html#L{line}"' in r.n_inlineCode({"value": text}), text
@@ -109,7 +109,7 @@ def test_inline_code_links_to_the_source_line(tmp_path):
 
 
 def test_links_to_files_outside_the_book_are_named_not_linked(tmp_path):
-    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names())
     assert r.n_link({"url": "/lesson#goal", "children": [{"type": "text", "value": "x"}]}) == \
         '<a href="lesson.html#goal">x</a>'
     assert "<a" not in r.n_link({"url": "CHANGELOG.md", "children": [{"type": "text", "value": "log"}]})
@@ -294,7 +294,8 @@ def test_a_rebuild_keeps_the_users_files_and_removes_only_its_own(tmp_path, monk
     out = tmp_path / "site"
     build(out)
     marker = book.read_marker(out)
-    assert marker["complete"] is True and marker["files"]["lesson.html"] == book.file_sha256(out / "lesson.html")
+    assert marker["complete"] is True
+    assert marker["files"]["lesson.html"] == book.regular_file_sha256(out / "lesson.html")
     assert set(marker["files"]) == {p for p in _tree(out) if p != book.MARKER}  # every file it wrote, no other
     (out / "CNAME").write_text("book.example.org\n")
     (out / "my_slides").mkdir()
@@ -321,19 +322,19 @@ def test_a_forged_marker_grants_nothing(tmp_path, monkeypatch):
     build = _fake_build(tmp_path, monkeypatch)
     outside = tmp_path / "outside.txt"
     outside.write_text("not the book's")
-    digest = book.file_sha256(outside)
+    digest = book.regular_file_sha256(outside)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     (elsewhere / "book.css").write_text("mine")
     forged = [{"complete": True}, {"complete": True, "files": {"thesis.tex": None}},
               {"complete": True, "files": {"../outside.txt": digest, "_static/../../outside.txt": digest}},
-              {"complete": True, "files": {"_static/book.css": book.file_sha256(elsewhere / "book.css")}}]
+              {"complete": True, "files": {"_static/book.css": book.regular_file_sha256(elsewhere / "book.css")}}]
     for k, marker in enumerate(forged):
         folder = tmp_path / f"forged{k}"
         folder.mkdir()
         (folder / "thesis.tex").write_text("\\documentclass{article} my thesis")
         if marker.get("files", {}).get("thesis.tex", 1) is None:
-            marker["files"]["thesis.tex"] = book.file_sha256(folder / "thesis.tex")  # the right hash, even
+            marker["files"]["thesis.tex"] = book.regular_file_sha256(folder / "thesis.tex")  # the right hash, even
         if k == 3:
             (folder / "_static").symlink_to(elsewhere, target_is_directory=True)
         (folder / book.MARKER).write_text(json.dumps(marker))
@@ -543,7 +544,7 @@ def test_a_planted_sanitiser_defect_is_caught():
 
 
 def test_html_outputs_are_sanitised_or_sandboxed(tmp_path):
-    r = book.Renderer(_fake_site(tmp_path), "lesson", book.Names())
+    r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names())
     inline = r.output({"output_type": "display_data",
                        "data": {"text/html": {"content": '<img src=x onerror="alert(1)"><table><tr><td>t</td></tr>'
                                                          "</table>"}}})

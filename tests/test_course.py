@@ -129,7 +129,7 @@ def test_init_writes_nbgrader_layout_config_and_hand_graded_open_exercises(tmp_p
     assert "06_generalization.ipynb" in config
     for p in exercises.notebook_paths():
         src = json.loads((out / "source" / p.stem / p.name).read_text())
-        before, after = exercises.collect(json.loads(p.read_text())), exercises.collect(src)
+        before, after = exercises.notebook_exercises(json.loads(p.read_text())), exercises.notebook_exercises(src)
         assert not any(c.get("outputs") for c in src["cells"] if c["cell_type"] == "code")
         for ident, ex in after.items():
             answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
@@ -473,7 +473,7 @@ def solution_texts() -> dict[str, str]:
                        if ln.strip() not in exercises.SOLUTION_MARKERS and not _in_solution(c, ln))
     out = {}
     for p, nb in books.items():
-        for ex in exercises.collect(nb).values():
+        for ex in exercises.notebook_exercises(nb).values():
             for ln in exercises.solution_lines(ex.answer):
                 if not ln.startswith("#") and len(ln) >= 12 and ln not in public:
                     out[ln] = f"{p.name} exercise {ex.ident}"
@@ -610,7 +610,7 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
 
 def test_feedback_page_names_exercises_and_shows_messages_not_tests():
     nb = json.loads(tiny_notebook_text())
-    course.grade_by_hand(nb)  # as the course's source/ and autograded/ hold it: 99.3's answer graded by hand
+    exercises.grade_by_hand(nb)  # as the course's source/ and autograded/ hold it: 99.3's answer graded by hand
     hidden = "assert isinstance(my_sum, int)"
     for cell in nb["cells"]:
         gid = cell["metadata"].get("nbgrader", {}).get("grade_id", "")

@@ -6,7 +6,7 @@ answer both lose the points, and the solution keeps them.
   answer that meets the visible check only. It passes the visible check (so it is a real threat) and fails
   the full check, hidden tests included, as ``nbgrader autograde`` runs it.
 - A **wrong answer** is a plausible mistake; the visible check alone rejects it, so a student sees it.
-- An **open-ended** exercise is graded by hand (``course.grade_by_hand``: its check carries no points);
+- An **open-ended** exercise is graded by hand (``exercises.grade_by_hand``: its check carries no points);
   its visible check still rejects a placeholder answer.
 
 The answers are the exercise's answer cell with its solution regions replaced; each runs with its check
@@ -20,17 +20,17 @@ import textwrap
 
 import pytest
 
-from geodepth_lite import course, grading
 from geodepth_lite import exercises as E
+from geodepth_lite import grading
 
 NOTEBOOKS = {p.name: json.loads(p.read_text()) for p in E.notebook_paths()}
-EXERCISES = {ex.ident: ex for nb in NOTEBOOKS.values() for ex in E.collect(nb).values()}
+EXERCISES = {ex.ident: ex for nb in NOTEBOOKS.values() for ex in E.notebook_exercises(nb).values()}
 
 
 def _manual() -> set:
     marked = set()
     for nb in NOTEBOOKS.values():
-        marked.update(course.grade_by_hand(copy.deepcopy(nb)))
+        marked.update(E.grade_by_hand(copy.deepcopy(nb)))
     return marked
 
 
@@ -428,9 +428,9 @@ def test_shortcut_and_wrong_answer_lose_the_points(ident):
 @pytest.mark.parametrize("ident", sorted(OPEN))
 def test_open_ended_exercises_are_graded_by_hand_and_reject_a_placeholder(ident):
     ex = EXERCISES[ident]
-    nb = copy.deepcopy(next(nb for nb in NOTEBOOKS.values() if ident in E.collect(nb)))
-    assert ident in course.grade_by_hand(nb)
-    graded = E.collect(nb)[ident]
+    nb = copy.deepcopy(next(nb for nb in NOTEBOOKS.values() if ident in E.notebook_exercises(nb)))
+    assert ident in E.grade_by_hand(nb)
+    graded = E.notebook_exercises(nb)[ident]
     answer, check = graded.cells["answer"]["metadata"]["nbgrader"], graded.cells["check"]["metadata"]["nbgrader"]
     assert check["points"] == 0 and answer["points"] == ex.points > 0 and answer["grade"] and answer["solution"]
     placeholder = outcome(answer_with(ex.answer, PLACEHOLDERS[ident]), E.visible_check(ex.check))

@@ -17,20 +17,20 @@ def _load(path):
 
 
 def _all_exercises():
-    return [(p.name, ex) for p in NOTEBOOKS for ex in E.collect(_load(p)).values()]
+    return [(p.name, ex) for p in NOTEBOOKS for ex in E.notebook_exercises(_load(p)).values()]
 
 
 @pytest.fixture(scope="module")
 def released(tmp_path_factory):
     out = tmp_path_factory.mktemp("release") / "student"
-    E.release(out)
+    E.write_release(out)
     return {p.name: _load(out / p.name) for p in NOTEBOOKS}
 
 
 def test_every_lesson_notebook_has_three_graded_exercises_from_recall_to_open():
     assert [p.name[:2] for p in NOTEBOOKS] == list(E.EXERCISE_NOTEBOOKS)
     for p in NOTEBOOKS:
-        exs = E.collect(_load(p))
+        exs = E.notebook_exercises(_load(p))
         assert len(exs) >= 3, f"{p.name}: {len(exs)} exercises"
         for ex in exs.values():
             assert set(ex.cells) == {"answer", "check"}, f"{p.name} {ex.ident}: needs an answer and a check cell"
@@ -47,7 +47,7 @@ def test_solution_passes_its_check(name, ex):
 
 @pytest.mark.parametrize("name,ex", _all_exercises(), ids=lambda v: getattr(v, "ident", v))
 def test_check_fails_on_the_students_unanswered_stub(name, ex, released):
-    stub = E.collect(released[name])[ex.ident]
+    stub = E.notebook_exercises(released[name])[ex.ident]
     assert E.SOLUTION_MARKERS[0] not in stub.answer and "NotImplementedError" in stub.answer
     fails, why = E.stub_fails(stub.answer, stub.check)
     assert fails, f"{name} exercise {ex.ident}: {why}"
@@ -58,7 +58,7 @@ def test_release_holds_no_solution_text_and_no_outputs(released):
         source, student = _load(p), released[p.name]
         assert E.leaks(source, student) == []
         assert not any(c.get("outputs") for c in student["cells"] if c["cell_type"] == "code")
-        assert len(E.collect(student)) == len(E.collect(source))
+        assert len(E.notebook_exercises(student)) == len(E.notebook_exercises(source))
 
 
 def test_release_holds_no_solution_line_and_no_marker_anywhere(released):
@@ -70,7 +70,7 @@ def test_release_holds_no_solution_line_and_no_marker_anywhere(released):
 
 def test_leak_check_and_stub_check_can_fail():
     nb = _load(NOTEBOOKS[0])
-    ex = next(iter(E.collect(nb).values()))
+    ex = next(iter(E.notebook_exercises(nb).values()))
     leaked = json.loads(json.dumps(nb))
     leaked["cells"].append({"cell_type": "markdown", "metadata": {}, "source": E.solution_lines(ex.answer)[-1]})
     assert E.leaks(nb, leaked)
@@ -97,7 +97,7 @@ def test_release_command_writes_the_student_notebooks(tmp_path, capsys):
 
 
 def test_the_lecturers_page_states_the_notebooks_exercise_count_and_points():
-    total = [ex for p in E.notebook_paths() for ex in E.collect(E.read_notebook(p)).values()]
+    total = [ex for p in E.notebook_paths() for ex in E.notebook_exercises(E.read_notebook(p)).values()]
     stated = f"{len(total)} graded exercises, {sum(ex.points for ex in total):g} points in all"
     text = " ".join((E.NOTEBOOK_DIR.parent / "docs" / "teaching.md").read_text().split())
     assert stated in text
@@ -110,7 +110,7 @@ def test_release_sends_open_ended_answers_to_hand_grading(released):
     enough explanation earns nothing automatically in the release either."""
     seen = 0
     for p in NOTEBOOKS:
-        for ex in E.collect(released[p.name]).values():
+        for ex in E.notebook_exercises(released[p.name]).values():
             answer, check = ex.cells["answer"]["metadata"]["nbgrader"], ex.cells["check"]["metadata"]["nbgrader"]
             if E.OPEN_LEVEL.search(ex.prompt):
                 seen += 1

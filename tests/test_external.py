@@ -7,13 +7,13 @@ import pytest
 import torch
 from PIL import Image
 
-from geodepth_lite import external
+from geodepth_lite import external, metrics
 from geodepth_lite.integrity import file_sha256
 from geodepth_lite.model import DepthNet
 
 
 def test_the_simcol3d_manifest_names_ten_pairs_and_their_source():
-    m = external.load_manifest("simcol3d_sample")
+    m = external.load_sample_manifest("simcol3d_sample")
     assert m["dataset"] == "simcol3d" and len(m["files"]) == 10
     assert m["source"]["commit"] and "CC BY-NC-SA" in m["licence"]
     assert all(len(f["rgb_sha256"]) == len(f["depth_sha256"]) == 64 for f in m["files"])
@@ -21,7 +21,7 @@ def test_the_simcol3d_manifest_names_ten_pairs_and_their_source():
 
 def test_an_unknown_sample_and_an_empty_folder_are_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="no external sample 'nope'.*simcol3d_sample"):
-        external.load_manifest("nope")
+        external.load_sample_manifest("nope")
     problems = external.check_copy("simcol3d_sample", tmp_path)
     assert len(problems) == 20 and problems[0] == f"{tmp_path / 'FrameBuffer_0000.png'}: missing"
     assert external.check_copy("simcol3d_sample", tmp_path / "absent") == [f"{tmp_path / 'absent'}: not a folder"]
@@ -47,7 +47,7 @@ def tiny_sample(tmp_path, monkeypatch):
     manifest = tmp_path / "tiny.json"
     manifest.write_text(json.dumps({"name": "tiny", "dataset": "simcol3d", "source": {}, "licence": "test",
                                     "files": files}))
-    monkeypatch.setattr(external, "manifest_path", lambda name: manifest)
+    monkeypatch.setattr(external, "sample_manifest_path", lambda name: manifest)
     return root
 
 
@@ -82,13 +82,13 @@ def test_scores_with_known_answers_and_their_round_trip(tiny_sample, tmp_path):
                                                         for f in (0, 1)]
     const = [r for r in rows if r["method"] == "baseline: constant"]
     assert const[0]["abs_rel"] == pytest.approx(2047 * 0.5 / 4095, rel=1e-6)
-    assert all(np.isfinite([r[k] for r in rows for k in external.METRIC_COLUMNS]))
+    assert all(np.isfinite([r[k] for r in rows for k in metrics.METRIC_NAMES]))
     s = external.summary(rows)
     assert s["baseline: constant"]["frames"] == 2 and s["baseline: constant"]["abs_rel"] == pytest.approx(
         2047 * 0.5 / 4095, rel=1e-6)
     back = external.read_scores(external.write_scores(tmp_path / "s.csv", rows))
     assert [r["method"] for r in back] == [r["method"] for r in rows]
-    assert all(b[k] == pytest.approx(r[k], rel=1e-5) for b, r in zip(back, rows) for k in external.METRIC_COLUMNS)
+    assert all(b[k] == pytest.approx(r[k], rel=1e-5) for b, r in zip(back, rows) for k in metrics.METRIC_NAMES)
 
 
 def test_the_committed_scores_are_the_sample_s_ten_frames_for_four_methods():

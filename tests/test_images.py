@@ -52,7 +52,7 @@ def _gallery_reads(monkeypatch, frame16) -> np.ndarray:
 def _external_reads(monkeypatch, frame16) -> np.ndarray:
     """The frame as another simulator's sample reads it (``sample_dataset``), its copy taken as checked."""
     m = {"name": "one", "dataset": "plain", "files": [{"rgb": frame16.name, "depth": "depth.png"}]}
-    monkeypatch.setattr(external, "load_manifest", lambda name: m)
+    monkeypatch.setattr(external, "load_sample_manifest", lambda name: m)
     monkeypatch.setattr(external, "check_copy", lambda name, root: [])
     monkeypatch.setitem(external.DECODERS, "plain", lambda path: (np.ones((SIZE, SIZE)), np.ones((SIZE, SIZE), bool)))
     item = external.sample_dataset("one", frame16.parent)[0]

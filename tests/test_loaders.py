@@ -219,7 +219,7 @@ def test_check_subset_counts_and_reports_mismatches(tmp_path, capsys):
     assert [s["frames"] for s in datasets.load_subset_manifest("endoslam")["subsets"]] == [1548, 1257, 1062]
     small = dict(manifest, subsets=[dict(s, frames=4) for s in manifest["subsets"]])
     small["subsets"][1]["frames"] = 3
-    rows = datasets.check_subset(small, tmp_path)
+    rows = datasets.count_subset_frames(small, tmp_path)
     assert [(r["subset"], r["found"], r["status"]) for r in rows] == [
         ("T1-L1", 4, "ok"), ("T2-L2", 4, "more"), ("T3-L3", 0, "missing")]
     path = tmp_path / "m.json"

@@ -12,7 +12,7 @@ Laid out as monodepth2's ``datasets/`` (one module per dataset):
   ``c3vd``: two more. Each holds its class (``EndoSLAMDataset``, ``ColonDepthDataset``,
   ``SimCol3DDataset``, ``C3VDDataset``) and its constants (``ENDOSLAM_*``, ...);
 - ``subsets``: the paper's evaluation subsets (``data_manifests/eval_subsets/*.json``) counted
-  in a user's copy (``check_subset``, ``check_eval_subsets``, ``format_check``).
+  in a user's copy (``count_subset_frames``, ``check_eval_subsets``, ``format_check``).
 
 This module registers the public datasets: ``REGISTRY`` ({name: class}) is the only list of
 dataset names, in the order below (``DATASETS`` is ``tuple(REGISTRY)``). A class holds its
@@ -36,7 +36,7 @@ record per item (file paths, sequence, frame number, ``T_world_cam`` where the d
 has poses). Every fact in a dataset's module that the datasets' documentation does not pin
 down is one named constant marked UNVERIFIED, so a user whose copy differs changes one line.
 
-``check_subset(manifest, root)`` counts the frames of the paper's evaluation subsets in a
+``count_subset_frames(manifest, root)`` counts the frames of the paper's evaluation subsets in a
 user's copy and reports mismatches; ``python -m geodepth_lite evaluate --dataset endoslam
 --root PATH --check`` prints that report.
 """
@@ -46,7 +46,7 @@ from .c3vd import C3VDDataset
 from .colondepth import ColonDepthDataset
 from .endoslam import EndoSLAMDataset
 from .simcol3d import SimCol3DDataset
-from .subsets import check_eval_subsets, check_subset, format_check, load_subset_manifest
+from .subsets import check_eval_subsets, count_subset_frames, format_check, load_subset_manifest
 from .synthetic import (
     CACHE_LIMIT_BYTES,
     MEMORY_CACHE,
@@ -69,6 +69,6 @@ DATASETS = tuple(REGISTRY)  # the registered names, for compatibility
 __all__ = [
     "CACHE_LIMIT_BYTES", "DATASETS", "MEMORY_CACHE", "REGISTRY", "C3VDDataset", "ColonDepthDataset",
     "EndoSLAMDataset", "MemoryDataset", "PublicDepthDataset", "SimCol3DDataset", "SyntheticDepthDataset",
-    "check_eval_subsets", "check_subset", "dataset_class", "format_check", "load_split", "load_subset_manifest",
+    "check_eval_subsets", "count_subset_frames", "dataset_class", "format_check", "load_split", "load_subset_manifest",
     "open_dataset", "read_frames", "register", "resize_frame", "resize_image", "resolve_dataset",
 ]

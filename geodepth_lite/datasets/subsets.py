@@ -2,7 +2,7 @@
 
 A subset manifest names its public dataset and lists subsets, each a ``filter`` on the frame
 records (``organ``, ``group``, ``sequence``) and the number of ``frames`` the paper used.
-``check_subset(manifest, root)`` counts each subset's frames under ``root``;
+``count_subset_frames(manifest, root)`` counts each subset's frames under ``root``;
 ``check_eval_subsets(name, root)`` does so against a dataset's own manifest (its class's
 ``subset_manifest``); ``format_check`` prints the rows. ``python -m geodepth_lite evaluate
 --dataset endoslam --root PATH --check`` prints that report.
@@ -43,7 +43,7 @@ def load_subset_manifest(manifest) -> dict:
     return m
 
 
-def check_subset(manifest, root) -> list[dict]:
+def count_subset_frames(manifest, root) -> list[dict]:
     """Count the frames of each paper subset in ``root``; one row per subset.
 
     Row: {"subset", "expected", "found", "status"} with status "ok" (counts equal),
@@ -63,7 +63,7 @@ def check_subset(manifest, root) -> list[dict]:
 
 
 def check_eval_subsets(dataset: str | type[PublicDepthDataset], root, manifest=None) -> list[dict]:
-    """``check_subset`` of ``root`` against ``manifest`` (default: the ``subset_manifest`` of ``dataset``,
+    """``count_subset_frames`` of ``root`` against ``manifest`` (default: the ``subset_manifest`` of ``dataset``,
     a registered name or class)."""
     cls = dataset_class(dataset) if isinstance(dataset, str) else dataset
     if manifest is None:
@@ -75,11 +75,11 @@ def check_eval_subsets(dataset: str | type[PublicDepthDataset], root, manifest=N
     m = load_subset_manifest(manifest)
     if m["dataset"] != cls.name:
         raise UserError(f"subset manifest {manifest} describes {m['dataset']}, not {cls.name}")
-    return check_subset(m, root)
+    return count_subset_frames(m, root)
 
 
 def format_check(rows: list[dict]) -> str:
-    """``check_subset``'s rows as a fixed-width table (subset, expected, found, status)."""
+    """``count_subset_frames``'s rows as a fixed-width table (subset, expected, found, status)."""
     lines = [f"{'subset':<18}{'expected':>9}{'found':>8}  status"]
     lines += [f"{r['subset']:<18}{r['expected']:>9}{r['found']:>8}  {r['status']}" for r in rows]
     return "\n".join(lines)
