@@ -184,7 +184,7 @@ def cuda_test_status(returncode: int, summary: str, cuda_available: bool) -> str
     return "not run: no test was collected"
 
 
-TILES = ("32,32,32,4", "64,64,32,4", "16,32,32,2", "32,64,32,4", "64,32,32,4", "32,32,32,2")
+TILES = ("16,32,32,2", "16,32,32,2,1", "8,32,32,1", "8,32,32,1,1", "16,16,32,2,1", "32,32,32,4,1")
 
 
 def _search_batch(dev, batch: int, size: int, grid: int):
@@ -205,12 +205,12 @@ def tile_sweep(dev, pts, valid, q, repeats: int) -> dict:
     (``nnsearch_triton.TILE_ENV``)."""
     times = {}
     for tile in TILES:
-        nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS = (
-            nnsearch_triton.parse_tile(tile))
+        (nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS,
+         nnsearch_triton.MODE) = nnsearch_triton.parse_tile(tile)
         times[tile] = _median_time(lambda: sdf.nearest_indices_grid(pts, valid, q, "triton"), dev, repeats)
     best = min(TILES, key=lambda t: (times[t], TILES.index(t)))
-    nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS = (
-        nnsearch_triton.parse_tile(best))
+    (nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS,
+     nnsearch_triton.MODE) = nnsearch_triton.parse_tile(best)
     os.environ[nnsearch_triton.TILE_ENV] = best
     return {"tiles_s": times, "chosen": best}
 
@@ -321,7 +321,7 @@ def markdown(report: dict) -> str:
                          f"{r['agree']} of {b['queries']} queries |")
         if "tile_sweep" in b:
             sw = b["tile_sweep"]
-            lines.append("| Triton tile (queries, points, blocks per chunk, warps): ms per batch | "
+            lines.append("| Triton tile (queries, points, blocks per chunk, warps[, bound per chunk]): ms per batch | "
                          + ", ".join(f"{t} {1e3 * v:.2f}" for t, v in sw["tiles_s"].items())
                          + f"; chosen {sw['chosen']} |")
         timed = b.get("timed", "device")
@@ -573,10 +573,11 @@ def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: i
     """The SDF loss's share of a paper-profile training step (forward, every loss term, backward,
     Adam step) on one batch of the training frames: 1 - (Case 2 step) / (Case 4 step), Case 2 being
     Case 4 without the SDF term; with the ground-truth fields searched anew (the first epoch) and
-    taken from the cache (every later epoch)."""
+    taken from the cache by frame id (every later epoch), as training does."""
     ds = datasets.load_split(root, "train", size, limit=batch)
     data = inference.to_device(inference.collate([ds[i] for i in range(len(ds))]), dev)
     steps = {}
+    ids = [("train", i) for i in range(len(ds))]  # the ground truth's fields keyed by frame, as training keys them
     for case in (4, 2):
         cfg = config.make_config("paper", case, 0, image_size=size, batch_size=batch)
         cfg["sdf_grid"] = grid
@@ -588,7 +589,7 @@ def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: i
             opt.zero_grad(set_to_none=True)
             with inference.autocast(dev):
                 pred = net(data["image"])
-            train.compute_losses(pred, data, cfg)[0].backward()
+            train.compute_losses(pred, data, cfg, frame_ids=ids)[0].backward()
             opt.step()
 
         steps[case] = step

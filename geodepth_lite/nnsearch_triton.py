@@ -43,26 +43,31 @@ except ImportError:  # CPU builds of torch ship without Triton: the other exact 
 
 AVAILABLE = triton is not None
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
-# queries per tile, points per block, blocks per chunk (powers of two), warps per program; smaller tiles
-# prune better (pair comparisons per query on 320 px analytic views, 32^3 grids: 4,018-10,760 at 32 x 32
-# against 6,398-15,616 at 64 x 64; brute force 102,400), larger ones test fewer boxes
-TILE_ENV = "GEODEPTH_LITE_TRITON_TILE"  # "BQ,BP,CB,WARPS" overrides the default (gpu-check's sweep)
+# queries per tile, points per block, blocks per chunk (powers of two), warps per program, and whether the
+# bound a block is tested against is refreshed per block (0) or per chunk (1: fewer reductions, a staler
+# bound). Smaller tiles prune better (pair comparisons per query on 320 px analytic views, 32^3 grids:
+# 3,193-7,247 at 16 x 32, 6,398-15,616 at 64 x 64; brute force 102,400); on one H200, 16 x 32 searched a
+# batch of 20 such fields in 25.8 ms against 31.2 ms at 32 x 32 and 55.4 ms at 64 x 64 (benchmarks/gpu/)
+TILE_ENV = "GEODEPTH_LITE_TRITON_TILE"  # "BQ,BP,CB,WARPS[,MODE]" overrides the default (gpu-check's sweep)
 
 
-def parse_tile(text: str) -> tuple[int, int, int, int]:
-    """(BQ, BP, CB, WARPS) from "BQ,BP,CB,WARPS": powers of two, BQ, BP, CB in 8..256, WARPS in 1..16."""
+def parse_tile(text: str) -> tuple[int, int, int, int, int]:
+    """(BQ, BP, CB, WARPS, MODE) from "BQ,BP,CB,WARPS[,MODE]": powers of two, BQ, BP, CB in 8..256, WARPS
+    in 1..16; MODE 0 or 1 (default 0)."""
     try:
         vals = tuple(int(v) for v in text.split(","))
     except ValueError:
         vals = ()
-    ok = len(vals) == 4 and all(v > 0 and v & (v - 1) == 0 for v in vals)
+    if len(vals) == 4:
+        vals = (*vals, 0)
+    ok = len(vals) == 5 and all(v > 0 and v & (v - 1) == 0 for v in vals[:4]) and vals[4] in (0, 1)
     if not ok or not all(8 <= v <= 256 for v in vals[:3]) or vals[3] > 16:
-        raise ValueError(f"{TILE_ENV} must be four powers of two 'BQ,BP,CB,WARPS' (8-256, 8-256, 8-256, 1-16), "
-                         f"got {text!r}")
+        raise ValueError(f"{TILE_ENV} must be 'BQ,BP,CB,WARPS[,MODE]': powers of two in 8-256, 8-256, 8-256, 1-16, "
+                         f"and MODE 0 or 1, got {text!r}")
     return vals
 
 
-BQ, BP, CB, NUM_WARPS = parse_tile(os.environ.get(TILE_ENV, "32,32,32,4"))
+BQ, BP, CB, NUM_WARPS, MODE = parse_tile(os.environ.get(TILE_ENV, "16,32,32,2"))
 _BITS = 10  # bits per axis of the Morton code
 _INVALID = 1 << 31  # sort key of an invalid point: after every Morton code (30 bits)
 
@@ -164,7 +169,7 @@ if AVAILABLE:
 
     @triton.jit
     def _nearest_kernel(qs, ps, pidx, boxes, firsts, out, B, Mp, Np, NB,
-                        BQ: tl.constexpr, BP: tl.constexpr, CB: tl.constexpr):
+                        BQ: tl.constexpr, BP: tl.constexpr, CB: tl.constexpr, MODE: tl.constexpr):
         t = tl.program_id(0)
         b = tl.program_id(1)
         oq = t * BQ + tl.arange(0, BQ)
@@ -193,7 +198,8 @@ if AVAILABLE:
             lb = (_gap2(tlx, thx, tl.load(boxes + (0 * B + b) * NB + ob), tl.load(boxes + (3 * B + b) * NB + ob))
                   + _gap2(tly, thy, tl.load(boxes + (1 * B + b) * NB + ob), tl.load(boxes + (4 * B + b) * NB + ob))
                   ) + _gap2(tlz, thz, tl.load(boxes + (2 * B + b) * NB + ob), tl.load(boxes + (5 * B + b) * NB + ob))
-            if tl.min(lb, 0) <= tl.max(tl.minimum(ub, best), 0):
+            thr = tl.max(tl.minimum(ub, best), 0)
+            if tl.min(lb, 0) <= thr:
                 for j in range(c, c + CB):
                     lbj = (_gap2(tlx, thx, tl.load(boxes + (0 * B + b) * NB + j),
                                  tl.load(boxes + (3 * B + b) * NB + j))
@@ -201,7 +207,9 @@ if AVAILABLE:
                                    tl.load(boxes + (4 * B + b) * NB + j))
                            ) + _gap2(tlz, thz, tl.load(boxes + (2 * B + b) * NB + j),
                                      tl.load(boxes + (5 * B + b) * NB + j))
-                    if lbj <= tl.max(tl.minimum(ub, best), 0):
+                    if MODE == 0:  # the bound refreshed per block; MODE 1 keeps the chunk's (larger, still safe)
+                        thr = tl.max(tl.minimum(ub, best), 0)
+                    if lbj <= thr:
                         op = j * BP + tl.arange(0, BP)
                         px = tl.load(ps + (0 * B + b) * Np + op)
                         py = tl.load(ps + (1 * B + b) * Np + op)
@@ -249,6 +257,6 @@ def _search(points: torch.Tensor, valid: torch.Tensor, queries: torch.Tensor) ->
     out = torch.empty(B, mp, dtype=torch.int32, device=dev)
     nb = boxes.shape[2]
     _nearest_kernel[(mp // BQ, B)](qs, ps, pidx, boxes, firsts, out, B, mp, nb * BP, nb,
-                                   BQ=BQ, BP=BP, CB=CB, num_warps=NUM_WARPS)
+                                   BQ=BQ, BP=BP, CB=CB, MODE=MODE, num_warps=NUM_WARPS)
     res = torch.empty(B, M, dtype=torch.int64, device=dev)
     return res.scatter_(1, qorder, out[:, :M].long())

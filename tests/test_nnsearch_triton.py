@@ -62,8 +62,9 @@ def test_brute_force_reference_breaks_ties_by_the_least_index_and_skips_invalid_
 
 
 def test_tile_setting_is_checked():
-    assert nnsearch_triton.parse_tile("32,64,16,4") == (32, 64, 16, 4)
-    for bad in ("32,64,16", "33,64,16,4", "32,64,16,32", "4,64,16,4", "a,b,c,d", "32,512,16,4"):
+    assert nnsearch_triton.parse_tile("32,64,16,4") == (32, 64, 16, 4, 0)
+    assert nnsearch_triton.parse_tile("16,32,32,2,1") == (16, 32, 32, 2, 1)
+    for bad in ("32,64,16", "33,64,16,4", "32,64,16,32", "4,64,16,4", "a,b,c,d", "32,512,16,4", "16,32,32,2,2"):
         with pytest.raises(ValueError, match=nnsearch_triton.TILE_ENV):
             nnsearch_triton.parse_tile(bad)
 
@@ -92,6 +93,7 @@ def _interpreted_check() -> None:
     assert mismatches(wrong, P, V, Q) == 1
     # a larger tile than the points of an image, and analytic views at 24 px: the same answers
     nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS = 64, 64, 8, 4
+    nnsearch_triton.MODE = 1  # the chunk's bound for its blocks
     d = torch.stack([torch.from_numpy(analytic.depth_map(k, 24, seed=i))[None] for i, k in enumerate(analytic.KINDS)])
     S = camera.backproject(d, torch.from_numpy(analytic.intrinsics(24)).float())
     q = torch.stack([sdf.grid_points(s.min(0).values, s.max(0).values, 6) for s in S])
