@@ -7,10 +7,12 @@ temporary folder. Steps, each timed and recorded even when one fails:
 
 1. the environment (torch, CUDA device, bf16);
 2. the CUDA tests (``pytest -m cuda tests/test_cuda.py``) when pytest and the checkout's tests/
-   are there (else recorded as not run);
+   are there (else recorded as not run); with ``--full`` they run last;
 3. the nearest-point search at the paper's scale (a batch of 20 depth maps of 320x320, the 32^3
-   bounding-box grid): the batched device search per batch, its agreement with cKDTree, the SDF
-   loss forward and backward, and DepthNet's forward and backward (autocast) at the same batch;
+   bounding-box grid): each exact batched search of the device per batch ("device"; "triton" on
+   CUDA, after a sweep of its tile sizes that sets the fastest for the rest of the check), its
+   agreement with cKDTree, the SDF loss forward and backward, and DepthNet's forward and backward
+   (autocast) at the same batch;
 4. the paper profile (Case 4) for ``--epochs`` epochs on an analytic dataset of ``--frames``
    training frames, each epoch's time from the run's log; from these, the predicted time of 18
    epochs over the paper split (3600 training and 900 validation frames); with ``--full`` this step
@@ -63,6 +65,7 @@ from geodepth_lite import (
     inference,
     losses,
     manifest,
+    nnsearch_triton,
     sdf,
     synth,
     train,
@@ -181,23 +184,62 @@ def cuda_test_status(returncode: int, summary: str, cuda_available: bool) -> str
     return "not run: no test was collected"
 
 
-def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
-    """The SDF search and loss at one batch, beside DepthNet's forward and backward."""
+TILES = ("16,32,32,2", "16,32,32,2,1", "8,32,32,1", "8,32,32,1,1", "16,16,32,2,1", "32,32,32,4,1")
+
+
+def _search_batch(dev, batch: int, size: int, grid: int):
+    """A batch of analytic depth maps as the SDF loss searches them: (depth B x 1 x S x S, K B x 3 x 3,
+    points B x N x 3, valid B x N, queries B x M x 3: each image's bounding-box grid)."""
     K = torch.from_numpy(analytic.intrinsics(size)).float()
     depth = torch.stack([torch.from_numpy(analytic.depth_map(analytic.KINDS[i % 3], size, seed=i))[None]
                          for i in range(batch)]).to(dev)
     Kb = K.expand(batch, 3, 3).contiguous().to(dev)
     pts = camera.backproject(depth, Kb)
-    pairs = [(p, sdf.grid_points(p.min(0).values, p.max(0).values, grid)) for p in pts]
-    found = sdf.nearest_indices_many(pairs, "device")
-    agree = sum(int((f.cpu() == sdf.nearest_indices_kdtree(p, q).cpu()).sum()) for f, (p, q) in zip(found, pairs))
-    res = {"batch": batch, "size": size, "grid": grid, "queries": sum(len(q) for _, q in pairs), "agree": agree}
-    res["search_batch_s"] = _median_time(lambda: sdf.nearest_indices_many(pairs, "device"), dev, repeats)
+    q = torch.stack([sdf.grid_points(p.min(0).values, p.max(0).values, grid) for p in pts])
+    return depth, Kb, pts, torch.ones(pts.shape[:2], dtype=torch.bool, device=dev), q
+
+
+def tile_sweep(dev, pts, valid, q, repeats: int) -> dict:
+    """The Triton search's time per batch for each of :data:`TILES`; the fastest (least median, the
+    first listed among equal ones) is set for this process and the runs it starts
+    (``nnsearch_triton.TILE_ENV``)."""
+    times = {}
+    for tile in TILES:
+        (nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS,
+         nnsearch_triton.MODE) = nnsearch_triton.parse_tile(tile)
+        times[tile] = _median_time(lambda: sdf.nearest_indices_grid(pts, valid, q, "triton"), dev, repeats)
+    best = min(TILES, key=lambda t: (times[t], TILES.index(t)))
+    (nnsearch_triton.BQ, nnsearch_triton.BP, nnsearch_triton.CB, nnsearch_triton.NUM_WARPS,
+     nnsearch_triton.MODE) = nnsearch_triton.parse_tile(best)
+    os.environ[nnsearch_triton.TILE_ENV] = best
+    return {"tiles_s": times, "chosen": best}
+
+
+def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
+    """The SDF search and loss at one batch, beside DepthNet's forward and backward: each exact search
+    this device runs ("device"; "triton" on CUDA with Triton), its agreement with cKDTree (exact, the
+    CPU reference), and the SDF loss forward and backward with the search training uses ("auto")."""
+    depth, Kb, pts, valid, q = _search_batch(dev, batch, size, grid)
+    ref = sdf.nearest_indices_grid(pts.cpu(), valid.cpu(), q.cpu(), "kdtree")
+    res = {"batch": batch, "size": size, "grid": grid, "queries": int(q.shape[0] * q.shape[1]), "methods": {}}
+    if nnsearch_triton.usable(dev) and dev.type == "cuda":
+        res["tile_sweep"] = tile_sweep(dev, pts, valid, q, repeats)
+    for method in ("device", "triton"):
+        if method == "triton" and "tile_sweep" not in res:
+            continue
+        found = sdf.nearest_indices_grid(pts, valid, q, method).cpu()
+        res["methods"][method] = {
+            "agree": int((found == ref).sum()),
+            "batch_s": _median_time(lambda m=method: sdf.nearest_indices_grid(pts, valid, q, m), dev, repeats)}
+    res["auto"] = sdf.resolve_method("auto", dev)
+    res["timed"] = res["auto"] if res["auto"] in res["methods"] else "device"  # CPU: kdtree, not timed here
+    res["search_batch_s"] = res["methods"][res["timed"]]["batch_s"]
+    res["agree"] = res["methods"][res["timed"]]["agree"]
     pred0 = depth * 1.05
 
     def sdf_step():
         p = pred0.clone().requires_grad_()
-        losses.sdf_loss(p, depth, Kb, grid, method="device", cache=None).backward()
+        losses.sdf_loss(p, depth, Kb, grid, cache=None).backward()
 
     res["sdf_loss_batch_s"] = _median_time(sdf_step, dev, repeats)
     net = DepthNet().to(dev).train()
@@ -273,7 +315,18 @@ def markdown(report: dict) -> str:
     lines.append(f"| CUDA tests | {t.get('status', '-')} {t.get('summary', '')} |")
     b = report.get("search", {})
     if "search_batch_s" in b:
-        lines += [f"| nearest-point search, batch {b['batch']}, {b['size']}x{b['size']}, {b['grid']}^3 grid | "
+        for m, r in b.get("methods", {}).items():
+            lines.append(f"| nearest-point search \"{m}\", batch {b['batch']}, {b['size']}x{b['size']}, "
+                         f"{b['grid']}^3 grid | {1e3 * r['batch_s']:.2f} ms per batch; agrees with cKDTree on "
+                         f"{r['agree']} of {b['queries']} queries |")
+        if "tile_sweep" in b:
+            sw = b["tile_sweep"]
+            lines.append("| Triton tile (queries, points, blocks per chunk, warps[, bound per chunk]): ms per batch | "
+                         + ", ".join(f"{t} {1e3 * v:.2f}" for t, v in sw["tiles_s"].items())
+                         + f"; chosen {sw['chosen']} |")
+        timed = b.get("timed", "device")
+        lines += [f"| search \"{timed}\"" + (f" (training here uses \"{b['auto']}\")" if b.get("auto", timed) != timed
+                                               else " (the one training uses)") + " | "
                   f"{1e3 * b['search_batch_s']:.1f} ms per batch ({1e3 * b['search_batch_s'] / b['batch']:.2f} ms "
                   f"per field); agrees with cKDTree on {b['agree']} of {b['queries']} queries |",
                   f"| SDF loss forward + backward, same batch | {1e3 * b['sdf_loss_batch_s']:.1f} ms |",
@@ -382,9 +435,13 @@ def run_gpu_check(args: argparse.Namespace) -> int:
 
         size, batch, grid = (32, 2, 6) if args.tiny else (320, 20, 32)
         frames = min(args.frames, 8) if args.tiny else args.frames
-        _step(report, "cuda_tests", lambda: {"status": "skipped (--no-pytest)"} if args.no_pytest
-              else run_cuda_tests(args.step_timeout), save)
-        print(f"gpu-check: CUDA tests {report['cuda_tests']['status']}", flush=True)
+        def cuda_tests():
+            _step(report, "cuda_tests", lambda: {"status": "skipped (--no-pytest)"} if args.no_pytest
+                  else run_cuda_tests(args.step_timeout), save)
+            print(f"gpu-check: CUDA tests {report['cuda_tests']['status']}", flush=True)
+
+        if not args.full:  # --full runs them last: the paper run's time first
+            cuda_tests()
         b = _step(report, "search", lambda: bench_search(dev, batch, size, grid, 1 if args.tiny else args.repeats),
                   save)
         print(f"gpu-check: search {b.get('search_batch_s', b.get('status'))}", flush=True)
@@ -397,6 +454,7 @@ def run_gpu_check(args: argparse.Namespace) -> int:
         else:
             with tempfile.TemporaryDirectory(prefix="gpu-check-full-") as work:
                 full_check(dev, Path(work), args, report, save)
+            cuda_tests()
         save()
     print(markdown(report))
     print(f"gpu-check: wrote {out / 'gpu_check.json'} and {out / 'gpu_check.md'}")
@@ -515,10 +573,11 @@ def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: i
     """The SDF loss's share of a paper-profile training step (forward, every loss term, backward,
     Adam step) on one batch of the training frames: 1 - (Case 2 step) / (Case 4 step), Case 2 being
     Case 4 without the SDF term; with the ground-truth fields searched anew (the first epoch) and
-    taken from the cache (every later epoch)."""
+    taken from the cache by frame id (every later epoch), as training does."""
     ds = datasets.load_split(root, "train", size, limit=batch)
     data = inference.to_device(inference.collate([ds[i] for i in range(len(ds))]), dev)
     steps = {}
+    ids = [("train", i) for i in range(len(ds))]  # the ground truth's fields keyed by frame, as training keys them
     for case in (4, 2):
         cfg = config.make_config("paper", case, 0, image_size=size, batch_size=batch)
         cfg["sdf_grid"] = grid
@@ -530,7 +589,7 @@ def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: i
             opt.zero_grad(set_to_none=True)
             with inference.autocast(dev):
                 pred = net(data["image"])
-            train.compute_losses(pred, data, cfg)[0].backward()
+            train.compute_losses(pred, data, cfg, frame_ids=ids)[0].backward()
             opt.step()
 
         steps[case] = step

@@ -63,7 +63,7 @@ from collections import OrderedDict
 import numpy as np
 import torch
 
-from geodepth_lite import camera, nnsearch
+from geodepth_lite import camera, nnsearch, nnsearch_triton
 
 DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
 CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
@@ -143,16 +143,23 @@ def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_e
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.int64, device=queries.device)
 
 
-NN_METHODS = ("auto", "kdtree", "device", "chunked", "brute_mm")
+NN_METHODS = ("auto", "kdtree", "device", "triton", "chunked", "brute_mm")
 
 
 def resolve_method(method: str, device: torch.device) -> str:
     """The search a ``method`` runs for tensors on ``device``: "auto" is "kdtree" for CPU tensors (the
-    committed results' search) and "device" (:mod:`geodepth_lite.nnsearch`) for any other device."""
+    committed results' search), "triton" (:mod:`geodepth_lite.nnsearch_triton`) for CUDA tensors where
+    Triton is installed, and "device" (:mod:`geodepth_lite.nnsearch`) for any other device."""
     if method not in NN_METHODS:
         raise ValueError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
+    kind = torch.device(device).type
     if method == "auto":
-        return "kdtree" if torch.device(device).type == "cpu" else "device"
+        if kind == "cpu":
+            return "kdtree"
+        return "triton" if kind == "cuda" and nnsearch_triton.usable(device) else "device"
+    if method == "triton" and not nnsearch_triton.usable(device):
+        raise ValueError(f"the triton search needs Triton and a CUDA device (tensors on {device}): "
+                         "use method 'device' or 'auto'")
     return method
 
 
@@ -167,6 +174,9 @@ def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "
         return nearest_indices_kdtree(points, queries)
     if method == "device":
         return nnsearch.nearest_indices(points, queries)
+    if method == "triton":
+        valid = torch.ones(1, points.shape[0], dtype=torch.bool, device=queries.device)
+        return nnsearch_triton.nearest_indices_grid(points[None], valid, queries[None])[0]
     if method == "chunked":
         return nearest_indices_chunked(points, queries)
     return nearest_indices_chunked(points, queries, exact=False)
@@ -599,11 +609,15 @@ def nearest_indices_grid(points: torch.Tensor, valid: torch.Tensor, queries: tor
     the per-image search of :func:`sdf_fields` gives them. "kdtree" (the CPU default) builds one
     cKDTree per image on the host; "device" runs one batched search
     (:func:`geodepth_lite.nnsearch.nearest_indices_batched`), which selects the valid points and so
-    waits for the device once; the others search image by image.
+    waits for the device once; "triton" (CUDA) runs one fused kernel over the whole batch
+    (:func:`geodepth_lite.nnsearch_triton.nearest_indices_grid`) without waiting; the others search
+    image by image.
     """
     B, N, _ = points.shape
     M = queries.shape[1]
     method = resolve_method(method, points.device)
+    if method == "triton":  # one fused kernel, fixed shapes: no host sync
+        return nnsearch_triton.nearest_indices_grid(points, valid, queries)
     if method == "device":
         flat = valid.reshape(-1)
         sel = flat.nonzero().squeeze(1)  # (P,) flat indices of the valid points

@@ -234,6 +234,8 @@ class Trainer:
         self.is_main = self.rank == 0
         self.progress = progress and self.is_main
         self.ckpt_path = run_dir / ckpt_io.CHECKPOINT_NAME
+        if self.device.type == "cuda":  # fixed image sizes: cuDNN picks each convolution's fastest algorithm once
+            torch.backends.cudnn.benchmark = True
 
     def train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
         """Rank 0 holds the run folder's lock for the whole run (``checkpoint.run_folder``)."""

@@ -389,8 +389,7 @@ def throughput(args: argparse.Namespace, out: Path, dev: torch.device, say) -> d
     t0 = time.perf_counter()
     for k in ks:
         left = None if args.time_limit is None else args.time_limit - (time.perf_counter() - t0)
-        prev = record["levels"][-1] if record["levels"] else None
-        need = prev["wall_s"] * k / prev["k"] if prev else 0.0
+        need = time_needed(record["levels"], k)
         if left is not None and (left <= 0 or need > left):
             record["levels"].append({"k": k, "status": [f"not run: about {need:.0f} s needed, {max(left, 0):.0f} s "
                                                         "left of the time limit"]})
@@ -404,6 +403,13 @@ def throughput(args: argparse.Namespace, out: Path, dev: torch.device, say) -> d
     utils.write_json_atomic(out / "throughput.json", record)
     utils.write_bytes_atomic(out / "throughput.md", throughput_markdown(record).encode())
     return record
+
+
+def time_needed(levels: list[dict], k: int) -> float:
+    """The wall time K runs together are expected to need: the last K that ran, its wall time times K
+    over that K (as if no run overlapped another); 0 before any ran. A K that was not run is skipped."""
+    ran = [lv for lv in levels if "wall_s" in lv]
+    return ran[-1]["wall_s"] * k / ran[-1]["k"] if ran else 0.0
 
 
 def _speedups(record: dict) -> None:

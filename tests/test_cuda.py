@@ -204,3 +204,33 @@ def test_the_batched_search_and_loss_on_cuda_match_the_cpu_reference():
         out[dev] = (loss.detach().cpu(), p.grad.cpu())
     assert torch.allclose(out["cuda"][0], out["cpu"][0], rtol=1e-5, atol=0)
     assert torch.allclose(out["cuda"][1], out["cpu"][1], rtol=1e-4, atol=1e-9)
+
+
+def test_the_triton_search_at_the_papers_size_equals_the_device_search_and_a_brute_force():
+    """The fused kernel (``auto`` on CUDA) on 320 px views and 32^3 grids, a batch of 6 with masked rows
+    and an image without a valid point: the same indices as the exact device search on every query,
+    and as a float64 brute force (least index among ties) on the first 2048 queries of each image."""
+    from geodepth_lite import nnsearch_triton
+
+    if not nnsearch_triton.usable(torch.device("cuda")):
+        pytest.skip("Triton is not installed")
+    d = torch.stack([torch.from_numpy(analytic.depth_map(k, 320, seed=i))[None]
+                     for i, k in enumerate(analytic.KINDS * 2)]).cuda()
+    S = camera.backproject(d, torch.from_numpy(analytic.intrinsics(320)).float().cuda())
+    V = torch.ones(S.shape[:2], dtype=torch.bool, device="cuda")
+    V[1, : 320 * 40] = False
+    V[5] = False
+    q = torch.stack([sdf.grid_points(s.min(0).values, s.max(0).values, 32) for s in S])
+    assert sdf.resolve_method("auto", S.device) == "triton"
+    got = sdf.nearest_indices_grid(S, V, q)
+    want = sdf.nearest_indices_grid(S, V, q, "device")
+    assert int((got != want).sum()) == 0
+    for b in range(5):
+        qq = q[b, :2048].double()
+        diff = qq[:, None, :] - S[b].double()[None]
+        d2 = (diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]) + diff[..., 2] * diff[..., 2]
+        d2[:, ~V[b]] = float("inf")
+        least = d2.min(1, keepdim=True).values
+        brute = torch.where(d2 == least, torch.arange(S.shape[1], device="cuda")[None], S.shape[1]).min(1).values
+        assert torch.equal(got[b, :2048], brute)
+    assert got[5].eq(0).all()

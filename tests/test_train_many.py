@@ -159,3 +159,12 @@ def test_resume_continues_an_interrupted_run(tiny_root, tmp_path, capsys):
     ckpt = _weights(out / "case4_seed0")
     assert ckpt["epoch"] == 2 and ckpt["complete"] and [r["epoch"] for r in ckpt["history"]] == [1, 2]
     assert "resuming" in (out / "logs" / "case4_seed0.txt").read_text()
+
+
+def test_a_level_that_was_not_run_does_not_stop_the_next_estimate():
+    """After K = 4 was skipped for want of time, K = 8 is estimated from K = 2, the last that ran (the
+    last level without a wall time raised a KeyError and lost the throughput table)."""
+    levels = [{"k": 1, "wall_s": 20.0}, {"k": 2, "wall_s": 30.0}, {"k": 4, "status": ["not run"]}]
+    assert train_many.time_needed(levels, 8) == pytest.approx(120.0)
+    assert train_many.time_needed(levels[:1], 2) == pytest.approx(40.0)
+    assert train_many.time_needed([], 1) == 0.0
