@@ -51,8 +51,9 @@ DEBUG_ENV = "GEODEPTH_DEBUG"  # set to 1 for full tracebacks, as --debug does
 # their checks raise UserError; then the module leaves this set. A ValueError raised anywhere else
 # is a bug (exit 1).
 VALUE_ERROR_MODULES = frozenset({
-    "geodepth_lite.gpu_check", "geodepth_lite.losses", "geodepth_lite.nnsearch", "geodepth_lite.reproduce",
-    "geodepth_lite.sdf", "geodepth_lite.study", "geodepth_lite.train", "geodepth_lite.train_many",
+    "geodepth_lite.gpu_check", "geodepth_lite.losses", "geodepth_lite.nnsearch", "geodepth_lite.nnsearch_triton",
+    "geodepth_lite.reproduce", "geodepth_lite.sdf", "geodepth_lite.study", "geodepth_lite.train",
+    "geodepth_lite.train_many",
 })
 
 

@@ -24,6 +24,7 @@ SHARED = {
     "MARKER": "book, gpu_check, train_many: each a different marker file (gpu_check.py, train_many.py "
               "are being changed)",
     "nearest_indices": "sdf and nnsearch, the nearest-point search in two modules (both being changed)",
+    "nearest_indices_grid": "sdf and nnsearch_triton, the same search split (both being changed)",
     "term_gradient_norms": "losses and train (both being changed)",
     "intrinsics": "camera.intrinsics (principal point at W/2) and analytic.intrinsics ((W-1)/2); "
                   "gpu_check.py (being changed) calls analytic's",
