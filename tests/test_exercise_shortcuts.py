@@ -592,3 +592,81 @@ def test_forbid_still_catches_a_kept_reference_to_a_decorated_function():
         with pytest.raises(grading.ForbiddenCall, match="calling geodepth_lite.model.feature_shapes"):
             kept(None, 64, 96)
         assert float(own(torch.ones(1))) == 2.0
+
+
+# ------------------------------------------------------------------------------------------ exact types
+def test_foreign_value_accepts_plain_values_and_names_a_subclass():
+    import numpy as np
+    import torch
+
+    class Always(int):
+        def __eq__(self, other):
+            return True
+
+        __hash__ = int.__hash__
+
+    plain = [None, True, 3, 2.5, "x", np.float64(1.5), np.bool_(True), np.zeros(3), torch.zeros(2), torch.Size([1, 2]),
+             {("rmse", 3): ["a", (1, 2.0)]}, {frozenset({1}), 2}]
+    assert [grading.foreign_value(v) for v in plain] == [None] * len(plain)
+    assert grading.foreign_value(Always(3)) == "a value of type Always (a subclass of int)"
+    assert grading.foreign_value({"k": [1, Always(2)]}) == "a value of type Always (a subclass of int)"
+    assert grading.foreign_value(type("AnySet", (set,), {})()) == "a value of type AnySet (a subclass of set)"
+    assert grading.foreign_value(torch.nn.Parameter(torch.zeros(1))) == (
+        "a value of type Parameter (a subclass of Tensor)")
+    assert grading.foreign_value(np.array([Always(1)], dtype=object)).startswith("a value of type ndarray")
+
+
+NOTEBOOK_FUNCTIONS = """
+import torch
+
+
+class Always(int):
+    def __eq__(self, other):
+        return True
+
+    __hash__ = int.__hash__
+
+
+def mine(x):
+    return Always(x)
+
+
+@torch.no_grad()
+def mine_no_grad(x):
+    return Always(x)
+
+
+def fine(x):
+    return [x, 2.0]
+"""
+
+
+def test_forbid_checks_what_the_notebooks_functions_return_decorated_or_not():
+    from geodepth_lite import ablation
+
+    namespace = E.new_namespace()
+    E.run_cell("class Lesson:\n    pass\n\n\ndef lesson():\n    return Lesson()", namespace)  # an earlier cell
+    E.run_cell(NOTEBOOK_FUNCTIONS, namespace)  # the answer cell
+    E.run_cell("pass", namespace)  # the check cell, whose hidden test runs the block
+    with grading.forbid(ablation.holm, task="count", namespace=namespace):
+        for name in ("mine", "mine_no_grad"):
+            with pytest.raises(AssertionError, match=rf"^{name}\(\) returned a value of type Always \(a subclass"):
+                namespace[name](3)
+        assert namespace["fine"](1) == [1, 2.0]
+        assert type(namespace["lesson"]()).__name__ == "Lesson"  # not the answer's: left as it is
+    assert type(namespace["mine"](3)).__name__ == "Always"  # after the block: the functions as they were
+    nbval = {"__name__": "__exercise__"}  # a kernel that records no input history, as nbval's
+    exec(NOTEBOOK_FUNCTIONS, nbval)  # noqa: S102 - the test's own cell
+    with grading.forbid(ablation.holm, task="count", namespace=nbval):
+        assert type(nbval["mine"](3)).__name__ == "Always"  # nothing to tell the answer's functions by
+
+
+def test_rerun_answer_checks_the_answers_types():
+    namespace = E.new_namespace()
+    E.run_cell("class S(set):\n    pass\n\n\noffset = S({1})", namespace)
+    E.run_cell("pass", namespace)
+    with pytest.raises(AssertionError, match=r"^offset holds a value of type S \(a subclass of set\)"):
+        grading.rerun_answer(namespace, ["offset"])
+    E.run_cell("offset = {1}", namespace)
+    E.run_cell("pass", namespace)
+    assert grading.rerun_answer(namespace, ["offset"])["offset"] == {1}
