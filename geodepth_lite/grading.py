@@ -38,6 +38,7 @@ function the answer cell defines (the cell before the check, from the input hist
 from __future__ import annotations
 
 import ast
+import collections
 import contextlib
 import functools
 import inspect
@@ -50,7 +51,7 @@ import numpy as np
 
 PACKAGE = "geodepth_lite"
 SCALARS = frozenset({type(None), bool, int, float, complex, str, bytes, *np.sctypeDict.values()})
-CONTAINERS = (list, tuple, dict, set, frozenset)
+CONTAINERS = (list, tuple, dict, set, frozenset, collections.OrderedDict, collections.defaultdict, collections.Counter)
 ITEMS_CHECKED = 100_000  # elements of an answer looked at before the rest is taken on trust
 
 
@@ -240,7 +241,7 @@ def foreign_value(value, budget: list | None = None) -> str | None:
     if kind in SCALARS or kind in _torch_types() or (kind is np.ndarray and value.dtype != object):
         return None
     if kind in CONTAINERS:
-        items = [*value.keys(), *value.values()] if kind is dict else value
+        items = [*value.keys(), *value.values()] if isinstance(value, dict) else value
         return next((why for why in (foreign_value(v, budget) for v in items) if why), None)
     bases = [b.__name__ for b in kind.__mro__[1:] if b in SCALARS or b in CONTAINERS or b in _torch_types()
              or b is np.ndarray]

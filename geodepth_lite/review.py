@@ -37,12 +37,13 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
     "namespace": "reads or writes the notebook's variables by name (globals(), vars(), builtins, __main__), "
                  "the checks' references among them",
     "check-names": "reads a variable that only the checks define (their inputs or reference values)",
-    "special-method": "defines a special method (such as __eq__, __hash__, __bool__, __float__) that changes "
-                      "how the checks compare or convert the answer",
+    "special-method": "defines or borrows a special method (such as __eq__, __hash__, __bool__, __float__; "
+                      "unittest.mock's ANY) that changes how the checks compare or convert the answer",
     "special-attribute": "reaches into objects through special attributes (__globals__, __dict__, __class__, "
                          "frames), where the checks' state is",
     "package-source": "reads the package's source files, to rebuild a function the exercise forbids",
     "grader-files": "names the grader's files (the course's solutions, gradebook or other submissions)",
+    "unreadable": "is too deeply nested for the review to read: look at it by hand",
     "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
                       "message shows it)",
 }
@@ -56,6 +57,7 @@ MODULES = {  # module (its first name) -> rule
     **dict.fromkeys(("builtins", "__main__", "__builtin__"), "namespace"),
     **dict.fromkeys(("IPython", "ipykernel", "jupyter_client"), "kernel-history"),
     **dict.fromkeys(("linecache", "pkgutil"), "package-source"),
+    "unittest": "special-method",  # unittest.mock.ANY is equal to anything
 }
 SUBMODULES = {"multiprocessing": "concurrency", "threading": "concurrency", "subprocess": "concurrency"}
 OS_CALLS = re.compile(r"(system|popen|fork\w*|exec\w*|spawn\w*|posix_spawn\w*|kill\w*|_exit|startfile)")
@@ -302,13 +304,15 @@ def review_cell(source: str, *, check_names=(), computed=()) -> list[Finding]:
     computes rather than writes out (:func:`computed_names`)."""
     try:
         tree = ast.parse(source)
+        own = bound_names(tree)
+        aliases = _aliases(tree)
+        found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
+                 + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
+                 + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed)))
     except (SyntaxError, ValueError):
         return []  # IPython syntax or a typo: the cell fails when it runs, and scores nothing
-    own = bound_names(tree)
-    aliases = _aliases(tree)
-    found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
-             + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
-             + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed)))
+    except (RecursionError, MemoryError):  # Python's own parser gives up on it too
+        return [Finding(1, "unreadable", "the whole cell")]
     unique = {(f.line, f.rule, f.what): f for f in found}
     return sorted(unique.values(), key=lambda f: (f.line, f.rule, f.what))
 

@@ -13,10 +13,12 @@ The answers are the exercise's answer cell with its solution regions replaced; e
 in a fresh namespace (``exercises.run_exercise``), in-process.
 """
 
+import collections
 import copy
 import json
 import sys
 import textwrap
+from unittest import mock
 
 import pytest
 
@@ -962,6 +964,7 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                        "text = (root / 'manifest.json').read_text()", {}),
     "grader-files": ("db = open('../../gradebook.db', 'rb').read()",
                      "sums = (root / 'checksums.sha256').read_text()", {}),
+    "unreadable": ("x = 1" + " + 1" * 100_000, "x = 1 + 1 + 1", {}),
     "literal-answer": ("verdicts = {('rmse', 3): 'opposite'}",
                        "verdicts = {}\nfor k in keys:\n    verdicts[k] = verdict(k)", {"computed": {"verdicts"}}),
 }
@@ -971,6 +974,8 @@ def test_every_rule_has_a_planted_answer_and_a_near_miss():
     from geodepth_lite import review
 
     assert set(RULE_CASES) == set(review.RULES)
+    borrowed = review.review_cell("from unittest.mock import ANY\n\noffset_blind = ANY")  # equal to anything
+    assert [(f.line, f.rule) for f in borrowed] == [(1, "special-method")]
 
 
 @pytest.mark.parametrize("rule", sorted(RULE_CASES))
@@ -1003,7 +1008,7 @@ def test_foreign_value_accepts_plain_values_and_names_a_subclass():
         __hash__ = int.__hash__
 
     plain = [None, True, 3, 2.5, "x", np.float64(1.5), np.bool_(True), np.zeros(3), torch.zeros(2), torch.Size([1, 2]),
-             {("rmse", 3): ["a", (1, 2.0)]}, {frozenset({1}), 2}]
+             {("rmse", 3): ["a", (1, 2.0)]}, {frozenset({1}), 2}, collections.defaultdict(list, {"a": [1]})]
     assert [grading.foreign_value(v) for v in plain] == [None] * len(plain)
     assert grading.foreign_value(Always(3)) == "a value of type Always (a subclass of int)"
     assert grading.foreign_value({"k": [1, Always(2)]}) == "a value of type Always (a subclass of int)"
@@ -1011,6 +1016,8 @@ def test_foreign_value_accepts_plain_values_and_names_a_subclass():
     assert grading.foreign_value(torch.nn.Parameter(torch.zeros(1))) == (
         "a value of type Parameter (a subclass of Tensor)")
     assert grading.foreign_value(np.array([Always(1)], dtype=object)).startswith("a value of type ndarray")
+    assert grading.foreign_value(collections.defaultdict(list, {"a": Always(1)})).startswith("a value of type Always")
+    assert grading.foreign_value(mock.ANY) == "a value of type _ANY"  # equal to anything, from the library
 
 
 NOTEBOOK_FUNCTIONS = """
