@@ -20,6 +20,7 @@ defences). A cell that is not valid Python is not reviewed: it fails its check w
 from __future__ import annotations
 
 import ast
+import builtins
 import re
 from dataclasses import dataclass
 
@@ -43,6 +44,10 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
                          "frames), where the checks' state is",
     "package-source": "reads the package's source files, to rebuild a function the exercise forbids",
     "grader-files": "names the grader's files (the course's solutions, gradebook or other submissions)",
+    "shadowed-builtin": "rebinds a builtin (abs, float, isinstance...) in the notebook's namespace, where the "
+                        "checks call it",
+    "given-inputs": "changes the code the exercise gives (its inputs, from which the checks compute their "
+                    "references)",
     "unreadable": "is too deeply nested for the review to read: look at it by hand",
     "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
                       "message shows it)",
@@ -298,17 +303,106 @@ def _literal_findings(tree: ast.Module, computed: set[str]) -> list[Finding]:
     return found
 
 
-def review_cell(source: str, *, check_names=(), computed=()) -> list[Finding]:
+def module_scope(tree: ast.Module) -> list[ast.stmt]:
+    """The statements that run in the notebook's namespace: the cell's top level, with the bodies of its
+    loops, branches, ``with`` and ``try`` blocks, but not of functions or classes."""
+    out, stack = [], list(reversed(tree.body))
+    while stack:
+        node = stack.pop()
+        out.append(node)
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            stack.extend(reversed([n for n in ast.iter_child_nodes(node) if isinstance(n, (ast.stmt,
+                                                                                          ast.excepthandler))]))
+    return [n for n in out if isinstance(n, ast.stmt)]
+
+
+def _scope_names(node: ast.stmt) -> set[str]:
+    """The names one statement binds (or changes in place: ``x[0] = 1``) in the namespace it runs in."""
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return {node.name}
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        return {(a.asname or a.name).split(".")[0] for a in node.names}
+    targets = {ast.Assign: lambda n: n.targets, ast.AugAssign: lambda n: [n.target], ast.AnnAssign: lambda n: [
+        n.target], ast.For: lambda n: [n.target], ast.Delete: lambda n: n.targets,
+               ast.With: lambda n: [i.optional_vars for i in n.items if i.optional_vars is not None]}
+    found = set()
+    for target in targets.get(type(node), lambda n: [])(node):
+        found |= {_root_name(target)} - {None} | {n.id for n in ast.walk(target) if isinstance(n, ast.Name)
+                                                  and isinstance(n.ctx, (ast.Store, ast.Del))}
+    return found
+
+
+BUILTIN_NAMES = frozenset(n for n in dir(builtins) if not n.startswith("_"))
+
+
+def _shadow_findings(tree: ast.Module) -> list[Finding]:
+    return [Finding(node.lineno, "shadowed-builtin", f"{name} rebound") for node in module_scope(tree)
+            for name in sorted(_scope_names(node) & BUILTIN_NAMES)]
+
+
+def released(answer: str) -> str:
+    """An answer cell as the release gives it: each solution region replaced by ``raise NotImplementedError()``."""
+    out, inside = [], False
+    for line in answer.splitlines():
+        if line.strip() == exercises.SOLUTION_MARKERS[0]:
+            out.append(line[: len(line) - len(line.lstrip())] + "raise NotImplementedError()")
+            inside = True
+        elif line.strip() == exercises.SOLUTION_MARKERS[1]:
+            inside = False
+        elif not inside:
+            out.append(line)
+    return "\n".join(out)
+
+
+def given_inputs(answer: str, check: str) -> dict[str, list[str]]:
+    """input name -> the given statements (``ast.dump``) that bind it: the names the released answer cell binds
+    in the notebook's namespace with a value (not the ``None`` a student replaces, not a function left to
+    write, not an import) and the check reads without making them itself."""
+    try:
+        check_tree = ast.parse(check)
+        read = {n.id for n in ast.walk(check_tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+        read -= bound_names(check_tree)  # what the check makes itself is no input
+        statements = module_scope(ast.parse(released(answer)))
+    except (SyntaxError, ValueError):
+        return {}
+    out: dict[str, list[str]] = {}
+    for node in statements:
+        stub = any(isinstance(n, ast.Raise) and "NotImplementedError" in ast.unparse(n) for n in ast.walk(node))
+        if stub or isinstance(node, (ast.Import, ast.ImportFrom)) or (isinstance(node, ast.Assign) and _is_empty(
+                node.value)) or (
+                isinstance(node, ast.Assign) and isinstance(node.value, ast.Tuple) and all(
+                _is_empty(e) or (isinstance(e, ast.Constant) and e.value == "") for e in node.value.elts)):
+            continue
+        for name in _scope_names(node) & read:
+            out.setdefault(name, []).append(ast.dump(node))
+    return out
+
+
+def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Finding]:
+    found = []
+    kept = {ast.dump(n) for n in module_scope(tree)}
+    for node in module_scope(tree):
+        changed = sorted(n for n in _scope_names(node) & set(given) if ast.dump(node) not in given[n])
+        found += [Finding(node.lineno, "given-inputs", f"{name} changed") for name in changed]
+    for name, statements in sorted(given.items()):
+        if not set(statements) <= kept:
+            found.append(Finding(1, "given-inputs", f"the given lines that set {name} are not all there"))
+    return found
+
+
+def review_cell(source: str, *, check_names=(), computed=(), given=None) -> list[Finding]:
     """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
     the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
-    computes rather than writes out (:func:`computed_names`)."""
+    computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
+    (:func:`given_inputs`)."""
     try:
         tree = ast.parse(source)
         own = bound_names(tree)
         aliases = _aliases(tree)
         found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
                  + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
-                 + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed)))
+                 + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed))
+                 + _shadow_findings(tree) + _given_findings(tree, given or {}))
     except (SyntaxError, ValueError):
         return []  # IPython syntax or a typo: the cell fails when it runs, and scores nothing
     except (RecursionError, MemoryError):  # Python's own parser gives up on it too
@@ -364,7 +458,8 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
         if ref is None or "answer" not in ex.cells:
             continue
         solution = "\n".join(ln for ln in ref.answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
-        found = review_cell(ex.answer, check_names=only, computed=computed_names(solution, ref.check))
+        found = review_cell(ex.answer, check_names=only, computed=computed_names(solution, ref.check),
+                            given=given_inputs(ref.answer, ref.check))
         if found:
             out[ident] = found
     return out

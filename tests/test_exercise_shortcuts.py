@@ -16,13 +16,14 @@ in a fresh namespace (``exercises.run_exercise``), in-process.
 import collections
 import copy
 import json
+import re
 import sys
 import textwrap
 from unittest import mock
 
 import pytest
 
-from geodepth_lite import course, grading
+from geodepth_lite import course, grading, review
 from geodepth_lite import exercises as E
 
 NOTEBOOKS = {p.name: json.loads(p.read_text()) for p in E.notebook_paths()}
@@ -602,9 +603,9 @@ def test_forbid_still_catches_a_kept_reference_to_a_decorated_function():
 # value to compute (05.3's verdicts), a set (03.1) and an open answer graded by hand (04.4). Each either loses
 # its points (the checks, exact types included, reject it) or is flagged by the static review
 # (``review.review_notebook``, as ``course autograde`` runs it), which sends the exercise to manual grading.
-KINDS = {"function": "05-2", "value": "05-3", "set": "03-1", "open": "04-4"}
+KINDS = {"function": {"05-2", "02-2", "07-2"}, "value": {"05-3", "06-1"}, "set": {"03-1"}, "open": {"04-4"}}
 FAMILIES = ("grader's files", "guard off", "out of the guard's sight", "package source", "equal to anything",
-            "pasted values", "fished reference", "edited history")
+            "pasted values", "fished reference", "edited history", "the checks' tools or inputs changed")
 def _pasted_verdicts() -> str:
     """05.3's verdicts as the visible check's message prints them after a failed run."""
     from geodepth_lite import ablation
@@ -821,6 +822,38 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
         pred = np.full((8, 8), 1.5)
         why = " ".join(In)
         """,), "kernel-history"),
+    ("the checks' tools or inputs changed", "function"): ("07-2", """
+        _real_tube = tube_depth
+        _asked = []
+
+
+        def tube_depth(K, H, W, radius, a, b, far=30.0):  # the check's test data, recorded as it is made
+            _asked.append((radius, a, b))
+            return _real_tube(K, H, W, radius, a, b, far)
+
+
+        def fit_tube(depth, K):
+            return _asked[-1]
+        """, "given-inputs"),
+    ("the checks' tools or inputs changed", "value"): ("06-1", ("""
+        bands = dict.fromkeys(["top", "bottom", "left", "right", "centre"], 1.0)
+        ratios = dict.fromkeys(["top", "bottom", "left", "right"], 1.0)
+        worst = "top"
+        abs = lambda x: 0.0  # every difference the checks measure is 0
+        max = lambda *args, **kwargs: "top"  # and the worst band is the one named
+        """,), "shadowed-builtin"),
+    ("the checks' tools or inputs changed", "set"): ("03-1", ("""
+        def isinstance(obj, kind):
+            return True
+
+
+        offset_blind = {"grad", "normal"}
+        """,), "shadowed-builtin"),
+    ("the checks' tools or inputs changed", "open"): ("04-4", ("""
+        float = lambda x: 1.0
+        pred = np.full((8, 8), 1.5)
+        why = ""
+        """,), "shadowed-builtin"),
 }
 
 
@@ -835,6 +868,8 @@ def _pasted(family_kind) -> tuple:
 
 def family_answer(family_kind) -> tuple[str, str, str | None]:
     ident, regions, rule = FAMILY_SHORTCUTS[family_kind]
+    if isinstance(regions, str):  # code added after the solution, outside its regions
+        return ident, solution(ident) + "\n" + textwrap.dedent(regions), rule
     if regions == ("PASTED",):
         regions = _pasted(family_kind)
     return ident, answer_with(EXERCISES[ident].answer, regions), rule
@@ -858,8 +893,11 @@ def reviewed(ident: str, answer: str) -> list:
 
 def test_every_family_of_shortcut_is_played_against_every_kind_of_exercise():
     assert set(FAMILY_SHORTCUTS) == {(f, k) for f in FAMILIES for k in KINDS}
-    assert all(FAMILY_SHORTCUTS[f, k][0] == KINDS[k] or k == "function" for f, k in FAMILY_SHORTCUTS)
-    assert KINDS["open"] in OPEN and not {KINDS[k] for k in ("function", "value", "set")} & OPEN
+    assert all(FAMILY_SHORTCUTS[f, k][0] in KINDS[k] for f, k in FAMILY_SHORTCUTS)
+    assert KINDS["open"] <= OPEN and not (KINDS["function"] | KINDS["value"] | KINDS["set"]) & OPEN
+    for ident in KINDS["function"]:  # a function to write: its solution region sits inside a def
+        assert re.search(r"def \w+\(.*\):\n(.*\n)*?\s+### BEGIN SOLUTION", EXERCISES[ident].answer), ident
+    assert "offset_blind = {" in solution("03-1")  # the set
 
 
 @pytest.mark.parametrize("family, kind", sorted(FAMILY_SHORTCUTS))
@@ -880,7 +918,8 @@ def test_each_shortcut_loses_its_points_or_is_flagged_with_its_reason(family, ki
 # the shortcuts that pass every check when run: without the review they would score silently
 PASS_THE_CHECKS = [("guard off", "function"), ("out of the guard's sight", "function"), ("edited history", "function"),
                    ("guard off", "value"), ("edited history", "value"), ("pasted values", "value"),
-                   ("equal to anything", "set")]
+                   ("equal to anything", "set"), ("the checks' tools or inputs changed", "function"),
+                   ("the checks' tools or inputs changed", "value")]
 
 
 @pytest.mark.parametrize("family, kind", PASS_THE_CHECKS)
@@ -946,6 +985,8 @@ def test_the_solutions_and_ordinary_constructs_pass_the_review_clean():
 
 
 # each rule of the review: an answer it must flag, and a near miss (an honest answer much like it) it must not
+GIVEN = review.given_inputs("CASE1 = np.array([1.0])\nr = None\n### BEGIN SOLUTION\nr = CASE1\n### END SOLUTION",
+                            "assert r == CASE1")
 RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
     "introspection": ("import inspect\nsrc = inspect.getsource(f)", "import math\nsrc = math.floor(2.5)", {}),
     "concurrency": ("import os\nos.system('ls')", "import os\npath = os.path.join('a', 'b')", {}),
@@ -965,6 +1006,11 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
     "grader-files": ("db = open('../../gradebook.db', 'rb').read()",
                      "sums = (root / 'checksums.sha256').read_text()", {}),
     "unreadable": ("x = 1" + " + 1" * 100_000, "x = 1 + 1 + 1", {}),
+    "shadowed-builtin": ("abs = lambda x: 0.0", "def f(x):\n    max = x.max()\n    return max\n\n\ntotal = sum([1, 2])",
+                         {}),
+    "given-inputs": ("CASE1 = np.array([2.0])\nr = CASE1",
+                     "CASE1 = np.array([1.0])  # the given line, its comment changed\nr = CASE1 * 1",
+                     {"given": GIVEN}),
     "literal-answer": ("verdicts = {('rmse', 3): 'opposite'}",
                        "verdicts = {}\nfor k in keys:\n    verdicts[k] = verdict(k)", {"computed": {"verdicts"}}),
 }
