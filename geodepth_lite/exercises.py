@@ -55,11 +55,9 @@ class Exercise:
     cells: dict = field(default_factory=dict)  # "answer"/"check" -> the notebook cell
 
 
-def cell_source(cell) -> str:
-    """A notebook cell's source as one string (nbformat stores a list of lines or a string)."""
+def _source(cell) -> str:
     src = cell.get("source", "")
     return "".join(src) if isinstance(src, list) else src
-
 
 
 def notebook_paths(folder: Path = NOTEBOOK_DIR) -> list[Path]:
@@ -83,11 +81,11 @@ def collect(nb: dict) -> dict[str, Exercise]:
         ex = out.setdefault(f"{m.group(1)}-{m.group(2)}", Exercise(f"{m.group(1)}-{m.group(2)}"))
         ex.cells[m.group(3)] = cell
         if m.group(3) == "answer":
-            ex.answer = cell_source(cell)
+            ex.answer = _source(cell)
             if i > 0 and cells[i - 1]["cell_type"] == "markdown":
-                ex.prompt = cell_source(cells[i - 1])
+                ex.prompt = _source(cells[i - 1])
         else:
-            ex.check = cell_source(cell)
+            ex.check = _source(cell)
             ex.points = float(cell["metadata"]["nbgrader"].get("points", 0))
     return out
 
@@ -226,7 +224,7 @@ def read_notebook(path: Path, solutions: bool = True) -> dict:
                 raise ValueError(f"cannot read {path}: cell {i} ({grading['grade_id']}) has points "
                                  f"{grading.get('points')!r}, not a number") from None
             if solutions and grading["grade_id"].endswith("answer"):
-                regions = [ln.strip() for ln in cell_source(c).splitlines() if ln.strip() in SOLUTION_MARKERS]
+                regions = [ln.strip() for ln in _source(c).splitlines() if ln.strip() in SOLUTION_MARKERS]
                 if regions != list(SOLUTION_MARKERS) * (len(regions) // 2) or not regions:
                     raise ValueError(f"cannot read {path}: exercise {grading['grade_id']} has unmatched "
                                      f"solution markers ({' / '.join(SOLUTION_MARKERS)})")
@@ -369,12 +367,12 @@ def grade_by_hand(nb: dict) -> list[str]:
 
 def leaks(source_nb: dict, released_nb: dict) -> list[str]:
     """What of the solutions and hidden tests is still in a released notebook (empty: none)."""
-    text = "\n".join(cell_source(c) for c in released_nb["cells"])
+    text = "\n".join(_source(c) for c in released_nb["cells"])
     found = [m for m in (*SOLUTION_MARKERS, *HIDDEN_MARKERS) if m in text]
     released_lines = {ln.strip() for ln in text.splitlines()}
     exercises = collect(source_nb).values()
     # a line that the source also has outside any solution (an import, a blank return) is no leak
-    public = {ln.strip() for c in source_nb["cells"] for ln in _split_solutions(cell_source(c))[1]}
+    public = {ln.strip() for c in source_nb["cells"] for ln in _split_solutions(_source(c))[1]}
     for ex in exercises:
         found += [f"exercise {ex.ident}: {ln!r}" for ln in solution_lines(ex.answer)
                   if ln in released_lines and ln not in public]
