@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import autograde, cli, course, exercises, sandbox, utils
+from geodepth_lite import autograde, cli, course, exercises, review, sandbox, utils
 
 TINY = "99_tiny"
 
@@ -422,7 +422,8 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     assert feedback_leaks(pages, tiny_course) == []
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
     report = capsys.readouterr().out
-    assert f"flagged for review: cy, {TINY}, 99.2: line 2: class Always defines __eq__: defines a special" in report
+    assert (f"flagged for review: cy, {TINY}, 99.2: line 2: class Always defines __eq__: "
+            f"{review.RULES['special-method']}") in report
     assert "3 grades in" in report and "2 answers flagged by the static review" in report
     rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
     # cy's checks passed (the always-equal square fooled them), but both flagged answers wait for a hand grade
