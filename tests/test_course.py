@@ -434,6 +434,14 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     assert "99.2: line 2: class Always defines __eq__" in rows["cy"]["flagged_for_review"]
     assert [(r["student"], r["exercise"]) for r in json.loads((tiny_course / autograde.FLAGGED).read_text())] == [
         ("cy", "99.1"), ("cy", "99.2")]
+    from nbgrader.api import Gradebook
+
+    with Gradebook(f"sqlite:///{tiny_course / 'gradebook.db'}") as gb:  # what formgrader shows the lecturer
+        grade = gb.find_grade("ex99-2-check", TINY, TINY, "cy")
+        assert (grade.auto_score, grade.manual_score, grade.needs_manual_grade) == (3.0, 0.0, True)
+        assert gb.find_comment("ex99-2-answer", TINY, TINY, "cy").auto_comment.startswith(
+            "Flagged by the static review, for a hand grade: line 2: class Always defines __eq__")
+        assert gb.find_grade("ex99-2-check", TINY, TINY, "ana").needs_manual_grade is False
     graded_cy = json.loads((tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb").read_text())
     (check,) = [c for c in graded_cy["cells"] if c["metadata"].get("nbgrader", {}).get("grade_id") == "ex99-2-check"]
     assert not [o for o in check["outputs"] if o["output_type"] == "error"]  # it passed: the review held the points
