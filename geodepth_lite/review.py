@@ -81,8 +81,8 @@ FRAME_ATTRIBUTES = re.compile(r"(f_back|f_globals|f_locals|f_builtins|f_code|f_t
 PLAIN_DUNDERS = {"__init__", "__name__", "__doc__", "__version__"}  # attributes an honest answer may use
 PLAIN_METHODS = {"__init__", "__post_init__", "__repr__", "__str__"}  # methods an honest class may define
 DUNDER = re.compile(r"__\w+__")
-PACKAGE_PATH = re.compile(r"geodepth_lite\s*[/\\.]|\.py\b")  # a path into the package, or any .py file
-GRADER_PATH = re.compile(r"gradebook|\.ipynb\b|nbgrader|\b(source|submitted|autograded|release|feedback)[/\\]")
+PACKAGE_PATH = re.compile(r"geodepth_lite\s*[/\\]|\.py\b")  # a path into the package, or any .py file
+GRADER_PATH = re.compile(r"gradebook|\.ipynb\b|\b(source|submitted|autograded|release|feedback)[/\\]")
 
 
 @dataclass(frozen=True)
@@ -245,8 +245,14 @@ def _outside(node: ast.AST, own: set[str], aliases: dict[str, str]) -> bool:
     return root is not None and (root in aliases or root not in own)
 
 
+def _docstrings(tree: ast.AST) -> set[int]:
+    """The ids of the strings that stand alone as statements (docstrings): text no code uses."""
+    return {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
+
+
 def _name_findings(tree: ast.AST, own: set[str], check_names: set[str]) -> list[Finding]:
     found = []
+    prose = _docstrings(tree)
     for node in ast.walk(tree):
         if isinstance(node, ast.Name):
             if HISTORY_NAMES.fullmatch(node.id) and (node.id in KERNEL_NAMES or node.id not in own):
@@ -258,7 +264,7 @@ def _name_findings(tree: ast.AST, own: set[str], check_names: set[str]) -> list[
             if (DUNDER.fullmatch(node.attr) and node.attr not in PLAIN_DUNDERS) or FRAME_ATTRIBUTES.fullmatch(
                     node.attr):
                 found.append(Finding(node.lineno, "special-attribute", f".{node.attr}"))
-        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in prose:
             if DUNDER.fullmatch(node.value) and node.value not in PLAIN_DUNDERS:
                 found.append(Finding(node.lineno, "special-attribute", repr(node.value)))
             elif PACKAGE_PATH.search(node.value):
@@ -335,9 +341,21 @@ def _scope_names(node: ast.stmt) -> set[str]:
 BUILTIN_NAMES = frozenset(n for n in dir(builtins) if not n.startswith("_"))
 
 
-def _shadow_findings(tree: ast.Module) -> list[Finding]:
+def _shadow_findings(tree: ast.Module, called: frozenset[str]) -> list[Finding]:
     return [Finding(node.lineno, "shadowed-builtin", f"{name} rebound") for node in module_scope(tree)
-            for name in sorted(_scope_names(node) & BUILTIN_NAMES)]
+            for name in sorted(_scope_names(node) & called)]
+
+
+def builtins_read(check_sources) -> frozenset[str]:
+    """The builtins the check cells use (``abs``, ``float``, ``isinstance``...): those an answer must not
+    rebind in the namespace it shares with them."""
+    read = set()
+    for src in check_sources:
+        try:
+            read |= {n.id for n in ast.walk(ast.parse(src)) if isinstance(n, ast.Name)}
+        except (SyntaxError, ValueError):
+            continue
+    return frozenset(read & BUILTIN_NAMES)
 
 
 def released(answer: str) -> str:
@@ -390,11 +408,11 @@ def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Findi
     return found
 
 
-def review_cell(source: str, *, check_names=(), computed=(), given=None) -> list[Finding]:
+def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES) -> list[Finding]:
     """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
     the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
     computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
-    (:func:`given_inputs`)."""
+    (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`)."""
     try:
         tree = ast.parse(source)
         own = bound_names(tree)
@@ -402,7 +420,7 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None) -> list
         found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
                  + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
                  + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed))
-                 + _shadow_findings(tree) + _given_findings(tree, given or {}))
+                 + _shadow_findings(tree, frozenset(shadowed)) + _given_findings(tree, given or {}))
     except (SyntaxError, ValueError):
         return []  # IPython syntax or a typo: the cell fails when it runs, and scores nothing
     except (RecursionError, MemoryError):  # Python's own parser gives up on it too
@@ -452,6 +470,7 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
     others = ["".join(c.get("source", "")) for c in source["cells"]  # a list of lines, or one string
               if c.get("cell_type") == "code" and id(c) not in check_cells]
     only = check_only_names([ex.check for ex in reference.values()], others)
+    called = builtins_read(ex.check for ex in reference.values())
     out = {}
     for ident, ex in exercises.collect(submitted).items():
         ref = reference.get(ident)
@@ -459,7 +478,7 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
             continue
         solution = "\n".join(ln for ln in ref.answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
         found = review_cell(ex.answer, check_names=only, computed=computed_names(solution, ref.check),
-                            given=given_inputs(ref.answer, ref.check))
+                            given=given_inputs(ref.answer, ref.check), shadowed=called)
         if found:
             out[ident] = found
     return out

@@ -1002,12 +1002,13 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                        "        return 'A'", {}),
     "special-attribute": ("g = f.__globals__", "name = f.__name__", {}),
     "package-source": ("from geodepth_lite import ablation\ntext = open(ablation.__file__).read()",
-                       "text = (root / 'manifest.json').read_text()", {}),
+                       "def holm(p):\n    \"\"\"Like geodepth_lite/ablation.py's holm, by hand.\"\"\"\n"
+                       "    return p\n\n\ntext = (root / 'manifest.json').read_text()", {}),
     "grader-files": ("db = open('../../gradebook.db', 'rb').read()",
                      "sums = (root / 'checksums.sha256').read_text()", {}),
     "unreadable": ("x = 1" + " + 1" * 100_000, "x = 1 + 1 + 1", {}),
-    "shadowed-builtin": ("abs = lambda x: 0.0", "def f(x):\n    max = x.max()\n    return max\n\n\ntotal = sum([1, 2])",
-                         {}),
+    "shadowed-builtin": ("abs = lambda x: 0.0", "def f(x):\n    max = x.max()\n    return max\n\n\ntype = 'wall'",
+                         {"shadowed": {"abs", "max", "float"}}),  # the builtins the checks call
     "given-inputs": ("CASE1 = np.array([2.0])\nr = CASE1",
                      "CASE1 = np.array([1.0])  # the given line, its comment changed\nr = CASE1 * 1",
                      {"given": GIVEN}),
