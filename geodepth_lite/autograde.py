@@ -6,7 +6,10 @@ of its own, with the notebook's kernel started in the sandbox of :mod:`geodepth_
 course folder, the solutions and the gradebook out of its reach). A submission whose run fails (the
 kernel died, nbgrader stopped, the whole run took longer than every cell's timeout together) is
 recorded as *could not run* in ``COURSE/could_not_run.json`` with a one-line reason, and the class goes
-on. A rerun skips what is graded (``autograded/<student>/<assignment>/``) and what could not run
+on. Each graded submission's answer cells then get the static review of :mod:`geodepth_lite.review`, in
+this process: an exercise it flags is sent to manual grading (0 points until a hand grade) with the
+reasons in ``COURSE/flagged.json``, on the command's output and in the grade table. A rerun skips what is
+graded (``autograded/<student>/<assignment>/``) and what could not run
 (unless ``retry``).
 
 Feedback is written here, not by nbgrader's template (which prints the hidden tests and loads
@@ -31,10 +34,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-from geodepth_lite import exercises, sandbox, utils
+from geodepth_lite import exercises, review, sandbox, utils
 from geodepth_lite.errors import UserError
 
 FAILURES = "could_not_run.json"  # (student, assignment) -> why the submission could not run
+FLAGGED = "flagged.json"  # (student, assignment) -> exercises the static review sent to manual grading
 KERNEL_START_S = 120  # on top of the cells' timeouts: starting the kernel and nbgrader itself
 HEADING = re.compile(r"Exercise\s+(\d+\.\d+)\s*·\s*(.+?)\s*\((\w+),\s*([\d.]+)\s*points?\)")
 MESSAGE_MAX = 400  # characters of a check's message on the page
@@ -69,6 +73,69 @@ def failure_reason(output: str, returncode: int) -> str:
             return f"{why}: {hit[-200:]}"
     errors = [ln for ln in lines if "Error" in ln or "[ERROR]" in ln] or lines
     return f"nbgrader exited with status {returncode}: {errors[-1][-200:] if errors else 'no output'}"
+
+
+# ----------------------------------------------------------------------------------------- the static review
+def read_flags(course: Path) -> dict[tuple[str, str], list[dict]]:
+    """(student, assignment) -> the flagged exercises (notebook, exercise, reasons) of ``COURSE/flagged.json``."""
+    path = Path(course) / FLAGGED
+    if not path.is_file():
+        return {}
+    try:
+        out: dict[tuple[str, str], list[dict]] = {}
+        for r in json.loads(path.read_text()):
+            row = {"notebook": str(r["notebook"]), "exercise": str(r["exercise"]), "reasons": [str(x) for x in
+                                                                                              r["reasons"]]}
+            out.setdefault((r["student"], r["assignment"]), []).append(row)
+        return out
+    except (ValueError, KeyError, TypeError) as exc:
+        raise utils.FileProblem(f"cannot read {path}: damaged ({type(exc).__name__}); it lists the answers the "
+                                "static review sent to manual grading: fix or remove it", path) from None
+
+
+def _write_flags(course: Path, flags: dict[tuple[str, str], list[dict]]) -> None:
+    rows = [{"student": s, "assignment": a, **row} for (s, a), found in sorted(flags.items()) for row in found]
+    utils.write_bytes_atomic(Path(course) / FLAGGED, (json.dumps(rows, indent=1) + "\n").encode())
+
+
+def review_submission(course: Path, student: str, assignment: str) -> list[dict]:
+    """The static review (:mod:`geodepth_lite.review`) of each returned notebook of a submission against
+    the course's source: one row (notebook, exercise "02.2", its grade ids, reasons) per flagged exercise."""
+    course = Path(course)
+    rows = []
+    for src in sorted((course / "source" / assignment).glob("*.ipynb")):
+        returned = course / "submitted" / student / assignment / src.name
+        if not returned.is_file():
+            continue
+        flagged = review.review_notebook(exercises.read_notebook(src, solutions=False),
+                                         exercises.read_notebook(returned, solutions=False))
+        for ident, found in flagged.items():
+            rows.append({"notebook": src.stem, "exercise": ident.replace("-", "."),
+                         "reasons": [f.text() for f in found]})
+    return rows
+
+
+def send_to_manual_grading(course: Path, student: str, assignment: str, rows: list[dict]) -> None:
+    """In the gradebook, each flagged exercise's graded cells wait for a hand grade, at 0 points until it
+    is given, and its answer cell carries the reasons as a comment (formgrader shows it)."""
+    # nbgrader's gradebook (SQLAlchemy): heavy, needed by autograde only
+    from nbgrader.api import Gradebook, MissingEntry
+
+    with Gradebook(f"sqlite:///{(Path(course) / 'gradebook.db').resolve()}") as gb:
+        for row in rows:
+            stem = "ex" + row["exercise"].replace(".", "-")
+            for part in ("answer", "check"):
+                try:
+                    grade = gb.find_grade(f"{stem}-{part}", row["notebook"], assignment, student)
+                except MissingEntry:  # an answer cell that carries no points has no grade
+                    continue
+                grade.manual_score, grade.needs_manual_grade = 0.0, True
+            try:
+                comment = gb.find_comment(f"{stem}-answer", row["notebook"], assignment, student)
+                comment.auto_comment = "Flagged by the static review, for a hand grade: " + "; ".join(row["reasons"])
+            except MissingEntry:
+                pass
+        gb.db.commit()
 
 
 # ----------------------------------------------------------------------------------------- one submission
@@ -131,8 +198,10 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
                 echo=None) -> dict:
     """Grade every collected submission not graded yet (see the module docstring); the caller holds the
     course lock. ``cell_timeout``: the course's, in seconds; ``echo``: called with one line per
-    submission that could not run. Returns the submissions graded now, those that could not run (with
-    the reason), and those skipped."""
+    submission that could not run and per exercise the static review flagged. Each submission graded is
+    reviewed (:func:`review_submission`): a flagged exercise waits for a hand grade at 0 points
+    (:func:`send_to_manual_grading`) and is recorded in ``COURSE/flagged.json``. Returns the submissions
+    graded now, those that could not run (with the reason), those skipped, and the flagged exercises."""
     course = Path(course)
     if sandboxed:
         why = sandbox.unavailable()
@@ -140,7 +209,7 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
             raise UserError(f"cannot autograde {course}: no sandbox for the students' code ({why}); install "
                              "bubblewrap (apt-get install bubblewrap) or, knowing that each notebook then runs "
                              "with your rights, pass --unsafe-no-sandbox")
-    failures = read_failures(course)
+    failures, flags = read_failures(course), read_flags(course)
     graded, failed, skipped = [], [], []
     for student, assignment in submissions(course, names):
         key = (student, assignment)
@@ -152,6 +221,7 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
         failures.pop(key, None)
         if reason is None:
             graded.append(key)
+            _flag(course, key, flags, echo)
         else:
             notebooks = ", ".join(p.name for p in sorted(folder.glob("*.ipynb"))) or assignment
             failures[key] = reason
@@ -159,7 +229,24 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
             if echo:
                 echo(f"could not run: {student}, {notebooks}: {reason}")
         _write_failures(course, failures)
-    return {"graded": graded, "could_not_run": failed, "skipped": skipped}
+    flagged = [(s, a, row) for (s, a) in graded for row in flags.get((s, a), [])]
+    return {"graded": graded, "could_not_run": failed, "skipped": skipped, "flagged": flagged}
+
+
+def _flag(course: Path, key: tuple[str, str], flags: dict, echo) -> None:
+    """Review a submission just graded; send its flagged exercises to manual grading and record them."""
+    rows = review_submission(course, *key)
+    if flags.pop(key, None) is None and not rows:
+        return
+    if rows:
+        send_to_manual_grading(course, *key, rows)
+        flags[key] = rows
+        for row in rows:
+            if echo:
+                echo(f"flagged for review: {key[0]}, {row['notebook']}.ipynb exercise {row['exercise']}: "
+                     f"{row['reasons'][0]}" + (f" (and {len(row['reasons']) - 1} more)" if len(row["reasons"]) > 1
+                                               else ""))
+    _write_flags(course, flags)
 
 
 # ----------------------------------------------------------------------------------------- feedback

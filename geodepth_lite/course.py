@@ -43,7 +43,7 @@ TIMEOUT_MIN_S = 120  # a notebook without execution records (or only fast cells)
 STUDENT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # whole names only: fullmatch
 CONFIG = "nbgrader_config.py"
 GRADE_COLUMNS = ["student", "assignment", "points", "max_points", "needs_manual_grading", "pending_max_points",
-                 "could_not_run"]
+                 "could_not_run", "flagged_for_review"]
 
 
 # ----------------------------------------------------------------------------------------- the timeout
@@ -407,7 +407,17 @@ def grade_rows(course: Path) -> list[dict]:
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise utils.FileProblem(f"cannot read the grades from {db}: not nbgrader's gradebook ({first[:160]})",
                                 db) from None
-    return with_could_not_run(rows, grading_run.read_failures(course), most)
+    return with_flags(with_could_not_run(rows, grading_run.read_failures(course), most),
+                      grading_run.read_flags(course))
+
+
+def with_flags(rows: list[dict], flags: dict[tuple[str, str], list[dict]]) -> list[dict]:
+    """The grade rows with the ``flagged_for_review`` column: empty, or each exercise the static review sent
+    to manual grading with its reasons ("02.2: line 3: import inspect: reads ... | 02.3: ...")."""
+    for row in rows:
+        found = flags.get((row["student"], row["assignment"]), [])
+        row["flagged_for_review"] = " | ".join(f"{f['exercise']}: {'; '.join(f['reasons'])}" for f in found)
+    return rows
 
 
 SQLITE_HEADER = b"SQLite format 3\x00"  # the first 16 bytes of every SQLite database file
@@ -533,7 +543,11 @@ def _report(args) -> str:
         return f"{len(feedback(args.course))} feedback pages under {args.course / 'feedback'}"
     rows = write_grades(args.course, args.out)
     pending = sum(r["needs_manual_grading"] > 0 for r in rows)
-    return f"{len(rows)} grades in {args.out}; {pending} still need a hand grade (formgrader)"
+    flagged = [f"flagged for review: {r['student']}, {r['assignment']}, {part}" for r in rows
+               for part in r["flagged_for_review"].split(" | ") if part]
+    return "\n".join([*flagged, f"{len(rows)} grades in {args.out}; {pending} still need a hand grade (formgrader)"
+                       + (f"; {len(flagged)} answers flagged by the static review (column flagged_for_review)"
+                          if flagged else "")])
 
 
 def _autograde_report(args) -> str:
@@ -546,8 +560,9 @@ def _autograde_report(args) -> str:
     if not info["graded"] and not info["could_not_run"]:
         return (f"nothing to autograde: {len(info['skipped'])} submissions graded before" if info["skipped"]
                 else "nothing to autograde: no submission collected")
+    flagged = f"; {len(info['flagged'])} answers flagged for review (manual grading)" if info["flagged"] else ""
     return (f"autograded {len(info['graded'])} submissions; {len(info['could_not_run'])} could not run; "
-            f"{len(info['skipped'])} graded before")
+            f"{len(info['skipped'])} graded before{flagged}")
 
 
 def run_course(args) -> int:

@@ -27,18 +27,32 @@ before the check ran: :func:`rerun_answer` runs the answer cell again, under the
 kernel's input history (``In``; :func:`geodepth_lite.exercises.run_exercise` keeps one too). A kernel that
 records no history (nbval runs cells with ``store_history=False``) has nothing to run again: the notebook
 tests check the committed solutions, nbgrader's autograde records the history.
+
+Answers are checked for their exact types where the checks see them through this module: an answer of a
+subclass can redefine ``==`` (a set equal to any set). :func:`rerun_answer` refuses answer variables not
+built of plain values (:func:`foreign_value`: ``type(x) is set``, ``int``, ``str``, numpy's scalars and
+arrays, ``torch.Tensor``, and lists, tuples, dicts and sets of them), and inside :func:`forbid` every
+function the answer cell defines (the cell before the check, from the input history) must return such values.
 """
 
 from __future__ import annotations
 
+import ast
+import collections
 import contextlib
+import functools
 import inspect
 import io
 import sys
 import types
 from typing import Any, Iterable, Iterator
 
+import numpy as np
+
 PACKAGE = "geodepth_lite"
+SCALARS = frozenset({type(None), bool, int, float, complex, str, bytes, *np.sctypeDict.values()})
+CONTAINERS = (list, tuple, dict, set, frozenset, collections.OrderedDict, collections.defaultdict, collections.Counter)
+ITEMS_CHECKED = 100_000  # elements of an answer looked at before the rest is taken on trust
 
 
 class ForbiddenCall(AssertionError):
@@ -128,6 +142,30 @@ def _profile_guard(codes: dict, builtins: dict, previous):
     return guard
 
 
+def _answer_functions(namespace: dict) -> set[str]:
+    """The names of the functions the answer cell defines (``def`` at its top level); none where the kernel
+    records no input history (nbval's runs of the committed notebooks) or the cell cannot be read."""
+    try:
+        source = answer_source(namespace)
+        tree = ast.parse(source) if source is not None else None
+    except (AssertionError, SyntaxError, ValueError):
+        return set()
+    defined = (ast.FunctionDef, ast.AsyncFunctionDef)
+    return {node.name for node in getattr(tree, "body", []) if isinstance(node, defined)}
+
+
+def _check_returns(namespace: dict) -> list[tuple[dict, str, Any, bool]]:
+    """Each function the answer cell defined (its globals are ``namespace``; a decorated one too) replaced
+    in ``namespace`` by one whose return value must be plain (:func:`foreign_value`); the patches, to undo."""
+    patches = []
+    for key in _answer_functions(namespace):
+        value = namespace.get(key)
+        if isinstance(value, types.FunctionType) and getattr(inspect.unwrap(value), "__globals__", None) is namespace:
+            patches.append((namespace, key, value, True))
+            namespace[key] = _returns_checked(value, key)
+    return patches
+
+
 @contextlib.contextmanager
 def forbid(*targets, task: str, namespace: dict | None = None) -> Iterator[None]:
     """While the block runs, calling any of ``targets`` raises :class:`ForbiddenCall` (see the module
@@ -166,6 +204,8 @@ def forbid(*targets, task: str, namespace: dict | None = None) -> Iterator[None]
                         if value is original:
                             patches.append((namespace, key, value, True))
                             namespace[key] = replacement
+        if namespace is not None:
+            patches += _check_returns(namespace)
         previous = sys.getprofile()
         sys.setprofile(_profile_guard(codes, builtins, previous))
         try:
@@ -180,6 +220,60 @@ def forbid(*targets, task: str, namespace: dict | None = None) -> Iterator[None]
                 setattr(owner, name, original)
             else:
                 delattr(owner, name)
+
+
+def _torch_types() -> tuple:
+    """torch's exact value types, where torch is loaded (a value cannot be a tensor otherwise)."""
+    torch = sys.modules.get("torch")
+    return (torch.Tensor, torch.Size, torch.dtype, torch.device) if torch is not None else ()
+
+
+def foreign_value(value, budget: list | None = None) -> str | None:
+    """None when ``value`` is built of exact plain types only: None, bool, int, float, complex, str, bytes,
+    numpy's scalars and arrays (not of dtype object), torch's tensors, and lists, tuples, dicts, sets of
+    those; else what is not, e.g. "a value of type Always (a subclass of int)". A subclass can redefine
+    ``==`` (a set equal to any set), so the checks compare types as well as values."""
+    budget = [ITEMS_CHECKED] if budget is None else budget
+    budget[0] -= 1
+    if budget[0] < 0:
+        return None
+    kind = type(value)
+    if kind in SCALARS or kind in _torch_types() or (kind is np.ndarray and value.dtype != object):
+        return None
+    if kind in CONTAINERS:
+        items = [*value.keys(), *value.values()] if isinstance(value, dict) else value
+        return next((why for why in (foreign_value(v, budget) for v in items) if why), None)
+    bases = [b.__name__ for b in kind.__mro__[1:] if b in SCALARS or b in CONTAINERS or b in _torch_types()
+             or b is np.ndarray]
+    kin = f" (a subclass of {bases[0]})" if bases else ""
+    return f"a value of type {kind.__name__}{kin}"
+
+
+def check_plain(namespace: dict, names: Iterable[str]) -> None:
+    """An AssertionError naming the first of ``names`` whose value in ``namespace`` is not built of plain
+    types (:func:`foreign_value`); a function (what a function exercise defines) passes."""
+    for name in names:
+        value = namespace.get(name)
+        if type(value) is types.FunctionType:
+            continue
+        why = foreign_value(value)
+        if why:
+            raise AssertionError(f"{name} holds {why}: answer with plain Python, numpy or torch values (the checks "
+                                 "compare types as well as values)")
+
+
+def _returns_checked(fn, name: str):
+    """``fn`` whose return value must be plain (:func:`foreign_value`), else an AssertionError."""
+    @functools.wraps(fn)
+    def checked(*args, **kwargs):
+        result = fn(*args, **kwargs)
+        why = foreign_value(result)
+        if why:
+            raise AssertionError(f"{name}() returned {why}: return plain Python, numpy or torch values (the "
+                                 "checks compare types as well as values)")
+        return result
+
+    return checked
 
 
 def _shell():
@@ -216,6 +310,7 @@ def rerun_answer(namespace: dict, names: Iterable[str], source: str | None = Non
     namespace; an AssertionError when the cell does not set every one of ``names`` again. Where the
     kernel records no input history (``answer_source`` is None), nothing is run."""
     names = list(names)
+    check_plain(namespace, names)
     source = answer_source(namespace) if source is None else source
     if source is None:  # no input history is recorded: nothing to run again
         return dict(namespace)
@@ -225,4 +320,5 @@ def rerun_answer(namespace: dict, names: Iterable[str], source: str | None = Non
     missing = [n for n in names if n not in fresh]
     if missing:
         raise AssertionError(f"the answer cell, run again, does not set {', '.join(missing)}")
+    check_plain(fresh, names)
     return fresh

@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import autograde, cli, course, exercises, sandbox, utils
+from geodepth_lite import autograde, cli, course, exercises, review, sandbox, utils
 
 TINY = "99_tiny"
 
@@ -360,6 +360,11 @@ def hostile_answer(root: Path, victim: str, port: int) -> str:
     return "\n".join(lines + ["my_sum = 2 + 3"])
 
 
+# 99.2 answered with a value equal to anything: it passes both checks, and the static review flags it
+ALWAYS_EQUAL = ("class Always(int):\n    def __eq__(self, other):\n        return True\n\n    __hash__ = int.__hash__\n"
+                "\n\ndef square(x):\n    return Always(0)")
+
+
 def _printed(notebook: Path) -> str:
     nb = json.loads(notebook.read_text())
     return "".join("".join(o.get("text", "")) for c in nb["cells"] for o in c.get("outputs", []))
@@ -367,9 +372,11 @@ def _printed(notebook: Path) -> str:
 
 @pytest.mark.slow
 def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, tmp_path, capsys, needs_sandbox):
-    """Three students: ana all right; bo's notebook ends Python (exit()) in exercise 99.2; cy's answers are
-    right, but 99.1 first tries to read the solutions, the gradebook and ana's notebook and to write into
-    the course folder. ana and cy are graded, bo could not run; cy's every attempt fails in the sandbox."""
+    """Three students: ana all right; bo's notebook ends Python (exit()) in exercise 99.2; cy's 99.1 is
+    right, but first tries to read the solutions, the gradebook and ana's notebook and to write into
+    the course folder, and cy's 99.2 returns a value equal to anything. ana and cy are graded, bo could not
+    run; cy's every attempt fails in the sandbox, and the static review sends cy's 99.1 (it imports socket)
+    and 99.2 (a class defining __eq__) to manual grading, with the reasons in the grade table."""
     run = ["--course", str(tiny_course)]
     config = tiny_course / course.CONFIG
     config.write_text(config.read_text().replace(f"timeout = {course.TIMEOUT_MIN_S}", "timeout = 8"))
@@ -379,7 +386,7 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     dead = {**right, 2: "exit()  # Python ends once the cell is done\nimport time\n\ntime.sleep(1)\n" + right[2]}
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
-    hostile = {**right, 1: hostile_answer(tiny_course, "ana", port)}
+    hostile = {**right, 1: hostile_answer(tiny_course, "ana", port), 2: ALWAYS_EQUAL}
     subs = _submissions(tmp_path, {f"{who}/{TINY}.ipynb": _returned(released, answers)
                                    for who, answers in (("ana", right), ("bo", dead), ("cy", hostile))})
     course.collect(tiny_course, subs)
@@ -396,9 +403,11 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     with listener:
         assert cli.main(["course", "autograde", *run]) == 0
     captured = capsys.readouterr()
-    assert "autograded 2 submissions; 1 could not run" in captured.out
+    assert "autograded 2 submissions; 1 could not run; 0 graded before; 2 answers flagged for review" in captured.out
     (line,) = [ln for ln in captured.err.splitlines() if ln.startswith("could not run")]
     assert line.startswith(f"could not run: bo, {TINY}.ipynb: the kernel died")
+    assert [ln.split(":")[1] for ln in captured.err.splitlines() if ln.startswith("flagged for review")] == [
+        f" cy, {TINY}.ipynb exercise 99.1", f" cy, {TINY}.ipynb exercise 99.2"]
     printed = _printed(tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb")
     assert [ln for ln in printed.splitlines() if ln.startswith(("done", "blocked"))] == [
         f"blocked: {what}" for what in ("read source", "read gradebook", "read other student", "list course",
@@ -408,12 +417,34 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     assert all(p.read_bytes() == data for p, data in protected.items()) and not (tiny_course / "planted.txt").exists()
     assert cli.main(["course", "feedback", *run]) == 0
     pages = {who: (tiny_course / "feedback" / who / TINY / f"{TINY}.html").read_text() for who in ("ana", "bo", "cy")}
-    assert "could not run" in pages["bo"] and "kernel died" in pages["bo"] and "5 of 9 points" in pages["cy"]
+    assert "could not run" in pages["bo"] and "kernel died" in pages["bo"] and "0 of 9 points" in pages["cy"]
+    assert "99.2 Square</td><td>0 / 3 (graded by hand, pending)</td><td class=\"passed\">" in pages["cy"]
     assert feedback_leaks(pages, tiny_course) == []
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
+    report = capsys.readouterr().out
+    assert (f"flagged for review: cy, {TINY}, 99.2: line 2: class Always defines __eq__: "
+            f"{review.RULES['special-method']}") in report
+    assert "3 grades in" in report and "2 answers flagged by the static review" in report
     rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
+    # cy's checks passed (the always-equal square fooled them), but both flagged answers wait for a hand grade
     assert {who: (float(r["points"]), int(r["needs_manual_grading"]), r["could_not_run"][:15])
-            for who, r in rows.items()} == {"ana": (5.0, 1, ""), "bo": (0.0, 0, "the kernel died"), "cy": (5.0, 1, "")}
+            for who, r in rows.items()} == {"ana": (5.0, 1, ""), "bo": (0.0, 0, "the kernel died"), "cy": (0.0, 3, "")}
+    assert rows["ana"]["flagged_for_review"] == rows["bo"]["flagged_for_review"] == ""
+    assert rows["cy"]["flagged_for_review"].startswith("99.1: line 2: import socket: runs code where the grading ")
+    assert "99.2: line 2: class Always defines __eq__" in rows["cy"]["flagged_for_review"]
+    assert [(r["student"], r["exercise"]) for r in json.loads((tiny_course / autograde.FLAGGED).read_text())] == [
+        ("cy", "99.1"), ("cy", "99.2")]
+    from nbgrader.api import Gradebook
+
+    with Gradebook(f"sqlite:///{tiny_course / 'gradebook.db'}") as gb:  # what formgrader shows the lecturer
+        grade = gb.find_grade("ex99-2-check", TINY, TINY, "cy")
+        assert (grade.auto_score, grade.manual_score, grade.needs_manual_grade) == (3.0, 0.0, True)
+        assert gb.find_comment("ex99-2-answer", TINY, TINY, "cy").auto_comment.startswith(
+            "Flagged by the static review, for a hand grade: line 2: class Always defines __eq__")
+        assert gb.find_grade("ex99-2-check", TINY, TINY, "ana").needs_manual_grade is False
+    graded_cy = json.loads((tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb").read_text())
+    (check,) = [c for c in graded_cy["cells"] if c["metadata"].get("nbgrader", {}).get("grade_id") == "ex99-2-check"]
+    assert not [o for o in check["outputs"] if o["output_type"] == "error"]  # it passed: the review held the points
     # a rerun grades nothing again: bo waits for --retry
     assert cli.main(["course", "autograde", *run]) == 0
     assert "nothing to autograde: 3 submissions graded before" in capsys.readouterr().out
@@ -664,6 +695,18 @@ def test_a_damaged_list_of_failed_runs_is_one_line(tiny_course, capsys):
     (tiny_course / autograde.FAILURES).write_text("[{\"student\": 1}]")
     assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 2
     one_line_error(capsys, str(tiny_course / autograde.FAILURES), "damaged")
+
+
+def test_flagged_answers_reach_the_grade_table_and_a_damaged_record_is_one_line(tiny_course, capsys):
+    rows = [{"student": "ana", "assignment": TINY}, {"student": "cy", "assignment": TINY}]
+    reason = "line 2: class Always defines __eq__: defines a special method"
+    flags = {("cy", TINY): [{"notebook": TINY, "exercise": "99.2", "reasons": [reason, "line 5: .__hash__: x"]}]}
+    assert [r["flagged_for_review"] for r in course.with_flags(rows, flags)] == [
+        "", f"99.2: {reason}; line 5: .__hash__: x"]
+    (tiny_course / "gradebook.db").write_bytes(b"")
+    (tiny_course / autograde.FLAGGED).write_text("[{\"student\": \"cy\"}]")
+    assert cli.main(["course", "autograde", "--unsafe-no-sandbox", "--course", str(tiny_course)]) == 2
+    one_line_error(capsys, str(tiny_course / autograde.FLAGGED), "damaged")
 
 
 def test_a_rerun_skips_what_is_graded_and_retry_runs_the_failed_again(tmp_path, monkeypatch):

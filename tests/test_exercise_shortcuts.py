@@ -13,15 +13,18 @@ The answers are the exercise's answer cell with its solution regions replaced; e
 in a fresh namespace (``exercises.run_exercise``), in-process.
 """
 
+import collections
 import copy
 import json
+import re
 import sys
 import textwrap
+from unittest import mock
 
 import pytest
 
 from geodepth_lite import exercises as E
-from geodepth_lite import grading
+from geodepth_lite import grading, review
 
 NOTEBOOKS = {p.name: json.loads(p.read_text()) for p in E.notebook_paths()}
 EXERCISES = {ex.ident: ex for nb in NOTEBOOKS.values() for ex in E.notebook_exercises(nb).values()}
@@ -592,3 +595,529 @@ def test_forbid_still_catches_a_kept_reference_to_a_decorated_function():
         with pytest.raises(grading.ForbiddenCall, match="calling geodepth_lite.model.feature_shapes"):
             kept(None, 64, 96)
         assert float(own(torch.ones(1))) == 2.0
+
+
+# ------------------------------------------------------------------------------ a student who shares the kernel
+# The student's answer and the checks run in one process. Every family of shortcut that this allows is played
+# against an exercise of every kind: a function to write (05.2 Holm's rule; 02.2 where it returns a value), a
+# value to compute (05.3's verdicts), a set (03.1) and an open answer graded by hand (04.4). Each either loses
+# its points (the checks, exact types included, reject it) or is flagged by the static review
+# (``review.review_notebook``, as ``course autograde`` runs it), which sends the exercise to manual grading.
+KINDS = {"function": {"05-2", "02-2", "07-2"}, "value": {"05-3", "06-1"}, "set": {"03-1"}, "open": {"04-4"}}
+FAMILIES = ("grader's files", "guard off", "out of the guard's sight", "package source", "equal to anything",
+            "pasted values", "fished reference", "edited history", "the checks' tools or inputs changed")
+def _pasted_verdicts() -> str:
+    """05.3's verdicts as the visible check's message prints them after a failed run."""
+    from geodepth_lite import ablation
+
+    namespace = E.new_namespace()
+    E.run_cell(answer_with(EXERCISES["05-3"].answer, ("verdicts = {}",)), namespace)
+    want = {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(namespace["toy_result"])}
+    return f"verdicts = {want!r}"
+
+
+FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the rule that flags it; None: it fails)
+    ("grader's files", "function"): ("05-2", ("""
+        import sqlite3
+        with sqlite3.connect("../../../gradebook.db") as db:  # the hidden tests' text
+            rows = db.execute("select source from grade_cells").fetchall()
+        return [bool(p <= alpha) for p in pvalues]
+        """,), "grader-files"),
+    ("guard off", "function"): ("05-2", ("""
+        global _kept
+        import sys
+        from geodepth_lite import ablation
+        try:
+            _kept
+        except NameError:  # the first call, in the visible check, is not guarded
+            _kept = [ablation.holm]  # in a list: the guard replaces the notebook's names bound to holm itself
+        sys.setprofile(None)  # the guard's hook, watching the kept function's code, is gone
+        return _kept[0](pvalues, alpha)
+        """,), "guard"),
+    ("out of the guard's sight", "function"): ("05-2", ("""
+        global _kept
+        from concurrent.futures import ThreadPoolExecutor
+        from geodepth_lite import ablation
+        try:
+            _kept
+        except NameError:  # the first call, in the visible check, is not guarded
+            _kept = [ablation.holm]  # in a list: the guard replaces the notebook's names bound to holm itself
+        with ThreadPoolExecutor(1) as pool:  # the guard's hook watches its own thread only
+            return pool.submit(_kept[0], pvalues, alpha).result()
+        """,), "concurrency"),
+    ("package source", "function"): ("05-2", ("""
+        from geodepth_lite import ablation
+        copy = {}
+        exec(open(ablation.__file__).read(), copy)  # a fresh copy of the module: its code is not watched
+        return copy["holm"](pvalues, alpha)
+        """,), "package-source"),
+    ("equal to anything", "function"): ("02-2", ("""
+        class Always(int):  # equal to whatever the check expects
+            def __eq__(self, other):
+                return True
+
+            __hash__ = int.__hash__
+
+        return Always(0)
+        """, None), "special-method"),
+    ("pasted values", "function"): ("05-2", ("""  # the visible check's cases, answered one by one
+        seen = {(0.04,): [True], (0.2,): [False], (0.001, 0.02, 0.04): [True, True, True],
+                (0.01, 0.04, 0.03, 0.005): [True, False, False, True], (0.03, 0.2, 0.006): [True, False, True],
+                (0.012, 0.002, 0.3, 0.011): [False, True, False, False], (0.02, 0.02, 0.02): [False, False, False]}
+        return seen.get(tuple(pvalues), [False] * len(pvalues))
+        """,), None),
+    ("fished reference", "function"): ("05-2", ("""
+        import sys
+        return list(sys._getframe(1).f_globals.get("_want", []))  # the hidden test's expected answer
+        """,), "introspection"),
+    ("edited history", "function"): ("02-2", (None, """
+        from geodepth_lite import model as M
+        my_sab_params = M.count_parameters(M.SpatialAttention())
+        In[-1] = In[-1].replace("M.count_parameters(M.SpatialAttention())", str(my_sab_params))  # run again
+        """), "kernel-history"),
+    ("grader's files", "value"): ("05-3", ("""
+        import json
+        with open("../../../source/05_statistics/05_statistics.ipynb") as f:  # the lecturer's solution
+            _solution = json.load(f)
+        verdicts = {}
+        """,), "grader-files"),
+    ("guard off", "value"): ("05-3", ("""
+        try:
+            _kept
+        except NameError:  # the first run, before the hidden test, is not guarded
+            _kept = [ablation.comparisons]
+        import sys
+        ablation.comparisons = _kept[0]  # put back what the guard replaced
+        sys.setprofile(None)
+        verdicts = {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(toy_result)}
+        """,), "guard"),
+    ("out of the guard's sight", "value"): ("05-3", ("""
+        try:
+            _kept
+        except NameError:  # the first run, before the hidden test, is not guarded
+            _kept = [ablation.comparisons]
+        import threading
+        _out = {}
+        _t = threading.Thread(target=lambda: _out.update({(m, c): q["verdict"] for _, m, c, q in _kept[0](toy_result)}))
+        _t.start()
+        _t.join()
+        verdicts = _out
+        """,), "concurrency"),
+    ("package source", "value"): ("05-3", ("""
+        import inspect
+        _copy = {}
+        exec(inspect.getsource(ablation), _copy)  # the module rebuilt from its source
+        verdicts = {(m, c): q["verdict"] for _, m, c, q in _copy["comparisons"](toy_result)}
+        """,), "introspection"),
+    ("equal to anything", "value"): ("05-3", ("""
+        class Word(str):  # equal to whatever verdict the check expects
+            def __eq__(self, other):
+                return True
+
+            def __ne__(self, other):
+                return False
+
+            __hash__ = str.__hash__
+
+
+        verdicts = {(m, c): Word("no effect detected") for m in ("abs_rel", "rmse") for c in (2, 3, 4)}
+        """,), "special-method"),
+    ("pasted values", "value"): ("05-3", ("PASTED",), "literal-answer"),
+    ("fished reference", "value"): ("05-3", ("""
+        verdicts = dict(globals().get("_want", {}))  # the visible check's reference, there when the cell runs again
+        """,), "namespace"),
+    ("edited history", "value"): ("05-3", ("""
+        verdicts = {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(toy_result)}
+        In[-1] = f"verdicts = {verdicts!r}"  # the hidden test runs this again, not the call
+        """,), "kernel-history"),
+    ("grader's files", "set"): ("03-1", ("""
+        try:
+            _tests = open("../../../gradebook.db", "rb").read()  # the hidden tests, to read the set off
+        except OSError:
+            _tests = b""
+        offset_blind = {"smooth", "grad", "normal"}
+        """,), "grader-files"),
+    ("guard off", "set"): ("03-1", ("""
+        import sys
+        sys.settrace(None)
+        offset_blind = {"smooth", "grad", "normal"}
+        """,), "guard"),
+    ("out of the guard's sight", "set"): ("03-1", ("""
+        import subprocess
+        import sys
+        _code = "from geodepth_lite import losses; print(losses.term_names())"
+        _names = subprocess.run([sys.executable, "-c", _code], capture_output=True, text=True).stdout
+        offset_blind = {"smooth", "grad", "normal"}
+        """,), "concurrency"),
+    ("package source", "set"): ("03-1", ("""
+        from pathlib import Path
+        from geodepth_lite import losses
+        _text = Path(losses.__file__).read_text()  # which terms read neighbouring differences only
+        offset_blind = {name for name in ("smooth", "grad", "normal") if name in _text}
+        """,), "package-source"),
+    ("equal to anything", "set"): ("03-1", ("""
+        class AnySet(set):  # equal to whatever set the check expects
+            def __eq__(self, other):
+                return True
+
+            __hash__ = None
+
+
+        offset_blind = AnySet({"grad", "normal"})
+        """,), "special-method"),
+    ("pasted values", "set"): ("03-1", ("""  # the two terms the visible check's messages name
+        offset_blind = {"grad", "normal"}
+        """,), None),
+    ("fished reference", "set"): ("03-1", ("""
+        class Lazy(set):  # compares with the hidden test's own set
+            def __eq__(self, other):
+                return set(globals().get("_unchanged", self)) == set(other)
+
+            __hash__ = None
+
+
+        offset_blind = Lazy({"grad", "normal"})
+        """,), "namespace"),
+    ("edited history", "set"): ("03-1", ("""
+        offset_blind = {"smooth", "grad", "normal"}
+        _ih[-1] = "offset_blind = set()"
+        """,), "kernel-history"),
+    ("grader's files", "open"): ("04-4", ("""
+        from pathlib import Path
+        _theirs = Path("../../../submitted/ana/04_training/04_training.ipynb")  # another student's answer
+        pred = np.full((8, 8), 1.5)
+        why = "copied"
+        """,), "grader-files"),
+    ("guard off", "open"): ("04-4", ("""
+        import sys
+        sys.setprofile(None)
+        pred = np.full((8, 8), 1.5)
+        why = ""
+        """,), "guard"),
+    ("out of the guard's sight", "open"): ("04-4", ("""
+        from multiprocessing import Pool
+        pred = np.full((8, 8), 1.5)
+        why = ""
+        """,), "concurrency"),
+    ("package source", "open"): ("04-4", ("""
+        from pathlib import Path
+        _metrics = Path("geodepth_lite/metrics.py").read_text()
+        pred = np.full((8, 8), 1.5)
+        why = ""
+        """,), "package-source"),
+    ("equal to anything", "open"): ("04-4", ("""
+        class Score(float):
+            def __gt__(self, other):
+                return True
+        pred = np.full((8, 8), 1.5)
+        why = ""
+        """,), "special-method"),
+    ("pasted values", "open"): ("04-4", ("PASTED",), "literal-answer"),
+    ("fished reference", "open"): ("04-4", ("""
+        import sys
+        pred = sys._getframe(0).f_globals.get("_p", np.ones((8, 8)))
+        why = ""
+        """,), "introspection"),
+    ("edited history", "open"): ("04-4", ("""
+        pred = np.full((8, 8), 1.5)
+        why = " ".join(In)
+        """,), "kernel-history"),
+    ("the checks' tools or inputs changed", "function"): ("07-2", """
+        _real_tube = tube_depth
+        _asked = []
+
+
+        def tube_depth(K, H, W, radius, a, b, far=30.0):  # the check's test data, recorded as it is made
+            _asked.append((radius, a, b))
+            return _real_tube(K, H, W, radius, a, b, far)
+
+
+        def fit_tube(depth, K):
+            return _asked[-1]
+        """, "given-inputs"),
+    ("the checks' tools or inputs changed", "value"): ("06-1", ("""
+        bands = dict.fromkeys(["top", "bottom", "left", "right", "centre"], 1.0)
+        ratios = dict.fromkeys(["top", "bottom", "left", "right"], 1.0)
+        worst = "top"
+        abs = lambda x: 0.0  # every difference the checks measure is 0
+        max = lambda *args, **kwargs: "top"  # and the worst band is the one named
+        """,), "shadowed-builtin"),
+    ("the checks' tools or inputs changed", "set"): ("03-1", ("""
+        def isinstance(obj, kind):
+            return True
+
+
+        offset_blind = {"grad", "normal"}
+        """,), "shadowed-builtin"),
+    ("the checks' tools or inputs changed", "open"): ("04-4", ("""
+        float = lambda x: 1.0
+        pred = np.full((8, 8), 1.5)
+        why = ""
+        """,), "shadowed-builtin"),
+}
+
+
+def _pasted(family_kind) -> tuple:
+    """The pasted answers, made as a student would: from what the visible check printed."""
+    if family_kind == ("pasted values", "value"):
+        return (_pasted_verdicts(),)
+    namespace = E.new_namespace()  # 04.4: the solution's pred, written out number by number
+    E.run_cell(solution("04-4"), namespace)
+    return (f"pred = {namespace['pred'].tolist()!r}\nwhy = {namespace['why']!r}",)
+
+
+def family_answer(family_kind) -> tuple[str, str, str | None]:
+    ident, regions, rule = FAMILY_SHORTCUTS[family_kind]
+    if isinstance(regions, str):  # code added after the solution, outside its regions
+        return ident, solution(ident) + "\n" + textwrap.dedent(regions), rule
+    if regions == ("PASTED",):
+        regions = _pasted(family_kind)
+    return ident, answer_with(EXERCISES[ident].answer, regions), rule
+
+
+def solution(ident: str) -> str:
+    """The exercise's answer cell as the solution answers it (its markers removed)."""
+    return "\n".join(ln for ln in EXERCISES[ident].answer.splitlines() if ln.strip() not in E.SOLUTION_MARKERS)
+
+
+def reviewed(ident: str, answer: str) -> list:
+    """The static review of ``answer`` as exercise ``ident``'s answer cell, as ``course autograde`` runs it:
+    the lecturer's notebook against the returned one."""
+    from geodepth_lite import review
+
+    name = next(n for n, nb in NOTEBOOKS.items() if ident in E.notebook_exercises(nb))
+    returned = copy.deepcopy(NOTEBOOKS[name])
+    E.notebook_exercises(returned)[ident].cells["answer"]["source"] = answer
+    return review.review_notebook(NOTEBOOKS[name], returned).get(ident, [])
+
+
+def test_every_family_of_shortcut_is_played_against_every_kind_of_exercise():
+    assert set(FAMILY_SHORTCUTS) == {(f, k) for f in FAMILIES for k in KINDS}
+    assert all(FAMILY_SHORTCUTS[f, k][0] in KINDS[k] for f, k in FAMILY_SHORTCUTS)
+    assert KINDS["open"] <= OPEN and not (KINDS["function"] | KINDS["value"] | KINDS["set"]) & OPEN
+    for ident in KINDS["function"]:  # a function to write: its solution region sits inside a def
+        assert re.search(r"def \w+\(.*\):\n(.*\n)*?\s+### BEGIN SOLUTION", EXERCISES[ident].answer), ident
+    assert "offset_blind = {" in solution("03-1")  # the set
+
+
+@pytest.mark.parametrize("family, kind", sorted(FAMILY_SHORTCUTS))
+def test_each_shortcut_loses_its_points_or_is_flagged_with_its_reason(family, kind):
+    from geodepth_lite import review
+
+    ident, answer, rule = family_answer((family, kind))
+    found = reviewed(ident, answer)
+    if rule is None:  # not flagged: the checks must take its points
+        failed = outcome(answer, EXERCISES[ident].check)
+        assert isinstance(failed, Exception) and ident not in OPEN, f"{ident}: {family} passes unflagged"
+    else:
+        assert rule in {f.rule for f in found}, f"{ident}: {family} not flagged as {rule}: {found}"
+        assert all(f.text().endswith(review.RULES[f.rule]) and f.text().startswith(f"line {f.line}: ")
+                   for f in found)
+
+
+# the shortcuts that pass every check when run: without the review they would score silently
+PASS_THE_CHECKS = [("guard off", "function"), ("out of the guard's sight", "function"), ("edited history", "function"),
+                   ("guard off", "value"), ("edited history", "value"), ("pasted values", "value"),
+                   ("equal to anything", "set"), ("the checks' tools or inputs changed", "function"),
+                   ("the checks' tools or inputs changed", "value")]
+
+
+@pytest.mark.parametrize("family, kind", PASS_THE_CHECKS)
+def test_the_flag_is_needed_where_the_shortcut_passes_the_checks(family, kind):
+    ident, answer, rule = family_answer((family, kind))
+    assert outcome(answer, EXERCISES[ident].check) is None and rule is not None
+    assert sys.getprofile() is None  # the guard put back what the shortcut turned off
+
+
+@pytest.mark.parametrize("family, kind", [("equal to anything", "function"), ("equal to anything", "value")])
+def test_an_answer_equal_to_anything_fails_the_exact_types(family, kind, monkeypatch):
+    """A subclass overriding ``==`` fails where the checks see the answer through the package (a function
+    under ``grading.forbid``, a value through ``grading.rerun_answer``); without the type check it passes."""
+    ident, answer, _ = family_answer((family, kind))
+    failed = outcome(answer, EXERCISES[ident].check)
+    assert isinstance(failed, AssertionError) and "compare types as well as values" in str(failed), failed
+    assert ("Always (a subclass of int)" if kind == "function" else "Word (a subclass of str)") in str(failed)
+    monkeypatch.setattr(grading, "foreign_value", lambda value, budget=None: None)
+    assert outcome(answer, EXERCISES[ident].check) is None
+
+
+def test_the_solutions_and_ordinary_constructs_pass_the_review_clean():
+    from geodepth_lite import review
+
+    assert {ident: reviewed(ident, solution(ident)) for ident in EXERCISES} == dict.fromkeys(EXERCISES, [])
+    for ident, regions in NO_GRAD_ANSWERS.items():
+        assert reviewed(ident, answer_with(EXERCISES[ident].answer, regions)) == [], ident
+    ordinary = textwrap.dedent("""
+        import math
+        import numpy as np
+        import torch
+        import torch.nn.functional as F
+        from scipy import signal, stats
+        from geodepth_lite import camera, losses
+
+
+        class Block(torch.nn.Module):
+            def __init__(self, k):
+                super().__init__()
+                self.conv = torch.nn.Conv2d(2, 1, k, bias=False)
+
+            def forward(self, x):
+                return x * torch.sigmoid(self.conv(x))
+
+            def __repr__(self):
+                return f"{type(self).__name__}()"
+
+
+        @torch.no_grad()
+        def shade(x, K):
+            grid = camera.normalized_grid(K, 4, 4)
+            return [float(v) for v in F.relu(torch.as_tensor(x)).flatten()] + [math.pi, grid.shape[0]]
+
+
+        with torch.no_grad():
+            values = {k: np.mean(v) for k, v in {"a": [1.0, 2.0]}.items()}
+        model = Block(3).eval()
+        model.training = False
+        table = {}
+        table["x"] = stats.norm.ppf(0.5) + len(signal.windows.hann(4))
+        """)
+    assert review.review_cell(ordinary) == []
+
+
+# each rule of the review: an answer it must flag, and a near miss (an honest answer much like it) it must not
+GIVEN = review.given_inputs("CASE1 = np.array([1.0])\nr = None\n### BEGIN SOLUTION\nr = CASE1\n### END SOLUTION",
+                            "assert r == CASE1")
+RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
+    "introspection": ("import inspect\nsrc = inspect.getsource(f)", "import math\nsrc = math.floor(2.5)", {}),
+    "concurrency": ("import os\nos.system('ls')", "import os\npath = os.path.join('a', 'b')", {}),
+    "dynamic-code": ("value = eval('1 + 1')", "net = make()\nnet.eval()\nvalue = compile_table(net)", {}),
+    "guard": ("from geodepth_lite import ablation\nablation.holm = my_holm",
+              "block = Block()\nblock.weight = w\nrows = {}\nrows['x'] = 1", {}),
+    "kernel-history": ("In[-1] = 'pass'", "Inputs = [1]\nout = Inputs[-1]\n_inner = 2", {}),
+    "namespace": ("globals()['x'] = 1", "my_globals = {}\nmy_globals['x'] = np.var([1.0, 2.0])", {}),
+    "check-names": ("def f(x):\n    return _want", "_want = 3\n\ndef f(x):\n    return _want + x",
+                    {"check_names": {"_want"}}),
+    "special-method": ("class A(float):\n    def __eq__(self, other):\n        return True",
+                       "class A:\n    def __init__(self):\n        self.x = 1\n\n    def __repr__(self):\n"
+                       "        return 'A'", {}),
+    "special-attribute": ("g = f.__globals__", "name = f.__name__", {}),
+    "package-source": ("from geodepth_lite import ablation\ntext = open(ablation.__file__).read()",
+                       "def holm(p):\n    \"\"\"Like geodepth_lite/ablation.py's holm, by hand.\"\"\"\n"
+                       "    return p\n\n\ntext = (root / 'manifest.json').read_text()", {}),
+    "grader-files": ("db = open('../../gradebook.db', 'rb').read()",
+                     "sums = (root / 'checksums.sha256').read_text()", {}),
+    "unreadable": ("x = 1" + " + 1" * 100_000, "x = 1 + 1 + 1", {}),
+    "shadowed-builtin": ("abs = lambda x: 0.0", "def f(x):\n    max = x.max()\n    return max\n\n\ntype = 'wall'",
+                         {"shadowed": {"abs", "max", "float"}}),  # the builtins the checks call
+    "given-inputs": ("CASE1 = np.array([2.0])\nr = CASE1",
+                     "CASE1 = np.array([1.0])  # the given line, its comment changed\nr = CASE1 * 1",
+                     {"given": GIVEN}),
+    "literal-answer": ("verdicts = {('rmse', 3): 'opposite'}",
+                       "verdicts = {}\nfor k in keys:\n    verdicts[k] = verdict(k)", {"computed": {"verdicts"}}),
+}
+
+
+def test_every_rule_has_a_planted_answer_and_a_near_miss():
+    from geodepth_lite import review
+
+    assert set(RULE_CASES) == set(review.RULES)
+    borrowed = review.review_cell("from unittest.mock import ANY\n\noffset_blind = ANY")  # equal to anything
+    assert [(f.line, f.rule) for f in borrowed] == [(1, "special-method")]
+
+
+@pytest.mark.parametrize("rule", sorted(RULE_CASES))
+def test_each_rule_flags_its_planted_answer_and_not_the_near_miss(rule):
+    from geodepth_lite import review
+
+    planted, near_miss, context = RULE_CASES[rule]
+    assert rule in {f.rule for f in review.review_cell(planted, **context)}, planted
+    assert review.review_cell(near_miss, **context) == [], near_miss
+
+
+def test_the_literal_rule_spares_a_prediction_the_solution_writes_out_too():
+    """01.1 asks to predict field names: its solution is a literal, and so may the student's answer be;
+    05.3 asks to compute the verdicts: a literal there is what a failed check printed."""
+    assert not any(f.rule == "literal-answer" for f in reviewed("01-1", answer_with(
+        EXERCISES["01-1"].answer, ('my_fields = {"a": "camera.fov_x_deg"}',))))
+    assert "literal-answer" in {f.rule for f in reviewed("05-3", answer_with(
+        EXERCISES["05-3"].answer, ('verdicts = {("rmse", 3): "opposite"}',)))}
+
+
+# ------------------------------------------------------------------------------------------ exact types
+def test_foreign_value_accepts_plain_values_and_names_a_subclass():
+    import numpy as np
+    import torch
+
+    class Always(int):
+        def __eq__(self, other):
+            return True
+
+        __hash__ = int.__hash__
+
+    plain = [None, True, 3, 2.5, "x", np.float64(1.5), np.bool_(True), np.zeros(3), torch.zeros(2), torch.Size([1, 2]),
+             {("rmse", 3): ["a", (1, 2.0)]}, {frozenset({1}), 2}, collections.defaultdict(list, {"a": [1]})]
+    assert [grading.foreign_value(v) for v in plain] == [None] * len(plain)
+    assert grading.foreign_value(Always(3)) == "a value of type Always (a subclass of int)"
+    assert grading.foreign_value({"k": [1, Always(2)]}) == "a value of type Always (a subclass of int)"
+    assert grading.foreign_value(type("AnySet", (set,), {})()) == "a value of type AnySet (a subclass of set)"
+    assert grading.foreign_value(torch.nn.Parameter(torch.zeros(1))) == (
+        "a value of type Parameter (a subclass of Tensor)")
+    assert grading.foreign_value(np.array([Always(1)], dtype=object)).startswith("a value of type ndarray")
+    assert grading.foreign_value(collections.defaultdict(list, {"a": Always(1)})).startswith("a value of type Always")
+    assert grading.foreign_value(mock.ANY) == "a value of type _ANY"  # equal to anything, from the library
+
+
+NOTEBOOK_FUNCTIONS = """
+import torch
+
+
+class Always(int):
+    def __eq__(self, other):
+        return True
+
+    __hash__ = int.__hash__
+
+
+def mine(x):
+    return Always(x)
+
+
+@torch.no_grad()
+def mine_no_grad(x):
+    return Always(x)
+
+
+def fine(x):
+    return [x, 2.0]
+"""
+
+
+def test_forbid_checks_what_the_notebooks_functions_return_decorated_or_not():
+    from geodepth_lite import ablation
+
+    namespace = E.new_namespace()
+    E.run_cell("class Lesson:\n    pass\n\n\ndef lesson():\n    return Lesson()", namespace)  # an earlier cell
+    E.run_cell(NOTEBOOK_FUNCTIONS, namespace)  # the answer cell
+    E.run_cell("pass", namespace)  # the check cell, whose hidden test runs the block
+    with grading.forbid(ablation.holm, task="count", namespace=namespace):
+        for name in ("mine", "mine_no_grad"):
+            with pytest.raises(AssertionError, match=rf"^{name}\(\) returned a value of type Always \(a subclass"):
+                namespace[name](3)
+        assert namespace["fine"](1) == [1, 2.0]
+        assert type(namespace["lesson"]()).__name__ == "Lesson"  # not the answer's: left as it is
+    assert type(namespace["mine"](3)).__name__ == "Always"  # after the block: the functions as they were
+    nbval = {"__name__": "__exercise__"}  # a kernel that records no input history, as nbval's
+    exec(NOTEBOOK_FUNCTIONS, nbval)  # noqa: S102 - the test's own cell
+    with grading.forbid(ablation.holm, task="count", namespace=nbval):
+        assert type(nbval["mine"](3)).__name__ == "Always"  # nothing to tell the answer's functions by
+
+
+def test_rerun_answer_checks_the_answers_types():
+    namespace = E.new_namespace()
+    E.run_cell("class S(set):\n    pass\n\n\noffset = S({1})", namespace)
+    E.run_cell("pass", namespace)
+    with pytest.raises(AssertionError, match=r"^offset holds a value of type S \(a subclass of set\)"):
+        grading.rerun_answer(namespace, ["offset"])
+    E.run_cell("offset = {1}", namespace)
+    E.run_cell("pass", namespace)
+    assert grading.rerun_answer(namespace, ["offset"])["offset"] == {1}
