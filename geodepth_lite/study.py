@@ -80,7 +80,7 @@ def evaluation_sets(profile: str = "teach", progress: bool = False) -> dict[str,
     CLOSEUPS: the held-out close-ups}, at the profile's sizes."""
     prof = config.get_profile(profile)
     sets = {PRIMARY: evaluate.open_eval_dataset(str(synth.ensure_dataset(CONFIRM, progress=progress)))}
-    sets[ablation.HELDOUT] = ablation.evaluation_sets(profile, progress=progress)[ablation.HELDOUT]
+    sets[ablation.HELDOUT] = ablation.ablation_sets(profile, progress=progress)[ablation.HELDOUT]
     sets[CLOSEUPS] = evaluate.open_eval_dataset(
         str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"], progress=progress)))
     return sets
