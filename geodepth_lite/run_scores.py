@@ -6,12 +6,13 @@ scores a checkpoint once and writes the result beside it, as ``scores.json`` in 
 (written atomically: whole or not at all), and later calls read that file instead.
 
 The file is reused only when its key matches: a SHA-256 over the checkpoint file's bytes, every
-evaluation set's name and content (its manifest and frame list), the set whose per-frame rows are
-kept, and the scoring code (the sources of the modules that load, run and score a model, and the
-torch version). A retrained run, another evaluation set or changed scoring code gives another key,
-and the run is scored again. The file is data from disk: it is read only up to
-:data:`MAX_SCORES_BYTES`, must be plain JSON of the shape :func:`scores` writes, and one that is
-not (cut short, oversized, edited into another shape) is named in a warning and scored again.
+evaluation set's name and content (its manifest, frame list and the checksums of its frame files),
+the set whose per-frame rows are kept, and the scoring code (the sources of the modules that load,
+run and score a model, and the torch version). A retrained run, another evaluation set or changed
+scoring code gives another key, and the run is scored again. The file is data from disk: it is
+read only up to :data:`MAX_SCORES_BYTES`, must be plain JSON of the shape :func:`scores` writes,
+and one that is not (cut short, oversized, edited into another shape) is named in a warning and
+scored again.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import torch
 from geodepth_lite import checkpoint, evaluate, inference, metrics, model, utils
 
 SCORES_NAME = "scores.json"
+CHECKSUMS_NAME = "checksums.sha256"  # a synthetic dataset's list of its files' SHA-256 (synth.py)
 FORMAT = 1
 MAX_SCORES_BYTES = 8 * 2**20  # a run's scores with one set's frame rows: about 150 KB for 480 frames
 FRAME_FIELDS = ("index", "organ", "group", *metrics.METRIC_NAMES, "ratio")
@@ -57,18 +59,23 @@ def code_fingerprint() -> str:
 
 def set_fingerprint(dataset) -> str | None:
     """SHA-256 of an evaluation set's content as its files declare it: for each synthetic split it
-    is made of (``torch.utils.data.ConcatDataset`` parts in order), its ``manifest.json`` and
-    ``frames.jsonl``. None for a dataset of another kind (its scores are not kept)."""
+    is made of (``torch.utils.data.ConcatDataset`` parts in order), the split's name, its
+    ``manifest.json`` and ``frames.jsonl``, and the dataset's ``checksums.sha256`` (the SHA-256 of
+    every frame file; "none" where synth has not written it). None for a dataset of another kind
+    or one resized on reading (its scores are not kept)."""
     parts = dataset.datasets if isinstance(dataset, torch.utils.data.ConcatDataset) else [dataset]
     h = hashlib.sha256()
     for part in parts:
         root, split = getattr(part, "root", None), getattr(part, "split", None)
         if root is None or not isinstance(split, str) or getattr(part, "size", None) is not None:
             return None
+        h.update(split.encode() + b"\0")
         for path in (Path(root) / "manifest.json", Path(root) / split / "frames.jsonl"):
             if not path.is_file():
                 return None
-            h.update(split.encode() + b"\0" + _sha256_file(path).encode())
+            h.update(_sha256_file(path).encode())
+        sums = Path(root) / CHECKSUMS_NAME
+        h.update(_sha256_file(sums).encode() if sums.is_file() else b"none")
     return h.hexdigest()
 
 

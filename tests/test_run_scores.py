@@ -3,10 +3,12 @@ recomputed when the checkpoint, an evaluation set or the scoring code changed, a
 named and replaced rather than trusted."""
 
 import functools
+import hashlib
 import json
 import pickle
 import shutil
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -104,6 +106,27 @@ def test_scores_of_another_set_or_other_code_are_not_reused(run, sets, smoke_roo
     assert counted["n"] == 4 * len(sets)
     run_scores.scores(run, swapped, frames_of="other")
     assert counted["n"] == 4 * len(sets)
+
+
+def test_a_set_whose_frames_changed_under_the_same_manifest_is_scored_again(run, smoke_root, tmp_path, counted):
+    """A copy of the smoke dataset with one depth map replaced (and its checksum line with it): the
+    same manifest and frame list, other frames, so the kept scores do not hold for it."""
+    first = Path(shutil.copytree(smoke_root, tmp_path / "ds"))
+    changed = Path(shutil.copytree(smoke_root, tmp_path / "ds_changed"))
+    target, donor = "test/depth/000000.npy", "test/depth/000001.npy"
+    shutil.copy(changed / donor, changed / target)
+    digest = hashlib.sha256((changed / target).read_bytes()).hexdigest()
+    sums = changed / run_scores.CHECKSUMS_NAME
+    sums.write_text("".join(f"{digest}  {target}\n" if line.endswith(f"  {target}") else line + "\n"
+                            for line in sums.read_text().splitlines()))
+    a = {PRIMARY: evaluate.open_eval_dataset(str(first), split="test")}
+    b = {PRIMARY: evaluate.open_eval_dataset(str(changed), split="test")}
+    before = run_scores.scores(run, a, frames_of=PRIMARY)
+    after = run_scores.scores(run, b, frames_of=PRIMARY)
+    assert counted["n"] == 2
+    assert after["frames"][0] != before["frames"][0] and after["frames"][1:] == before["frames"][1:]
+    run_scores.scores(run, b, frames_of=PRIMARY)
+    assert counted["n"] == 2
 
 
 def test_a_dataset_of_another_kind_is_scored_every_time(run, sets, counted):
