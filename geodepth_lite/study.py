@@ -85,16 +85,21 @@ def score_run(profile: str, path: str | Path) -> dict:
     return run_scores.scores(path, evaluation_sets(profile), frames_of=PRIMARY)
 
 
-def is_study_run(profile: str, case: int, seed: int, overrides: dict) -> bool:
-    """Whether the run (case, seed, settings for ``run_cache.ensure_runs``) is one of this study's."""
-    return run_cache.checkpoint_dir(profile, case, seed, **overrides) in {
-        run_cache.checkpoint_dir(profile, c, s, **o) for _, c, s, o in study_runs(profile)}
+def subset_folders(profile: str) -> set[Path]:
+    """The run folders of the silog cells at any of the plan's seeds: the runs :func:`retrain_subset`
+    reads (with the ``teach`` profile, its default seeds are the default ``reproduce``'s ablation runs)."""
+    return {run_cache.checkpoint_dir(profile, c, s, **o) for t, c, s, o in study_runs(profile) if t == "silog"}
 
 
-def score_if_study_run(profile: str, path: str | Path) -> None:
-    """:func:`score_run` when ``path`` is the checkpoint of a run of this study; nothing otherwise
-    (``reproduce`` trains other models beside the ablation's)."""
-    if Path(path).parent in {run_cache.checkpoint_dir(profile, c, s, **o) for _, c, s, o in study_runs(profile)}:
+def is_subset_run(profile: str, case: int, seed: int, overrides: dict) -> bool:
+    """Whether the run (case, seed, settings for ``run_cache.ensure_runs``) is one :func:`retrain_subset` reads."""
+    return run_cache.checkpoint_dir(profile, case, seed, **overrides) in subset_folders(profile)
+
+
+def score_if_subset_run(profile: str, path: str | Path) -> None:
+    """:func:`score_run` when ``path`` is the checkpoint of a run :func:`retrain_subset` reads;
+    nothing otherwise (``reproduce`` trains other models beside the ablation's)."""
+    if Path(path).parent in subset_folders(profile):
         score_run(profile, path)
 
 

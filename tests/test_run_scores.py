@@ -224,7 +224,9 @@ def test_runs_trained_here_are_handed_to_after_in_the_process_that_trained_them(
 def test_the_study_scores_its_runs_through_a_picklable_hook():
     hook = pickle.loads(pickle.dumps(functools.partial(study.score_run, "teach")))
     assert hook.func is study.score_run and hook.args == ("teach",)
-    assert study.is_study_run("teach", 1, 0, {})
-    assert study.is_study_run("teach", 4, 7, {"depth_term": "l1"})
-    assert not study.is_study_run("teach", 2, 0, {"depth_term": "l1"})
-    assert not study.is_study_run("teach", 4, 0, run_cache.predict_settings("teach"))
+    # the runs the retrained subset reads: teach's own (silog) ablation runs, not the L1 cells nor
+    # the predict model; smoke's own runs use L1, so reproduce --profile smoke scores none of them
+    assert study.is_subset_run("teach", 1, 0, {}) and study.is_subset_run("teach", 4, 7, {})
+    assert not study.is_subset_run("teach", 4, 0, {"depth_term": "l1"})
+    assert not study.is_subset_run("teach", 4, 0, run_cache.predict_settings("teach"))
+    assert not study.is_subset_run("smoke", 4, 0, {}) and study.is_subset_run("smoke", 4, 0, {"depth_term": "silog"})
