@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import ast
 import contextlib
+import functools
 import hashlib
 import json
 import logging
@@ -255,7 +256,11 @@ def train_models(profile: str, runs: list[tuple[int, int, dict]], workers: int |
     print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
           "(an interrupted one continues from its last epoch) ...", flush=True)
     t0 = time.perf_counter()
-    run_cache.ensure_runs(profile, todo, workers=workers, progress=progress)
+    after = None
+    if any(study.is_subset_run(profile, *r) for r in todo):  # scored by the process that trains it, on these sets
+        study.evaluation_sets(profile, progress=progress)
+        after = functools.partial(study.score_if_subset_run, profile)
+    run_cache.ensure_runs(profile, todo, workers=workers, progress=progress, after=after)
     print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
 
 

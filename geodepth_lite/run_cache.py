@@ -13,7 +13,7 @@ import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from tqdm.auto import tqdm
 
@@ -117,13 +117,16 @@ def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: in
 
 
 def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int | None = None,
-                progress: bool = False) -> list[Path]:
+                progress: bool = False, after: Callable[[Path], Any] | None = None) -> list[Path]:
     """``ensure_checkpoint`` for several runs, each (case, seed, overrides), side by side in processes.
 
     Finished runs are reused and interrupted ones continued. The largest inputs start first (they
     train longest), so a long run overlaps the short ones instead of running alone at the end; the
     weights do not depend on the order, as each run has its own seed and thread count. ``workers``
-    defaults to cpu_count // threads. Returns the checkpoint paths in the order of ``runs``.
+    defaults to cpu_count // threads. ``after`` (picklable: a module-level function or a
+    ``functools.partial`` of one) is called with each checkpoint trained here, in the process that
+    trained it, as soon as it is done (e.g. to score the run while the other runs still train).
+    Returns the checkpoint paths in the order of ``runs``.
     """
     runs = [(int(c), int(s), dict(o or {})) for c, s, o in runs]
     todo, folders = [], set()
@@ -146,13 +149,21 @@ def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int
         order = sorted(range(len(todo)), key=lambda i: -cfgs[i]["image_size"])
         if workers == 1:
             for i in order:
-                c, s, o = todo[i]
-                ensure_checkpoint(profile, c, s, progress=progress, announce=False, **o)
+                train_run(profile, *todo[i], after=after, progress=progress)
         else:
             with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                futures = [pool.submit(ensure_checkpoint, profile, *todo[i][:2], announce=False, **todo[i][2])
-                           for i in order]
+                futures = [pool.submit(train_run, profile, *todo[i], after=after) for i in order]
                 for f in tqdm(as_completed(futures), total=len(futures), disable=not progress,
                               desc=f"training {len(futures)} runs, {workers} side by side"):
                     f.result()
     return [checkpoint_dir(profile, c, s, **o) / checkpoint.CHECKPOINT_NAME for c, s, o in runs]
+
+
+def train_run(profile: str, case: int, seed: int, overrides: dict, *, after: Callable[[Path], Any] | None = None,
+              progress: bool = False) -> Path:
+    """One job of ``ensure_runs``: ``ensure_checkpoint`` without its announcement, then ``after``
+    on the checkpoint (when given); returns the checkpoint path."""
+    path = ensure_checkpoint(profile, case, seed, progress=progress, announce=False, **overrides)
+    if after is not None:
+        after(path)
+    return path

@@ -23,6 +23,7 @@ seeds, Holm's rule for "differs from zero", Bonferroni intervals for the size.
 
 from __future__ import annotations
 
+import functools
 import gzip
 import math
 from pathlib import Path
@@ -32,7 +33,7 @@ import numpy as np
 from scipy import optimize, stats
 from tqdm.auto import tqdm
 
-from geodepth_lite import ablation, checkpoint, config, evaluate, metrics, run_cache, synth, utils
+from geodepth_lite import ablation, config, evaluate, metrics, run_cache, run_scores, synth, utils
 from geodepth_lite import tables as tbl
 
 SEEDS = tuple(range(8))          # the plan's paired seeds
@@ -69,10 +70,37 @@ def study_runs(profile: str = "teach", seeds=SEEDS) -> list[tuple[str, int, int,
 
 def train(profile: str = "teach", seeds=SEEDS, *, workers: int | None = None,
           progress: bool = False) -> dict[tuple[str, int, int], Path]:
-    """Train (or reuse, or continue) every run of the study; {(depth term, case, seed): checkpoint}."""
+    """Train (or reuse, or continue) every run of the study; {(depth term, case, seed): checkpoint}.
+    Each run trained here is scored by the process that trained it (:func:`score_run`)."""
     runs = study_runs(profile, seeds)
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress)
+    evaluation_sets(profile, progress=progress)  # built before the workers, which score on them
+    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
+                                  after=functools.partial(score_run, profile))
     return {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
+
+
+def score_run(profile: str, path: str | Path) -> dict:
+    """The scores of one trained run on the study's sets (:func:`evaluation_sets`), with the frame
+    rows of the confirmation set: computed once and kept in its run folder (``run_scores.scores``)."""
+    return run_scores.scores(path, evaluation_sets(profile), frames_of=PRIMARY)
+
+
+def subset_folders(profile: str) -> set[Path]:
+    """The run folders of the silog cells at any of the plan's seeds: the runs :func:`retrain_subset`
+    reads (with the ``teach`` profile, its default seeds are the default ``reproduce``'s ablation runs)."""
+    return {run_cache.checkpoint_dir(profile, c, s, **o) for t, c, s, o in study_runs(profile) if t == "silog"}
+
+
+def is_subset_run(profile: str, case: int, seed: int, overrides: dict) -> bool:
+    """Whether the run (case, seed, settings for ``run_cache.ensure_runs``) is one :func:`retrain_subset` reads."""
+    return run_cache.checkpoint_dir(profile, case, seed, **overrides) in subset_folders(profile)
+
+
+def score_if_subset_run(profile: str, path: str | Path) -> None:
+    """:func:`score_run` when ``path`` is the checkpoint of a run :func:`retrain_subset` reads;
+    nothing otherwise (``reproduce`` trains other models beside the ablation's)."""
+    if Path(path).parent in subset_folders(profile):
+        score_run(profile, path)
 
 
 def evaluation_sets(profile: str = "teach", progress: bool = False) -> dict[str, Any]:
@@ -92,19 +120,22 @@ def _fmt(x: float) -> str:
 
 def score(checkpoints: dict[tuple[str, int, int], Path], sets: dict[str, Any], *,
           progress: bool = False) -> tuple[list[dict], list[dict]]:
-    """Score every run on every set: (run rows, frame rows of the primary set)."""
+    """Score every run on every set: (run rows, frame rows of the primary set). A run is scored once:
+    its scores are kept in its run folder and read from there while its checkpoint, the sets and
+    the scoring code stay the same (``run_scores.scores``)."""
     runs, frames = [], []
     for (term, case, seed), path in tqdm(sorted(checkpoints.items()), desc="score the study's runs",
                                          disable=not progress):
-        model, cfg = checkpoint.load_model(path)
-        for name, ds in sets.items():
-            r = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"])
+        kept = run_scores.scores(path, sets, frames_of=PRIMARY if PRIMARY in sets else None)
+        for name in sets:
+            r = kept["sets"][name]
             runs.append({"depth_term": term, "case": case, "seed": seed, "set": name, "frames": r["n"],
                          **{m: _fmt(r["overall"][m]) for m in METRIC_COLUMNS}})
             if name == PRIMARY:
                 frames += [{"depth_term": term, "case": case, "seed": seed, "index": f["index"],
                             "organ": f["organ"], "group": f["group"],
-                            **{m: _fmt(f[m]) for m in (*METRIC_COLUMNS, "ratio")}} for f in r["frames"]]
+                            **{m: _fmt(math.nan if f[m] is None else f[m]) for m in (*METRIC_COLUMNS, "ratio")}}
+                           for f in kept["frames"]]
     return runs, frames
 
 
@@ -188,16 +219,21 @@ def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | Non
 
 
 def retrain_subset(profile: str = "teach", seeds=DEFAULT_SEEDS, *, workers: int | None = None,
-                   progress: bool = False) -> dict:
+                   progress: bool = False, baselines: bool = True) -> dict:
     """The silog cells at ``seeds`` trained (or reused) on this computer and scored on the study's
     sets: tables like :func:`read_tables`'s, plus "checkpoints" {(term, case, seed): path}. With the
-    default seeds these are the default ``reproduce``'s ablation runs."""
+    default seeds these are the default ``reproduce``'s ablation runs. Each run is scored once, by
+    the process that trains it or at first need, and read from its run folder after that (:func:`score`).
+    ``baselines=False`` leaves the trivial predictors out ("baselines" is empty): they involve no
+    training, and the committed tables hold them."""
     runs = [r for r in study_runs(profile, seeds) if r[0] == "silog"]
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress)
+    sets = evaluation_sets(profile, progress=progress)  # built before the workers, which score on them
+    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
+                                  after=functools.partial(score_run, profile))
     checkpoints = {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
-    sets = evaluation_sets(profile, progress=progress)
     rows, _ = score(checkpoints, sets, progress=progress)
-    return {"runs": [typed_row(r) for r in rows], "baselines": [typed_row(r) for r in score_baselines(profile, sets)],
+    return {"runs": [typed_row(r) for r in rows],
+            "baselines": [typed_row(r) for r in score_baselines(profile, sets)] if baselines else [],
             "checkpoints": checkpoints}
 
 

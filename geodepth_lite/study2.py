@@ -15,6 +15,7 @@ bootstrap over seeds and scenes.
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -66,9 +67,12 @@ def arm_of(case: int) -> str:
 
 def train(profile: str = "teach", seeds=SEEDS, *, workers: int | None = None,
           progress: bool = False) -> dict[tuple[str, int, int], Path]:
-    """Train (or reuse, or continue) every run of the study; {(arm, case, seed): checkpoint}."""
+    """Train (or reuse, or continue) every run of the study; {(arm, case, seed): checkpoint}. Each
+    run trained here is scored by the process that trained it (``study.score_run``)."""
     runs = study_runs(profile, seeds)
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress)
+    study.evaluation_sets(profile, progress=progress)  # built before the workers, which score on them
+    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
+                                  after=functools.partial(study.score_run, profile))
     return {(a, c, s): p for (a, c, s, _), p in zip(runs, paths)}
 
 

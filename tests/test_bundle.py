@@ -3,6 +3,7 @@
 import hashlib
 import json
 import os
+import shutil
 import zipfile
 from pathlib import Path
 
@@ -13,9 +14,11 @@ from geodepth_lite import bundle, checkpoint, cli, config, run_cache
 
 
 @pytest.fixture(scope="module")
-def smoke_runs(tmp_path_factory):
-    """Two complete smoke runs (the notebooks' cache layout) in a workspace of their own."""
+def smoke_runs(tmp_path_factory, smoke_root):
+    """Two complete smoke runs (the notebooks' cache layout) in a workspace of their own, its
+    ``scenario_smoke`` a copy of the session's (the same manifest: found complete, not generated again)."""
     home = tmp_path_factory.mktemp("instructor")
+    shutil.copytree(smoke_root, home / "data" / "scenario_smoke")
     old = os.environ.get("GEODEPTH_LITE_HOME")
     os.environ["GEODEPTH_LITE_HOME"] = str(home)
     try:

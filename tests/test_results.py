@@ -248,14 +248,15 @@ def use_real_workspace(monkeypatch) -> None:
 @pytest.fixture(scope="module")
 def teach_models():
     """Every model the recorded notebooks will train, trained first in one pool (as ``reproduce``
-    does), so that notebook 04's long ``predict`` model overlaps notebook 05's ablation runs."""
-    from geodepth_lite import reproduce, run_cache
+    does), so that notebook 04's long ``predict`` model overlaps notebook 05's ablation runs, and
+    each ablation run is scored by the process that trained it (notebook 05 reads the scores)."""
+    from geodepth_lite import reproduce
 
     with pytest.MonkeyPatch.context() as mp:
         use_real_workspace(mp)
         todo = [(p, {}) for p in NOTEBOOKS if reproduced_copy(p, nbformat.read(str(p), as_version=4)) is None]
         runs, workers = reproduce.training_runs("teach", todo)
-        run_cache.ensure_runs("teach", runs, workers=workers)
+        reproduce.train_models("teach", runs, workers, progress=False)
 
 
 @pytest.mark.slow
