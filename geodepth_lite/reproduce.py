@@ -372,7 +372,7 @@ def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progres
     print(f"[reproduce] runs ready in {time.perf_counter() - t0:.0f} s; scoring them ...", flush=True)
     sets = study.evaluation_sets(profile, progress=progress)
     runs, frames = which.score(paths, sets, progress=progress)
-    folder = which.write_tables(out, runs, frames, study.score_baselines(profile, sets))
+    folder = which.write_tables(out, runs, frames, study.score_baselines(profile, sets), study.provenance_rows(paths))
     print(f"[reproduce] {title}'s tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
     return folder
 

@@ -33,7 +33,18 @@ import numpy as np
 from scipy import optimize, stats
 from tqdm.auto import tqdm
 
-from geodepth_lite import ablation, config, evaluate, metrics, run_cache, run_scores, synth, utils
+from geodepth_lite import (
+    ablation,
+    checkpoint,
+    config,
+    evaluate,
+    metrics,
+    provenance,
+    run_cache,
+    run_scores,
+    synth,
+    utils,
+)
 from geodepth_lite import tables as tbl
 
 SEEDS = tuple(range(8))          # the plan's paired seeds
@@ -145,13 +156,34 @@ def score_baselines(profile: str, sets: dict[str, Any]) -> list[dict]:
             for name, per in ablation.baseline_scores(profile, sets).items() for b, v in per.items()]
 
 
-def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict]) -> Path:
-    """Write runs.csv, frames.csv.gz and baselines.csv into ``out`` (each file whole or not at all)."""
+def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict],
+                 sessions: list[dict] | None = None) -> Path:
+    """Write runs.csv, frames.csv.gz and baselines.csv into ``out`` (each file whole or not at all), and
+    provenance.csv from ``sessions`` (:func:`provenance_rows`) when given."""
     out = utils.check_output_dir(out)
     utils.write_bytes_atomic(out / "runs.csv", tbl.csv_bytes(runs))
     utils.write_bytes_atomic(out / "frames.csv.gz", gzip.compress(tbl.csv_bytes(frames), mtime=0))
     utils.write_bytes_atomic(out / "baselines.csv", tbl.csv_bytes(baselines))
+    if sessions is not None:
+        utils.write_bytes_atomic(out / PROVENANCE_CSV, tbl.csv_bytes(sessions))
     return out
+
+
+PROVENANCE_CSV = "provenance.csv"
+
+
+def provenance_rows(checkpoints: dict[tuple[str, int, int], Path]) -> list[dict]:
+    """One row per training session of each run, from its ``log.json``: (depth term, case, seed, the
+    session's number) and the session's record (``provenance.FIELDS``: UTC start and end, commit and
+    clean tree, versions, CPU, threads, device, config hash). A run whose log holds no record (trained
+    before runs recorded one) gets one row with those fields empty: nothing is filled in."""
+    rows = []
+    for (term, case, seed), path in sorted(checkpoints.items()):
+        records = provenance.earlier_sessions(checkpoint.read_log_file(Path(path).parent)) or [{}]
+        for i, rec in enumerate(records):
+            rows.append({"depth_term": term, "case": case, "seed": seed, "session": i,
+                         **{k: "" if rec.get(k) is None else rec[k] for k in provenance.FIELDS}})
+    return rows
 
 
 def _read(path: Path) -> list[dict]:

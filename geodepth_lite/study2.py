@@ -85,9 +85,10 @@ def score(checkpoints: dict[tuple[str, int, int], Path], sets: dict[str, Any], *
     return ([{"arm": arm_of(r["case"]), **r} for r in runs], [{"arm": arm_of(f["case"]), **f} for f in frames])
 
 
-def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict]) -> Path:
-    """Write runs.csv, frames.csv.gz and baselines.csv into ``out`` (``study.write_tables``)."""
-    return study.write_tables(out, runs, frames, baselines)
+def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict],
+                 sessions: list[dict] | None = None) -> Path:
+    """Write runs.csv, frames.csv.gz, baselines.csv and provenance.csv into ``out`` (``study.write_tables``)."""
+    return study.write_tables(out, runs, frames, baselines, sessions)
 
 
 def read_tables(folder: str | Path | None = None, frames: bool = False) -> dict:

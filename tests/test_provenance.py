@@ -56,3 +56,38 @@ def test_the_record_check_can_fail(smoke_root):
     other = _cfg(smoke_root, epochs=2)  # another configuration's hash
     assert "is not the run's" in provenance.problems(good, other)[0]
     assert provenance.problems({**good, "epochs_done": 0}, cfg) == ["no epoch recorded"]
+
+
+def test_study_tables_carry_each_run_s_sessions_and_invent_none(tmp_path):
+    """provenance.csv beside a study's tables: one row per session of each run, read from its log; a run
+    whose log has no record gets empty fields, not made-up ones."""
+    import csv
+    import json as _json
+
+    from geodepth_lite import study
+
+    def run(name, sessions):
+        folder = tmp_path / name
+        folder.mkdir()
+        log = {"epochs": []} if sessions is None else {"epochs": [], "provenance": sessions}
+        (folder / "log.json").write_text(_json.dumps(log))
+        return folder / "checkpoint.pt"
+
+    first = {k: f"{k}-1" for k in provenance.FIELDS}
+    second = {**first, "start_utc": "2026-11-27T10:00:00Z", "git_commit": "abc", "git_clean": False}
+    paths = {("silog", 1, 0): run("a", [first, second]), ("silog", 4, 1): run("b", None)}
+    rows = study.provenance_rows(paths)
+    assert [(r["case"], r["seed"], r["session"]) for r in rows] == [(1, 0, 0), (1, 0, 1), (4, 1, 0)]
+    assert rows[1]["git_commit"] == "abc" and rows[1]["git_clean"] is False and rows[0]["git_commit"] == "git_commit-1"
+    assert all(rows[2][k] == "" for k in provenance.FIELDS)  # trained before runs kept a record
+    out = study.write_tables(tmp_path / "tables", [{"x": 1}], [{"y": 2}], [{"z": 3}], rows)
+    back = list(csv.DictReader(open(out / study.PROVENANCE_CSV)))
+    assert [r["start_utc"] for r in back] == ["start_utc-1", "2026-11-27T10:00:00Z", ""]
+    # the check can fail: a reader that keeps only a run's last session gives other rows
+    keep_last = study.provenance.earlier_sessions
+    try:
+        study.provenance.earlier_sessions = lambda log: keep_last(log)[-1:]
+        assert [(r["case"], r["seed"], r["session"]) for r in study.provenance_rows(paths)] != [
+            (1, 0, 0), (1, 0, 1), (4, 1, 0)]
+    finally:
+        study.provenance.earlier_sessions = keep_last
