@@ -3,7 +3,7 @@ code of this checkout, scored on the study's three sets, and compared with the c
 (``notebooks/study/runs.csv``) metric by metric; then the second study's six comparisons
 (``study2.family``) with those seeds' Case 1 taken from the fresh runs instead of the committed ones.
 
-    python benchmarks/concurrent_control.py --out benchmarks/concurrent_control.json
+    python benchmarks/concurrent_control.py --out notebooks/study2/concurrent_control.json
 
 Finished runs in ``$GEODEPTH_LITE_HOME`` are reused (``run_cache``), so a second call only scores.
 The record keeps each run's provenance (its log's sessions: UTC start and end, commit, clean tree,

@@ -16,6 +16,7 @@ bootstrap over seeds and scenes.
 from __future__ import annotations
 
 import functools
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -340,3 +341,43 @@ def exploratory_vs_first(tables1: dict, tables2: dict, case: int = 4, metric: st
     mean, low, high = ablation.t_interval(d, level)
     return {"seeds": seeds, "values": d.tolist(), "mean": mean, "p": study.paired_t_p(d), "low": low, "high": high,
             "level": level}
+
+
+CONTROL_JSON = "concurrent_control.json"  # the concurrent control's record (benchmarks/concurrent_control.py)
+MAX_CONTROL_BYTES = 2**20
+
+
+def read_control(folder: str | Path | None = None) -> dict:
+    """The concurrent control's record beside the second study's tables (default: the committed
+    ``notebooks/study2/``): read only up to :data:`MAX_CONTROL_BYTES`, plain JSON with its rows and
+    the six comparisons, else a ValueError naming the file."""
+    path = (Path(folder) if folder else committed_dir()) / CONTROL_JSON
+    if path.stat().st_size > MAX_CONTROL_BYTES:
+        raise ValueError(f"{path}: larger than {MAX_CONTROL_BYTES} bytes, not a concurrent-control record")
+    try:
+        rec = json.loads(path.read_bytes())
+        ok = (isinstance(rec, dict) and isinstance(rec.get("rows"), list) and isinstance(rec.get("seeds"), list)
+              and all(isinstance(rec.get("six_comparisons", {}).get(k), list) for k in ("committed", "fresh_case1")))
+    except (ValueError, RecursionError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{path}: not a concurrent-control record (JSON with rows, seeds and six_comparisons)")
+    return rec
+
+
+def control_lines(rec: dict) -> list[str]:
+    """The record in words: per seed, the fresh run against the committed one on each set (percent,
+    Abs Rel and RMSE); then each of the six comparisons with the committed Case 1 and with the fresh."""
+    by = {(r["seed"], r["set"]): r for r in rec["rows"]}
+    sets = list(dict.fromkeys(r["set"] for r in rec["rows"]))
+    out = []
+    for seed in rec["seeds"]:
+        parts = [f"{s}: " + ("identical" if by[(seed, s)]["identical"] else
+                             ", ".join(f"{m} {by[(seed, s)]['rel_diff_pct'][m]:+.2f}%" for m in ("abs_rel", "rmse")))
+                 for s in sets]
+        out.append(f"seed {seed}: " + "; ".join(parts))
+    metrics = [m for _ in TESTS for m in ablation.PAIRED_METRICS[::-1]]  # family()'s order: RMSE, then Abs Rel
+    for a, b, metric in zip(rec["six_comparisons"]["committed"], rec["six_comparisons"]["fresh_case1"], metrics):
+        out.append(f"{a['label']}, {metric}: {a['mean']:+.2f} [{a['low']:+.2f}, {a['high']:+.2f}] -> with the "
+                   f"fresh Case 1 {b['mean']:+.2f} [{b['low']:+.2f}, {b['high']:+.2f}]; {b['verdict']}")
+    return out

@@ -1,12 +1,14 @@
-"""The concurrent control's record (benchmarks/concurrent_control.json) and what
+"""The concurrent control's record (notebooks/study2/concurrent_control.json) and what
 docs/training_and_evaluation.md states from it; its script's comparison on tables made here."""
 
 import importlib.util
 import json
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
-RECORD = ROOT / "benchmarks" / "concurrent_control.json"
+RECORD = ROOT / "notebooks" / "study2" / "concurrent_control.json"
 SETS = ("confirmation set", "held-out T x L", "close-ups")
 
 
@@ -70,3 +72,22 @@ def test_compare_and_substitute_on_tables_made_here():
     case1 = [r for r in sub["runs"] if r["case"] == 1]
     assert len(sub["runs"]) == 2 and len(case1) == 1 and case1[0]["rmse"] == 0.55  # replaced, not added
     assert committed["runs"][0]["rmse"] == 0.5  # the committed tables are left as they were
+
+
+def test_the_record_is_read_as_data(tmp_path):
+    from geodepth_lite import study2
+
+    rec = study2.read_control()
+    lines = study2.control_lines(rec)
+    assert lines[3] == "seed 3: confirmation set: identical; held-out T x L: identical; close-ups: identical"
+    assert lines[4].startswith("A2: Case 2 at lambda2 = 1 vs Case 1, rmse: +0.78 [-1.33, +2.88]")
+    assert len(lines) == len(rec["seeds"]) + 6
+    (tmp_path / study2.CONTROL_JSON).write_text('{"rows": [], "seeds": [0]}')  # no comparisons
+    with pytest.raises(ValueError, match="not a concurrent-control record"):
+        study2.read_control(tmp_path)
+    (tmp_path / study2.CONTROL_JSON).write_text("[" * 100_000)  # nested past the parser's depth
+    with pytest.raises(ValueError, match=study2.CONTROL_JSON):
+        study2.read_control(tmp_path)
+    (tmp_path / study2.CONTROL_JSON).write_bytes(b" " * (study2.MAX_CONTROL_BYTES + 1))
+    with pytest.raises(ValueError, match="larger than"):
+        study2.read_control(tmp_path)
