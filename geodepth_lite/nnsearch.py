@@ -48,7 +48,7 @@ LEVELS = (1024, 128, 16, 4)  # points per block at each level (each divides the 
 # groups; None: 2**18 for CPU tensors (working sets that stay in the caches: about 3x faster than 2**24
 # on 320x320 maps, 1.2x faster than 2**19), 2**24 on a GPU
 PAIR_BUDGET: int | None = None
-_BITS = 10  # bits per axis of the Morton code (30 bits in all)
+MORTON_BITS = 10  # bits per axis of the Morton code (30 bits in all)
 # The pruning bounds are computed in float32 when points and queries are float32 or narrower (then
 # every coordinate is exact in float32), else in float64; the final distances always in float64. A
 # bound is a sum of three squared differences of exact inputs: its relative rounding error is below
@@ -59,7 +59,7 @@ _UP, _DOWN, _ABS = 1.0 + 2.0**-16, 1.0 - 2.0**-16, 1e-30
 _WIDE = _UP / _DOWN * (1.0 + 2.0**-20)  # an upper bound widened for a comparison with an unnarrowed lower bound
 
 
-def _spread(v: torch.Tensor) -> torch.Tensor:
+def spread_bits(v: torch.Tensor) -> torch.Tensor:
     """Spread the low 10 bits of v (int64) so that two zero bits separate each (Morton interleave)."""
     v = v & 0x3FF
     v = (v | (v << 16)) & 0x030000FF
@@ -67,6 +67,12 @@ def _spread(v: torch.Tensor) -> torch.Tensor:
     v = (v | (v << 4)) & 0x030C30C3
     v = (v | (v << 2)) & 0x09249249
     return v
+
+
+def morton_code(q: torch.Tensor) -> torch.Tensor:
+    """The Morton code of integer cells q (..., 3, int64, each axis in 0..2**MORTON_BITS - 1): the axes' bits
+    interleaved, x lowest."""
+    return spread_bits(q[..., 0]) | (spread_bits(q[..., 1]) << 1) | (spread_bits(q[..., 2]) << 2)
 
 
 def _morton_order(x: torch.Tensor, img: torch.Tensor, n_img: int) -> torch.Tensor:
@@ -78,8 +84,8 @@ def _morton_order(x: torch.Tensor, img: torch.Tensor, n_img: int) -> torch.Tenso
     lo = lo.scatter_reduce(0, idx3, x, "amin")
     hi = hi.scatter_reduce(0, idx3, x, "amax")
     span = (hi - lo).clamp_min(1e-300)
-    q = ((x - lo[img]) / span[img] * (2**_BITS - 1)).round().long().clamp(0, 2**_BITS - 1)  # (K, 3)
-    code = _spread(q[:, 0]) | (_spread(q[:, 1]) << 1) | (_spread(q[:, 2]) << 2)
+    q = ((x - lo[img]) / span[img] * (2**MORTON_BITS - 1)).round().long().clamp(0, 2**MORTON_BITS - 1)  # (K, 3)
+    code = morton_code(q)
     return torch.argsort(img * (1 << 31) + code, stable=True)
 
 

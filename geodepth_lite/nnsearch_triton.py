@@ -35,6 +35,8 @@ import warnings
 
 import torch
 
+from geodepth_lite import nnsearch
+
 try:
     import triton
     import triton.language as tl
@@ -68,7 +70,6 @@ def parse_tile(text: str) -> tuple[int, int, int, int, int]:
 
 
 BQ, BP, CB, NUM_WARPS, MODE = parse_tile(os.environ.get(TILE_ENV, "16,32,32,2"))
-_BITS = 10  # bits per axis of the Morton code
 _INVALID = 1 << 31  # sort key of an invalid point: after every Morton code (30 bits)
 
 
@@ -108,16 +109,6 @@ def _self_check(dev: torch.device) -> bool:
     return False
 
 
-def _spread(v: torch.Tensor) -> torch.Tensor:
-    """The low 10 bits of v (int64) with two zero bits between each (a Morton interleave)."""
-    v = v & 0x3FF
-    v = (v | (v << 16)) & 0x030000FF
-    v = (v | (v << 8)) & 0x0300F00F
-    v = (v | (v << 4)) & 0x030C30C3
-    v = (v | (v << 2)) & 0x09249249
-    return v
-
-
 def morton_order(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """B x N permutation sorting each image's rows of x (B x N x 3, float64) by the Morton code of
     their place in the box of the image's valid rows; invalid rows last, ties in row order."""
@@ -126,9 +117,9 @@ def morton_order(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     lo = torch.where(v, x, inf).amin(1, keepdim=True)  # (B, 1, 3)
     hi = torch.where(v, x, -inf).amax(1, keepdim=True)
     span = (hi - lo).clamp_min(1e-300)
-    cell = ((torch.where(v, x, lo) - lo) / span * (2**_BITS - 1)).nan_to_num(0.0)
-    q = cell.round().clamp(0, 2**_BITS - 1).long()  # (B, N, 3)
-    code = _spread(q[..., 0]) | (_spread(q[..., 1]) << 1) | (_spread(q[..., 2]) << 2)
+    cell = ((torch.where(v, x, lo) - lo) / span * (2**nnsearch.MORTON_BITS - 1)).nan_to_num(0.0)
+    q = cell.round().clamp(0, 2**nnsearch.MORTON_BITS - 1).long()  # (B, N, 3)
+    code = nnsearch.morton_code(q)
     key = torch.where(valid, code, torch.full_like(code, _INVALID))
     return torch.sort(key, dim=1, stable=True).indices  # (B, N)
 

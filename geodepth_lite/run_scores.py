@@ -26,7 +26,7 @@ from typing import Any
 
 import torch
 
-from geodepth_lite import checkpoint, evaluate, inference, metrics, model, utils
+from geodepth_lite import checkpoint, evaluate, inference, integrity, metrics, model, utils
 
 SCORES_NAME = "scores.json"
 CHECKSUMS_NAME = "checksums.sha256"  # a synthetic dataset's list of its files' SHA-256 (synth.py)
@@ -38,14 +38,6 @@ SCORING_MODULES = (checkpoint, evaluate, inference, metrics, model)  # their sou
 
 class ScoresFileError(ValueError):
     """A scores file that cannot be used: oversized, not JSON, or not the shape :func:`scores` writes."""
-
-
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def code_fingerprint() -> str:
@@ -73,9 +65,9 @@ def set_fingerprint(dataset) -> str | None:
         for path in (Path(root) / "manifest.json", Path(root) / split / "frames.jsonl"):
             if not path.is_file():
                 return None
-            h.update(_sha256_file(path).encode())
+            h.update(integrity.file_sha256(path).encode())
         sums = Path(root) / CHECKSUMS_NAME
-        h.update(_sha256_file(sums).encode() if sums.is_file() else b"none")
+        h.update(integrity.file_sha256(sums).encode() if sums.is_file() else b"none")
     return h.hexdigest()
 
 
@@ -85,7 +77,7 @@ def score_key(path: str | Path, sets: dict[str, Any], frames_of: str | None = No
     prints = {name: set_fingerprint(ds) for name, ds in sets.items()}
     if any(v is None for v in prints.values()):
         return None
-    payload = {"checkpoint": _sha256_file(Path(path)), "sets": prints, "frames_of": frames_of,
+    payload = {"checkpoint": integrity.file_sha256(Path(path)), "sets": prints, "frames_of": frames_of,
                "code": code_fingerprint()}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
