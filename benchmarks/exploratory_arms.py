@@ -1,0 +1,56 @@
+"""The exploratory arms of docs/exploratory_plan.md.
+
+    python benchmarks/exploratory_arms.py match --out notebooks/study2/exploratory
+    python benchmarks/exploratory_arms.py run --out notebooks/study2/exploratory
+
+``match`` measures the plan's ratio of the box-grid SDF term to the frustum term on the teach
+profile's silog Case 1 seed 0 predictions over the validation split, and writes ``match.json`` (the
+ratio, E1's lambda3 by the plan's rule, the UTC time and the commit). ``run`` reads that record,
+trains (or reuses) the 16 runs two side by side, scores them on the studies' sets and writes
+``runs.csv``, ``frames.csv.gz``, ``baselines.csv`` and ``provenance.csv`` beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from geodepth_lite import exploratory, provenance, study, utils
+
+
+def match(out: Path) -> int:
+    start, (commit, clean) = provenance.utc_now(), provenance.code_version()
+    m = exploratory.measure_ratio()
+    rec = {"what": "box-grid SDF term / frustum SDF term (val_sdf, view sign, sdf_grid 8) on the teach "
+                   "profile's silog Case 1 seed 0 predictions over the validation split",
+           **m, "lambda3": exploratory.matched_lambda3(m["ratio"]), "start_utc": start,
+           "end_utc": provenance.utc_now(), "git_commit": commit, "git_clean": clean}
+    out.mkdir(parents=True, exist_ok=True)
+    utils.write_json_atomic(out / exploratory.MATCH_JSON, rec)
+    print(f"box grid {m['bbox']:.5f}, frustum {m['frustum']:.5f}, ratio {m['ratio']:.4f} -> "
+          f"E1 lambda3 = {rec['lambda3']:g}; wrote {out / exploratory.MATCH_JSON}")
+    return 0
+
+
+def run(out: Path, workers: int) -> int:
+    lambda3 = exploratory.read_match(out)["lambda3"]
+    paths = exploratory.train_arms(lambda3, workers=workers, progress=True)
+    sets = study.evaluation_sets("teach")
+    runs, frames = exploratory.score_arms(paths, sets, progress=True)
+    sessions = study.provenance_rows({(exploratory.ARM_CELLS[a][0], c, s): p for (a, c, s), p in paths.items()})
+    study.write_tables(out, runs, frames, study.score_baselines("teach", sets), sessions)
+    print(f"{len(paths)} runs scored; wrote {out}")
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("step", choices=("match", "run"))
+    ap.add_argument("--out", required=True, type=Path, help="the folder of the arms' record and tables")
+    ap.add_argument("--workers", type=int, default=2, help="runs side by side (default 2)")
+    args = ap.parse_args(argv)
+    return match(args.out) if args.step == "match" else run(args.out, args.workers)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
