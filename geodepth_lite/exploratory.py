@@ -5,7 +5,7 @@ E1 trains Case 3 with the frustum SDF samples at a weight matched to the first s
 arm A's weights (lambda2, lambda3) = (1, 0.01). Seeds 0-7 each, the ``teach`` recipe: 16 runs. Each arm
 is paired by seed with the first study's committed Case 1 of its own depth term.
 
-:func:`comparisons` reports each of the four (arm x RMSE, Abs Rel) on its own: mean paired relative
+:func:`arm_comparisons` reports each of the four (arm x RMSE, Abs Rel) on its own: mean paired relative
 change, paired t-test p and 95% Student-t interval, with no multiplicity correction, and the second
 study's verdict words applied to that interval, marked exploratory. The committed tables are in
 ``notebooks/study2/exploratory/``.
@@ -88,7 +88,7 @@ def read_match(folder: str | Path | None = None) -> dict:
     return rec
 
 
-def arm_settings(arm: str, lambda3: float, profile: str = "teach") -> dict:
+def run_settings(arm: str, lambda3: float, profile: str = "teach") -> dict:
     """The run settings of ``arm`` beyond ``profile``'s (``lambda3``: E1's matched weight)."""
     term, case = ARM_CELLS[arm]
     if arm == "E1":
@@ -99,7 +99,7 @@ def arm_settings(arm: str, lambda3: float, profile: str = "teach") -> dict:
 
 def arm_runs(lambda3: float, seeds=SEEDS, profile: str = "teach") -> list[tuple[str, int, int, dict]]:
     """Every run of the two arms as (arm, case, seed, settings), E1's eight then E2's."""
-    return [(arm, ARM_CELLS[arm][1], int(s), arm_settings(arm, lambda3, profile)) for arm in ARM_CELLS
+    return [(arm, ARM_CELLS[arm][1], int(s), run_settings(arm, lambda3, profile)) for arm in ARM_CELLS
             for s in seeds]
 
 
@@ -132,7 +132,7 @@ def _values(tables: dict, cell, metric: str, set_name: str) -> dict[int, float]:
     return {r["seed"]: r[metric] for r in tables["runs"] if (r["depth_term"], r["case"], r["set"]) == (*cell, set_name)}
 
 
-def comparisons(first: dict, arms: dict, set_name: str = PRIMARY, level: float = LEVEL,
+def arm_comparisons(first: dict, arms: dict, set_name: str = PRIMARY, level: float = LEVEL,
                 max_width: float | None = WIDTH_BOUND) -> list[dict]:
     """Each arm against the first study's Case 1 of its depth term (``first``: ``study.read_tables()``),
     paired by seed, for RMSE then Abs Rel: one dict each with "arm", "depth_term", "case", "metric",
@@ -181,7 +181,7 @@ def beside(first: dict, second: dict, arms: dict, set_name: str = PRIMARY) -> li
 
 
 def lines(comps: list[dict]) -> list[str]:
-    """:func:`comparisons` in words, each marked exploratory."""
+    """:func:`arm_comparisons` in words, each marked exploratory."""
     return [f"exploratory, {PRIMARY}, {tbl.METRIC_LABELS[t['metric']]}: {t['label']}: {t['mean']:+.2f}% "
             f"[{t['low']:+.2f}, {t['high']:+.2f}] ({100 * t['level']:.0f}%, p = {t['p']:.3f}; paper {t['paper']:+.1f}%)"
             f" -> {t['verdict']}" for t in comps]
