@@ -1034,6 +1034,21 @@ def test_each_rule_flags_its_planted_answer_and_not_the_near_miss(rule):
     assert review.review_cell(near_miss, **context) == [], near_miss
 
 
+def test_the_visible_check_of_05_3_names_what_differs_but_never_the_expected_verdicts():
+    """A failed visible check says which verdicts differ and what the student wrote, not what the check
+    wanted: there is nothing to paste from its message."""
+    from geodepth_lite import ablation
+
+    namespace = E.new_namespace()
+    E.run_cell(answer_with(EXERCISES["05-3"].answer, ("verdicts = {}",)), namespace)
+    want = {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(namespace["toy_result"])}
+    wrong = "verdicts = {k: 'opposite' for k in " + repr(sorted(want)) + "}"
+    exc = outcome(answer_with(EXERCISES["05-3"].answer, (wrong,)), E.visible_check(EXERCISES["05-3"].check))
+    assert isinstance(exc, AssertionError) and "rmse, Case 3 (yours: 'opposite')" in str(exc)
+    leaked = [w for w in set(want.values()) if w != "opposite" and w in str(exc)]
+    assert not leaked, f"the message prints the expected verdicts {leaked}"
+
+
 def test_the_literal_rule_spares_a_prediction_the_solution_writes_out_too():
     """01.1 asks to predict field names: its solution is a literal, and so may the student's answer be;
     05.3 asks to compute the verdicts: a literal there is what a failed check printed."""
