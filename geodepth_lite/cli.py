@@ -50,11 +50,7 @@ DEBUG_ENV = "GEODEPTH_DEBUG"  # set to 1 for full tracebacks, as --debug does
 # a ValueError raised there (its innermost frame) still reads as the user's mistake, exit 2, until
 # their checks raise UserError; then the module leaves this set. A ValueError raised anywhere else
 # is a bug (exit 1).
-VALUE_ERROR_MODULES = frozenset({
-    "geodepth_lite.gpu_check", "geodepth_lite.losses", "geodepth_lite.nnsearch", "geodepth_lite.nnsearch_triton",
-    "geodepth_lite.reproduce", "geodepth_lite.sdf", "geodepth_lite.study", "geodepth_lite.train",
-    "geodepth_lite.train_many",
-})
+VALUE_ERROR_MODULES = frozenset({"geodepth_lite.reproduce"})
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:

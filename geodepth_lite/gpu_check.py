@@ -72,6 +72,7 @@ from geodepth_lite import (
     train_many,
     utils,
 )
+from geodepth_lite.errors import UserError
 from geodepth_lite.model import DepthNet
 
 MARKER = ".gpu-check"
@@ -418,10 +419,10 @@ def _step(report: dict, key: str, fn, save) -> dict:
 def run_gpu_check(args: argparse.Namespace) -> int:
     for name in ("epochs", "frames", "repeats", "step_timeout", "full_timeout", "many_timeout", "many_frames"):
         if getattr(args, name) < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     dev = utils.parse_device(args.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("gpu-check --device cuda: no CUDA device is available (a dry run: --device cpu --tiny)")
+        raise UserError("gpu-check --device cuda: no CUDA device is available (a dry run: --device cpu --tiny)")
     out = Path(args.out)
     _claim_out(out)
     with utils.FolderLock(out, "gpu-check folder"):

@@ -28,6 +28,8 @@ from typing import Callable
 
 import torch
 
+from geodepth_lite.errors import UserError
+
 from .sdf import (  # the SDF machinery; valid_mask and check_depths are shared with it
     DEFAULT_SDF_GRID,
     GT_FIELD_CACHE,
@@ -75,7 +77,7 @@ def border_weight_map(height: int, width: int, beta: float, like: torch.Tensor |
     Explained with its equation in notebook 04, "What the network minimises" (the border weight w_p).
     """
     if not beta >= 0:
-        raise ValueError(f"border weight must be a non-negative number, got {beta!r}")
+        raise UserError(f"border weight must be a non-negative number, got {beta!r}")
     dtype = like.dtype if like is not None and like.is_floating_point() else torch.float32
     device = like.device if like is not None else None
     ys = (torch.arange(height, device=device, dtype=dtype) + 0.5) / height * 2 - 1
@@ -361,16 +363,16 @@ def group_weights(lambdas) -> dict[str, float]:
     if isinstance(lambdas, dict):
         unknown = sorted(set(lambdas) - set(groups))
         if unknown:
-            raise ValueError(f"unknown loss weight group {', '.join(map(repr, unknown))}: "
+            raise UserError(f"unknown loss weight group {', '.join(map(repr, unknown))}: "
                              f"choose from {', '.join(groups)}")
         weights = {g: float(lambdas.get(g, 0.0)) for g in groups}
     else:
         if len(lambdas) != len(groups):
-            raise ValueError(f"lambdas must be {len(groups)} non-negative weights ({', '.join(groups)}), "
+            raise UserError(f"lambdas must be {len(groups)} non-negative weights ({', '.join(groups)}), "
                              f"got {lambdas!r}")
         weights = {g: float(w) for g, w in zip(groups, lambdas)}
     if any(not w >= 0 for w in weights.values()):
-        raise ValueError(f"loss weights must be non-negative, got {weights!r}")
+        raise UserError(f"loss weights must be non-negative, got {weights!r}")
     return weights
 
 
@@ -393,7 +395,7 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     Explained with its equation in notebook 04, "What the network minimises" (Eq. 11).
     """
     if depth_term not in DEPTH_TERMS:
-        raise ValueError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
+        raise UserError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
     check_sdf_options(sdf_sign, sdf_sampling)
     weights = group_weights(lambdas)
     inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,

@@ -64,6 +64,7 @@ import numpy as np
 import torch
 
 from geodepth_lite import camera, nnsearch, nnsearch_triton
+from geodepth_lite.errors import UserError
 
 DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
 CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
@@ -151,14 +152,14 @@ def resolve_method(method: str, device: torch.device) -> str:
     committed results' search), "triton" (:mod:`geodepth_lite.nnsearch_triton`) for CUDA tensors where
     Triton is installed, and "device" (:mod:`geodepth_lite.nnsearch`) for any other device."""
     if method not in NN_METHODS:
-        raise ValueError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
+        raise UserError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
     kind = torch.device(device).type
     if method == "auto":
         if kind == "cpu":
             return "kdtree"
         return "triton" if kind == "cuda" and nnsearch_triton.usable(device) else "device"
     if method == "triton" and not nnsearch_triton.usable(device):
-        raise ValueError(f"the triton search needs Triton and a CUDA device (tensors on {device}): "
+        raise UserError(f"the triton search needs Triton and a CUDA device (tensors on {device}): "
                          "use method 'device' or 'auto'")
     return method
 
@@ -213,7 +214,7 @@ def nearest_indices_many(pairs: list, method: str = "auto") -> list:
 def _grid_shape(grid) -> tuple[int, int, int]:
     g = (grid,) * 3 if isinstance(grid, (int, np.integer)) else tuple(grid)
     if len(g) != 3 or not all(isinstance(r, (int, np.integer)) and r >= 2 for r in g):
-        raise ValueError(f"sdf grid must be an int >= 2 or three of them (r_x, r_y, r_z), got {grid!r}")
+        raise UserError(f"sdf grid must be an int >= 2 or three of them (r_x, r_y, r_z), got {grid!r}")
     return tuple(int(r) for r in g)
 
 
@@ -245,7 +246,7 @@ def frustum_points(K: torch.Tensor, height: int, width: int, z_near: torch.Tenso
     rx, ry, rz = _grid_shape(grid)
     z_near, z_far = torch.as_tensor(z_near), torch.as_tensor(z_far)
     if not bool(0 < z_near <= z_far < float("inf")):
-        raise ValueError(f"frustum depths must satisfy 0 < z_near <= z_far < inf, got {float(z_near)}, {float(z_far)}")
+        raise UserError(f"frustum depths must satisfy 0 < z_near <= z_far < inf, got {float(z_near)}, {float(z_far)}")
     dtype, device = z_near.dtype, z_near.device
     K = torch.as_tensor(np.asarray(K) if not isinstance(K, torch.Tensor) else K).to(dtype=dtype, device=device)
     u = torch.linspace(0.0, width - 1, rx, dtype=dtype, device=device)  # (rx,) pixel columns
@@ -277,7 +278,7 @@ def _samples(g_pts: torch.Tensor, K: torch.Tensor, hw: tuple[int, int], shape, s
 
 def _check_sign_rule(sign_rule: str) -> None:
     if sign_rule not in SIGN_RULES:
-        raise ValueError(f"sign_rule must be one of {', '.join(SIGN_RULES)}, got {sign_rule!r}")
+        raise UserError(f"sign_rule must be one of {', '.join(SIGN_RULES)}, got {sign_rule!r}")
 
 
 def check_sdf_options(sign_rule: str = "view", sampling: str = "bbox") -> None:
@@ -285,7 +286,7 @@ def check_sdf_options(sign_rule: str = "view", sampling: str = "bbox") -> None:
     ``sampling`` in :data:`SDF_SAMPLINGS`."""
     _check_sign_rule(sign_rule)
     if sampling not in SDF_SAMPLINGS:
-        raise ValueError(f"sdf sampling must be one of {', '.join(SDF_SAMPLINGS)}, got {sampling!r}")
+        raise UserError(f"sdf sampling must be one of {', '.join(SDF_SAMPLINGS)}, got {sampling!r}")
 
 
 @torch.no_grad()

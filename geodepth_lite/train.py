@@ -41,6 +41,7 @@ from geodepth_lite import checkpoint as ckpt_io
 from geodepth_lite import config, distributed, inference, losses, provenance, utils
 from geodepth_lite.augment import augment_batch
 from geodepth_lite.datasets import MemoryDataset, load_split, resolve_dataset
+from geodepth_lite.errors import UserError
 from geodepth_lite.metrics import METRIC_NAMES, frame_metrics_torch
 from geodepth_lite.model import DepthNet
 
@@ -159,9 +160,9 @@ def _metric_means(per_frame: list[dict]) -> dict:
     used, bad = cat["used"], cat["bad"]
     if bool(bad.any()):
         i = int(bad.nonzero()[0, 0])
-        raise ValueError(f"pred frame {i} cannot be scored: a non-finite or non-positive depth on valid pixels")
+        raise UserError(f"pred frame {i} cannot be scored: a non-finite or non-positive depth on valid pixels")
     if not bool(used.any()):
-        raise ValueError("no valid ground-truth pixel in any frame")
+        raise UserError("no valid ground-truth pixel in any frame")
     means = torch.stack([cat[k][used].mean() for k in METRIC_NAMES]).tolist()
     return {f"val_{k}": v for k, v in zip(METRIC_NAMES, means)}
 
@@ -261,7 +262,7 @@ class Trainer:
             saved = config.validate_config(state["cfg"])  # keys added since it was saved: at their defaults
             if config.config_identity(saved) != config.config_identity(cfg):
                 diff = [k for k in config.IDENTITY_KEYS if saved.get(k) != cfg.get(k)]
-                raise ValueError(f"cannot resume {self.ckpt_path}: its configuration differs in {', '.join(diff)}")
+                raise UserError(f"cannot resume {self.ckpt_path}: its configuration differs in {', '.join(diff)}")
             if state["epoch"] >= cfg["epochs"]:
                 return self.ckpt_path
         # 2. data (rank 0 builds a missing dataset; the others wait for it)
@@ -307,7 +308,7 @@ class Trainer:
             self.scaler.load_state_dict(state["scaler"])
             ckpt_io.set_rng_state(state["rng"], self.loader_gen)
         except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-            raise ValueError(f"cannot resume {self.ckpt_path}: its optimizer, schedule or random state "
+            raise UserError(f"cannot resume {self.ckpt_path}: its optimizer, schedule or random state "
                              f"does not fit this run ({type(exc).__name__}: {str(exc).splitlines()[0]})") from None
         self.history = list(state["history"])
         if self.is_main:
@@ -328,7 +329,7 @@ class Trainer:
         # frame ids key the cached ground-truth SDF fields where no augmentation changes a frame's ground truth
         self.spaces = {split: frame_space(root, split, cfg["image_size"]) for split in ("train", "val")}
         if len(self.train_ds) == 0:
-            raise ValueError(f"dataset {root} has no training frames")
+            raise UserError(f"dataset {root} has no training frames")
         in_memory = isinstance(self.train_ds, MemoryDataset)
         self.num_workers = utils.workers_fit_temp_dir(
             (0 if in_memory else min(4, os.cpu_count() or 1)) if num_workers is None else num_workers)

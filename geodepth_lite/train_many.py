@@ -37,6 +37,7 @@ import torch
 
 from geodepth_lite import checkpoint, config, integrity, utils
 from geodepth_lite.datasets import resolve_dataset
+from geodepth_lite.errors import UserError
 from geodepth_lite.train_cli import SETTING_FLAGS, add_setting_arguments, setting_overrides
 
 MARKER = ".train-many"
@@ -93,14 +94,14 @@ def check_device(name: str | None) -> torch.device:
     try:
         dev = torch.device(name)
     except (RuntimeError, ValueError):
-        raise ValueError(f"--device {name!r} is not a device: use cpu, cuda or cuda:N") from None
+        raise UserError(f"--device {name!r} is not a device: use cpu, cuda or cuda:N") from None
     if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"--device {name!r}: train-many trains on cpu, cuda or cuda:N")
+        raise UserError(f"--device {name!r}: train-many trains on cpu, cuda or cuda:N")
     if dev.type == "cuda":
         if not torch.cuda.is_available():
-            raise ValueError(f"--device {name}: no CUDA device is available (use --device cpu)")
+            raise UserError(f"--device {name}: no CUDA device is available (use --device cpu)")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+            raise UserError(f"--device {name}: this machine has {torch.cuda.device_count()} CUDA device(s)")
     return dev
 
 
@@ -156,7 +157,7 @@ def plan_runs(args: argparse.Namespace, out: Path, pairs: list[tuple[int, int]])
                                       "ones are skipped), or choose another --out")
             saved = config.validate_config(checkpoint.read_checkpoint(ckpt)["cfg"])
             if config.config_identity(saved) != config.config_identity(cfg):
-                raise ValueError(f"cannot resume {ckpt}: it was trained with other settings than these")
+                raise UserError(f"cannot resume {ckpt}: it was trained with other settings than these")
             resume = ["--resume"]
         argv = ["train", "--profile", args.profile, "--case", str(case), "--seed", str(seed),
                 "--run-dir", str(folder), "--no-progress", "--no-verify", *resume, *base]
@@ -285,14 +286,14 @@ def _say(t0: float, on_line=None):
 
 def _check_numbers(args: argparse.Namespace) -> None:
     if args.concurrency is not None and args.concurrency < 1:
-        raise ValueError(f"--concurrency must be >= 1, got {args.concurrency}")
+        raise UserError(f"--concurrency must be >= 1, got {args.concurrency}")
     if args.time_limit is not None and not args.time_limit > 0:
-        raise ValueError(f"--time-limit must be > 0 seconds, got {args.time_limit}")
+        raise UserError(f"--time-limit must be > 0 seconds, got {args.time_limit}")
     if args.throughput is not None:
         if min(args.throughput) < 1:
-            raise ValueError(f"--throughput: each K must be >= 1, got {args.throughput}")
+            raise UserError(f"--throughput: each K must be >= 1, got {args.throughput}")
         if args.resume:
-            raise ValueError("--throughput measures fresh runs: it does not take --resume")
+            raise UserError("--throughput measures fresh runs: it does not take --resume")
 
 
 def run_train_many(args: argparse.Namespace, on_line=None) -> int:

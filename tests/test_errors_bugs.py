@@ -4,8 +4,9 @@ the user's (``UserError``) or a file the system refused (``OSError``)."""
 
 import numpy as np
 import pytest
+import torch
 
-from geodepth_lite import cli, losses, metrics, predict
+from geodepth_lite import cli, losses, metrics, predict, sdf
 from geodepth_lite.errors import UserError
 
 
@@ -67,11 +68,25 @@ def test_a_user_mistake_prints_its_one_line_and_exits_2(tmp_path, capsys):
 
 def test_a_value_error_of_a_module_not_yet_converted_reads_as_the_users():
     """``VALUE_ERROR_MODULES`` keeps the former reading for the modules whose checks still raise a
-    plain ValueError (``losses`` among them); a plain ValueError raised elsewhere is a bug."""
-    assert "geodepth_lite.losses" in cli.VALUE_ERROR_MODULES
-    with pytest.raises(ValueError, match="border weight") as pending:
-        losses.border_weight_map(8, 8, -1.0)
-    assert cli.is_user_error(pending.value)
+    plain ValueError; a plain ValueError raised elsewhere is a bug."""
+    assert cli.VALUE_ERROR_MODULES == {"geodepth_lite.reproduce"}
     with pytest.raises(ValueError, match="same shape") as elsewhere:
         metrics.compute_depth_metrics(np.ones((1, 4, 4)), np.ones((1, 4, 5)))
     assert not cli.is_user_error(elsewhere.value)
+
+
+@pytest.mark.parametrize("call, words", [
+    (lambda: losses.border_weight_map(8, 8, -1.0), "border weight"),
+    (lambda: losses.group_weights([1.0, -1.0, 0.0]), "non-negative"),
+    (lambda: sdf.resolve_method("bogus", torch.device("cpu")), "unknown nearest-neighbour method"),
+    (lambda: sdf.check_sdf_options("view", "sphere"), "sdf sampling"),
+])
+def test_the_settings_a_user_gives_raise_user_errors(call, words):
+    """Settings a configuration or a flag carries (loss weights, the SDF's options) are the user's to fix:
+    UserError, one line, exit 2; a shape handed to the SDF from inside the package stays a bug."""
+    with pytest.raises(UserError, match=words) as exc:
+        call()
+    assert cli.is_user_error(exc.value)
+    with pytest.raises(ValueError, match="B x 1 x H x W") as internal:
+        sdf.sdf_fields_batched(torch.ones(2, 2), torch.ones(2, 2), torch.eye(3), 4)
+    assert not isinstance(internal.value, UserError) and not cli.is_user_error(internal.value)
