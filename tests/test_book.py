@@ -312,7 +312,7 @@ def test_a_rebuild_keeps_the_users_files_and_removes_only_its_own(tmp_path, monk
     # a page of the book's that the user changed is theirs now: refused with one line, nothing changed
     (out / "lesson.html").write_text("my notes on the lesson")
     before = _tree(out)
-    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    monkeypatch.setattr(book, "build", lambda out, **kw: build(out))
     assert cli.main(["book", "--out", str(out)]) == 2
     one_line_error(capsys, str(out / "lesson.html"), "did not write it")
     assert _tree(out) == before
@@ -421,7 +421,7 @@ def test_a_full_disk_names_the_file_and_keeps_the_old_site(tmp_path, monkeypatch
         return real_write(self, data)
 
     monkeypatch.setattr(Path, "write_bytes", full)
-    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    monkeypatch.setattr(book, "build", lambda out, **kw: build(out))
     assert cli.main(["book", "--out", str(out)]) == 2
     line = one_line_error(capsys, "no space left on device", "lesson.html")
     assert re.search(r"cannot write \S*/\.geodepth-book-new-\d+/lesson\.html: no space left on device$", line)
