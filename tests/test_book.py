@@ -848,3 +848,245 @@ def test_planted_html_in_outputs_cannot_run_script(planted_site):
     assert seen["ran"] == [] and seen["dialogs"] == [] and seen["global"] is None, seen
     assert seen["frames"] == [""]  # the output with a script: in an iframe sandboxed of every permission
     assert "planted table" in seen["text"] and "planted link" in seen["text"]  # the harmless part is shown
+
+
+# --------------------------------------------------------------------------- printed tables, pieces for the reader
+
+def _matrix(table_html: str) -> list[list[str]]:
+    """The cell texts of an HTML table, row by row (read with the standard library's parser)."""
+    from html.parser import HTMLParser
+
+    rows: list[list[str]] = []
+
+    class Cells(HTMLParser):
+        cell = None
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "tr":
+                rows.append([])
+            elif tag in ("td", "th"):
+                self.cell = []
+
+        def handle_endtag(self, tag):
+            if tag in ("td", "th"):
+                rows[-1].append("".join(self.cell))
+                self.cell = None
+
+        def handle_data(self, data):
+            if self.cell is not None:
+                self.cell.append(data)
+
+    Cells(convert_charrefs=True).feed(table_html)
+    return rows
+
+
+PRINTED = ("| case | lambda2 | note |\n|:---|---:|:-:|\n| **teach** | 0.003 | `predict` a \\| b |\n"
+           "| 2 | 1 | <script>x</script> |")
+PRINTED_CELLS = [["case", "lambda2", "note"], ["teach", "0.003", "predict a | b"], ["2", "1", "<script>x</script>"]]
+
+
+def test_a_printed_pipe_table_becomes_a_table():
+    table = book.book_reader.pipe_table(PRINTED.split("\n"))
+    assert _matrix(table) == PRINTED_CELLS
+    assert "<strong>teach</strong>" in table and "<code>predict</code>" in table
+    assert "<script>" not in table and "&lt;script&gt;" in table  # the cell text is escaped
+    assert 'style="text-align:left"' in table and 'style="text-align:right"' in table
+    assert 'style="text-align:center"' in table
+    blocks = book.book_reader.text_blocks("12 runs ready\n" + PRINTED + "\n6 of 6 within\n")
+    assert [k for k, _ in blocks] == ["text", "table", "text"] and blocks[0][1] == "12 runs ready"
+    out = book.book_reader.printed_html("12 runs ready\n" + PRINTED + "\n", "stdout")
+    assert out.startswith('<pre class="stdout">12 runs ready</pre><div class="printed-table"><table')
+
+
+def test_malformed_pipe_tables_stay_text():
+    ragged = "| a | b |\n|---|---|\n| 1 | 2 | 3 |"  # a body row with a cell more than the header
+    no_separator = "| a | b |\n| 1 | 2 |\n| 3 | 4 |"
+    short_separator = "| a | b | c |\n|---|---|\n| 1 | 2 | 3 |"
+    not_dashes = "| a | b |\n|-x-|---|\n| 1 | 2 |"
+    header_only = "| a | b |"
+    for text in (ragged, no_separator, short_separator, not_dashes, header_only, "a | b\n---|---\n1 | 2"):
+        assert book.book_reader.pipe_table(text.split("\n")) is None, text
+        pre = f'<pre class="stdout">{html.escape(text, quote=False)}</pre>'
+        assert book.book_reader.printed_html(text, "stdout") == pre
+    # a ragged table in a printed block leaves the well-formed one beside it a table (notebook 05 prints both)
+    mixed = book.book_reader.text_blocks(ragged + "\nbetween\n" + PRINTED)
+    assert [k for k, _ in mixed] == ["text", "table"] and mixed[0][1] == ragged + "\nbetween"
+
+
+def test_the_table_check_fails_on_swapped_cells(monkeypatch):
+    """The planted defect: a converter that swaps a row's first two cells; the check above sees it."""
+    real = book.book_reader.pipe_cells
+    monkeypatch.setattr(book.book_reader, "pipe_cells", lambda line: (lambda c: [c[1], c[0], *c[2:]])(real(line)))
+    table = book.book_reader.pipe_table(PRINTED.split("\n"))
+    assert table is not None and _matrix(table) != PRINTED_CELLS
+
+
+def test_page_sections_for_the_search_index():
+    body = ('<h1 id="t">Title</h1><p>Intro <span class="katex"><span>x2</span></span> text</p><pre>code_only</pre>'
+            '<h2 id="a">Part <code>A</code></h2><p>alpha &amp; beta</p><details class="solution"><summary>S'
+            '</summary><pre>secret</pre></details><nav class="page-toc"><a href="#a">Part A</a></nav>'
+            '<img src="x.png"><h3>no id</h3><p>gamma</p>')
+    assert book.book_reader.page_sections(body) == [["t", "Title", "Intro text"],
+                                                    ["a", "Part A", "alpha & beta no id gamma"]]
+    js = book.book_reader.search_index_js([{"t": "T", "u": "p.html", "s": [["a", "h", "</script> x"]]}])
+    assert book.book_reader.read_search_index(js)["pages"][0]["s"][0][2] == "</script> x"
+
+
+def test_the_landing_page_shows_the_readmes_key_figure():
+    readme = book.README.read_text(encoding="utf-8")
+    name, section, caption = book.book_reader.key_figure_ref(readme)
+    assert name == "05_ablation.ipynb" and section and caption.startswith("[notebook 05](")
+    nb = json.loads((exercises.NOTEBOOK_DIR / name).read_text(encoding="utf-8"))
+    png = book.book_reader.section_figure(nb, section)
+    assert png is not None and png.startswith(b"\x89PNG\r\n\x1a\n")
+    assert book.book_reader.section_figure(nb, section + " (no such section)") is None
+    purpose = book.book_reader.readme_purpose(readme)
+    assert purpose and "workbook" in purpose[0] and not any("build the book" in p.lower() for p in purpose)
+    md = book.book_reader.landing_markdown(purpose, [(name, "05 · The ablation")], ("key-figure.png", caption), False)
+    assert "![The key figure](key-figure.png)" in md and "[05 · The ablation](notebooks/05_ablation.ipynb)" in md
+    assert "jupyter lab notebooks/" in md
+
+
+def _exercise_nb(answer: str, check: str, cell_ids=("a", "b", "c")) -> dict:
+    meta = {"answer": {"nbgrader": {"grade_id": "ex01-1-answer", "solution": True, "grade": False}},
+            "check": {"nbgrader": {"grade_id": "ex01-1-check", "solution": False, "grade": True, "points": 1}}}
+    out = [{"output_type": "stream", "name": "stdout", "text": "printed\n"}]
+    return {"cells": [
+        {"id": cell_ids[0], "cell_type": "code", "metadata": {}, "source": "x = 1\nprint('lesson')",
+         "outputs": [{"output_type": "stream", "name": "stdout", "text": "lesson\n"}], "execution_count": 1},
+        {"id": cell_ids[1], "cell_type": "code", "metadata": meta["answer"], "source": answer, "outputs": out,
+         "execution_count": 2},
+        {"id": cell_ids[2], "cell_type": "code", "metadata": meta["check"], "source": check, "outputs": out,
+         "execution_count": 3}], "metadata": {}, "nbformat": 4, "nbformat_minor": 5}
+
+
+def test_the_student_view_keeps_lesson_outputs_only():
+    lecturer = _exercise_nb("y = None\n### BEGIN SOLUTION\ny = secret_answer(2)\n### END SOLUTION",
+                            "assert y\n### BEGIN HIDDEN TESTS\nassert y == hidden_value(2)\n### END HIDDEN TESTS")
+    released = _exercise_nb("y = None\n# YOUR CODE HERE\nraise NotImplementedError()", "assert y\n")
+    for c in released["cells"]:
+        c["outputs"], c["execution_count"] = [], None
+    view = book.student_view(lecturer, released)
+    assert [len(c["outputs"]) for c in view["cells"]] == [1, 0, 0]  # the lesson's output; no exercise output
+    assert view["cells"][0]["execution_count"] == 1 and view["cells"][1]["source"] == released["cells"][1]["source"]
+    assert exercises.leaks(lecturer, view) == []
+    changed = json.loads(json.dumps(released))
+    changed["cells"][0]["source"] = "x = 2"  # a cell the release changed: its lecturer output is not shown
+    assert book.student_view(lecturer, changed)["cells"][0]["outputs"] == []
+    with pytest.raises(book.BookError, match="does not have the lecturer notebook's cells"):
+        book.student_view(lecturer, _exercise_nb("", "", cell_ids=("a", "c", "b")))
+
+
+# --------------------------------------------------------------------------- the student book holds no solution
+
+PACKAGE_TEXT = "\n".join(p.read_text(encoding="utf-8") for p in sorted(book.PACKAGE_DIR.rglob("*.py")))
+
+
+def secret_lines(nb: dict) -> list[str]:
+    """What a student must not see of a lecturer notebook: the lines of its solutions and hidden tests, and
+    what its exercise cells printed (the solution's results), where at least 16 characters long and shown
+    nowhere else: not in a line of the notebook outside those regions, not in its other outputs, not in
+    the package's source (the student edition ships the package)."""
+    public, secret = set(), []
+    shown = []
+    for c in nb["cells"]:
+        src = "".join(c.get("source", ""))
+        solution, rest = exercises._split_solutions(src)
+        visible = exercises.visible_check(src).splitlines()
+        secret += solution + [ln for ln in rest if ln not in visible and ln.strip() not in exercises.HIDDEN_MARKERS]
+        shown += visible
+        printed = [ln for o in c.get("outputs", []) for ln in "".join(o.get("text", "")).splitlines()]
+        (secret.extend if c.get("metadata", {}).get("nbgrader") else public.update)(ln.strip() for ln in printed)
+    public.update(ln.strip() for ln in shown)
+    text = "\n".join(shown) + PACKAGE_TEXT
+    return sorted({ln.strip() for ln in secret if len(ln.strip()) >= 16 and ln.strip() not in public
+                   and ln.strip() not in text})
+
+
+def site_texts(out: Path) -> dict[str, str]:
+    """Every text file of a built site as a reader gets it: a page's HTML and its text (tags dropped, entities
+    read: highlighted code is one span per token), a notebook's JSON and its cells' sources and printed
+    outputs, the scripts (the search index) as they are."""
+    texts = {}
+    for p in sorted(Path(out).rglob("*")):
+        if not p.is_file() or p.suffix not in (".html", ".ipynb", ".js", ".json", ".css"):
+            continue
+        raw = p.read_text(encoding="utf-8", errors="replace")
+        if p.suffix == ".html":
+            raw += "\n" + html.unescape(re.sub(r"<[^>]+>", "", raw))
+        elif p.suffix == ".ipynb":
+            cells = json.loads(raw).get("cells", [])
+            raw += "\n" + "\n".join("".join(c.get("source", "")) + "\n" + "\n".join(
+                "".join(o.get("text", "")) for o in c.get("outputs", [])) for c in cells)
+        texts[p.relative_to(out).as_posix()] = raw
+    return texts
+
+
+MARKER_LINE = re.compile(r"^\s*### (?:BEGIN|END) (?:SOLUTION|HIDDEN TESTS)\s*$", re.M)
+
+
+def leaked(texts: dict[str, str], secrets: dict[str, list[str]]) -> list[tuple[str, str]]:
+    """(file, what) for each solution marker and secret line found in the site's texts. A marker counts as a
+    line of its own anywhere, and as any text outside the package's source pages (exercises.py names them)."""
+    found = []
+    for rel, text in texts.items():
+        markers = [m.group(0).strip() for m in MARKER_LINE.finditer(text)]
+        if not rel.startswith(book.SOURCE + "/"):
+            markers += [m for m in (*exercises.SOLUTION_MARKERS, *exercises.HIDDEN_MARKERS) if m in text]
+        found += [(rel, m) for m in markers]
+        found += [(rel, line) for lines in secrets.values() for line in lines if line in text]
+    return found
+
+
+@pytest.fixture(scope="module")
+def student_book(tmp_path_factory):
+    """The student edition of the book, built once from the committed lessons (no docs, two source pages)."""
+    try:
+        book.check_node()
+        book.check_jupyter_book()
+    except book.BookError as exc:
+        if os.environ.get(REQUIRE_ENV, "") not in ("", "0"):
+            pytest.fail(f"{REQUIRE_ENV}=1, but the student book cannot be built: {exc}")
+        pytest.skip(f"student book: {exc}")
+    out = tmp_path_factory.mktemp("student") / "site"
+    with pytest.MonkeyPatch.context() as mp:
+        _few_modules(mp)
+        summary = book.build(out, docs=[], readme=None, katex=False, edition="student", log=lambda m: None)
+    secrets = {nb.name: secret_lines(json.loads(nb.read_text(encoding="utf-8"))) for nb in book.lesson_notebooks()}
+    return out, summary, secrets
+
+
+def test_the_student_book_holds_no_solution(student_book):
+    out, summary, secrets = student_book
+    assert summary["edition"] == "student" and summary["figures"] > 0  # the lessons' figures are there
+    assert sum(map(len, secrets.values())) >= 100  # every lecturer notebook's solutions, hidden tests, printouts
+    assert all(secrets[nb.name] for nb in book.lesson_notebooks() if nb.name[:2] in exercises.EXERCISE_NOTEBOOKS)
+    texts = site_texts(out)
+    assert summary["downloads"] and all(rel in texts for rel in summary["downloads"].values())
+    assert leaked(texts, secrets) == []
+    released = json.loads((out / summary["downloads"]["05_ablation.ipynb"]).read_text(encoding="utf-8"))
+    assert "raise NotImplementedError()" in "".join("".join(c["source"]) for c in released["cells"])
+    assert not any(c.get("outputs") for c in released["cells"])  # the student notebook: outputs cleared
+
+
+def test_the_leak_check_finds_a_planted_solution_line(student_book):
+    """The planted defect: one line of a solution written into a lesson page (highlighted, as the book
+    writes code) and into a downloadable notebook, and a marker into the search index."""
+    out, summary, secrets = student_book
+    texts = site_texts(out)
+    line = secrets["05_ablation.ipynb"][0]
+    page = summary["lesson_pages"]["05_ablation.ipynb"]
+    planted = dict(texts)
+    raw = (out / page).read_text(encoding="utf-8")
+    code = "<pre><code>" + "\n".join(book.highlight_lines(line)) + "</code></pre>"
+    planted[page] = raw + "\n" + html.unescape(re.sub(r"<[^>]+>", "", raw.replace("</main>", code + "</main>")))
+    assert leaked(planted, secrets) == [(page, line)]
+    nb_rel = summary["downloads"]["03_losses_explained.ipynb"]
+    nb = json.loads((out / nb_rel).read_text(encoding="utf-8"))
+    nb["cells"][-1]["source"] = "### BEGIN SOLUTION\n" + secrets["03_losses_explained.ipynb"][0]
+    (Path(str(out) + "-planted") / "notebooks").mkdir(parents=True)
+    (Path(str(out) + "-planted") / nb_rel).write_text(json.dumps(nb))
+    found = leaked(site_texts(Path(str(out) + "-planted")), secrets)
+    assert (nb_rel, "### BEGIN SOLUTION") in found and (nb_rel, secrets["03_losses_explained.ipynb"][0]) in found
+    index = "_static/" + book.SEARCH_INDEX
+    assert set(leaked({index: texts[index] + "### END HIDDEN TESTS"}, secrets)) == {(index, "### END HIDDEN TESTS")}
