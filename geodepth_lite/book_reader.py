@@ -229,8 +229,8 @@ BOOK_JS = """(function () {
   }
   function item(href, title, snippet) {
     var li = document.createElement("li");
-    var a = document.createElement("a");
-    a.href = href;
+    var a = document.createElement(href ? "a" : "span");
+    if (href) { a.href = href; }
     a.textContent = title;
     li.appendChild(a);
     if (snippet) {
@@ -258,8 +258,7 @@ BOOK_JS = """(function () {
     });
     hits.sort(function (a, b) { return b.score - a.score || a.order - b.order; });
     if (!hits.length) {
-      list.appendChild(item("#", "Nothing found", ""));
-      list.firstChild.firstChild.removeAttribute("href");
+      list.appendChild(item("", "Nothing found", ""));
       return;
     }
     hits.slice(0, 25).forEach(function (h) {

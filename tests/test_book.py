@@ -1090,3 +1090,183 @@ def test_the_leak_check_finds_a_planted_solution_line(student_book):
     assert (nb_rel, "### BEGIN SOLUTION") in found and (nb_rel, secrets["03_losses_explained.ipynb"][0]) in found
     index = "_static/" + book.SEARCH_INDEX
     assert set(leaked({index: texts[index] + "### END HIDDEN TESTS"}, secrets)) == {(index, "### END HIDDEN TESTS")}
+
+
+# --------------------------------------------------------------------------- the reader's features in a browser
+
+def _search_word(lesson: str) -> str:
+    """A word of the lesson's markdown that no other lesson's markdown holds (its most frequent one of 9+ letters)."""
+    words = {}
+    for nb in book.lesson_notebooks():
+        md = " ".join("".join(c["source"]) for c in json.loads(nb.read_text(encoding="utf-8"))["cells"]
+                      if c["cell_type"] == "markdown")
+        words[nb.name] = re.findall(r"\b[a-z]{9,}\b", md.lower())
+    others = {w for name, ws in words.items() if name != lesson for w in ws}
+    ours = [w for w in words[lesson] if w not in others]
+    return max(sorted(set(ours)), key=ours.count)
+
+
+def _printed_tables(nb: Path) -> list[list[list[str]]]:
+    """The pipe tables a notebook printed, read here on their own: runs of ``|`` lines whose second line is
+    dashes and whose rows all have the header's cell count; cells without their ** and ` marks."""
+    tables = []
+    for c in json.loads(nb.read_text(encoding="utf-8"))["cells"]:
+        for o in c.get("outputs", []):
+            if o.get("name") == "stderr":
+                continue
+            text = "".join(o.get("text", "") or o.get("data", {}).get("text/plain", ""))
+            for run in re.findall(r"(?m)(?:^\|.*\|$\n?)+", text):
+                rows = [[x.strip().replace("**", "").replace("`", "") for x in ln.strip()[1:-1].split("|")]
+                        for ln in run.strip().split("\n")]
+                if (len(rows) >= 2 and all(re.fullmatch(r":?-+:?", x) for x in rows[1])
+                        and all(len(r) == len(rows[0]) for r in rows)):
+                    tables.append([rows[0], *rows[2:]])
+    return tables
+
+
+NARROW = """() => {
+  const side = document.querySelector('nav.sidebar'), button = document.querySelector('.menu-toggle');
+  const title = document.querySelector('.topbar-title'), main = document.querySelector('main');
+  const visible = e => !!e && getComputedStyle(e).display !== 'none' && e.getBoundingClientRect().width > 0;
+  const wide = [...document.querySelectorAll('main pre, main .printed-table, main .math-display')]
+    .filter(e => e.scrollWidth > e.clientWidth + 1);
+  return {sidebar: visible(side), button: visible(button),
+          overflow: document.documentElement.scrollWidth - window.innerWidth,
+          body_overflow: document.body.scrollWidth - window.innerWidth,
+          title_lines: title ? Math.round(title.getBoundingClientRect().height /
+                                          parseFloat(getComputedStyle(title).lineHeight)) : 0,
+          main_width: main.getBoundingClientRect().width, width: window.innerWidth,
+          scrollers: wide.length,
+          cut: wide.filter(e => !['auto', 'scroll'].includes(getComputedStyle(e).overflowX)
+                                 || e.getBoundingClientRect().right > window.innerWidth + 1).length};
+}"""
+
+
+def _narrow_problems(seen: dict) -> list[str]:
+    """What is wrong with a page at 420 px, as NARROW saw it."""
+    problems = []
+    if seen["sidebar"] or not seen["button"]:
+        problems.append(f"the sidebar shows ({seen['sidebar']}) or the menu button does not ({seen['button']})")
+    if seen["overflow"] > 0 or seen["body_overflow"] > 0:
+        problems.append(f"the page is {seen['overflow']} px wider than the screen")
+    if seen["title_lines"] != 1 or seen["main_width"] < 0.9 * seen["width"]:
+        problems.append(f"the title takes {seen['title_lines']} lines, the text {seen['main_width']:.0f} px")
+    if seen["cut"]:
+        problems.append(f"{seen['cut']} long code or output blocks are cut off instead of scrolling")
+    return problems
+
+
+def _table_cells(page, k: int) -> list[list[str]]:
+    return page.evaluate("k => [...document.querySelectorAll('main .printed-table table')[k].rows]"
+                         ".map(r => [...r.cells].map(c => c.innerText.trim()))", k)
+
+
+def _search(page, word: str) -> list[str]:
+    page.fill("#search-input", word)
+    page.wait_for_function("() => document.querySelectorAll('#search-results li').length > 0", timeout=10_000)
+    return page.evaluate("() => [...document.querySelectorAll('#search-results a')].map(a => a.href)")
+
+
+@pytest.fixture(scope="module")
+def reader(served_book):
+    """The built book read as a reader does: searched, its notebooks downloaded, its printed tables read, and
+    every lesson at 420 px wide; each check also run once on a page with a defect planted in the browser."""
+    from playwright.sync_api import sync_playwright
+
+    out, base, summary = served_book
+    lessons = summary["lesson_pages"]
+    seen: dict = {"narrow": {}, "tables": {}, "downloads": {}}
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        word = seen["word"] = _search_word("03_losses_explained.ipynb")
+        page.goto(f"{base}/index.html")
+        seen["hits"] = _search(page, word)
+        target = next((h for h in seen["hits"] if h.split("#")[0].endswith("/" + lessons["03_losses_explained.ipynb"])),
+                      None)
+        if target:
+            page.locator(f'#search-results a[href="{target[len(base) + 1:]}"]').first.click()
+            page.wait_for_load_state("load")
+            seen["landed"] = (page.url.split("#")[0], word in page.locator("main").inner_text().lower())
+        page.route("**/" + book.SEARCH_INDEX, lambda route: route.fulfill(
+            body="window.geodepthSearchIndex = {\"pages\": []};", content_type="text/javascript"))
+        page.goto(f"{base}/index.html")  # planted: an index without the lessons
+        seen["hits_planted"] = _search(page, word)
+        narrow = browser.new_page(viewport={"width": 420, "height": 800})  # each lesson, as on a phone
+        for name, rel in [("", "index.html"), *lessons.items()]:
+            narrow.goto(f"{base}/{rel}")
+            seen["narrow"][rel] = narrow.evaluate(NARROW)
+            n = 0
+            if name:
+                seen["downloads"][name] = narrow.evaluate(
+                    "() => [...document.querySelectorAll('main a[download]')].map(a => a.getAttribute('href'))")
+                n = narrow.locator("main .printed-table table").count()
+                seen["tables"][name] = [_table_cells(narrow, k) for k in range(n)]
+            if name and "moved" not in seen:  # planted: the download link pointing at a file the site lacks
+                narrow.evaluate("() => document.querySelector('main a[download]').setAttribute('href', "
+                                "'notebooks/missing.ipynb')")
+                seen["moved"] = (name, narrow.evaluate(
+                    "() => [...document.querySelectorAll('main a[download]')].map(a => a.getAttribute('href'))"))
+            if n and "swapped" not in seen:  # planted: two cells of the first printed table swapped
+                narrow.evaluate("() => { const r = document.querySelector('main .printed-table table').rows[1];"
+                                " r.insertBefore(r.cells[1], r.cells[0]); }")
+                seen["swapped"] = (name, _table_cells(narrow, 0))
+        narrow.click(".menu-toggle")
+        seen["opened"] = narrow.evaluate(NARROW)
+        narrow.click(".menu-toggle")
+        narrow.add_style_tag(content="nav.sidebar { display: block !important; } main pre { overflow-x: visible "
+                             "!important; max-width: none !important; }")  # planted: the wide-screen layout
+        seen["narrow_planted"] = narrow.evaluate(NARROW)
+        browser.close()
+    return out, summary, seen
+
+
+def test_search_finds_a_word_of_a_lesson_and_opens_its_page(reader):
+    out, summary, seen = reader
+    page = summary["lesson_pages"]["03_losses_explained.ipynb"]
+    assert any(h.split("#")[0].endswith("/" + page) for h in seen["hits"]), (seen["word"], seen["hits"][:5])
+    assert seen["landed"][0].endswith("/" + page) and seen["landed"][1], seen["landed"]
+    index = book.book_reader.read_search_index((out / "_static" / book.SEARCH_INDEX).read_text(encoding="utf-8"))
+    assert {p["u"] for p in index["pages"]} >= set(summary["pages"])  # every page is searched
+    assert seen["hits_planted"] == [], seen["hits_planted"]  # planted: an index without the lesson finds nothing
+
+
+def _download_problems(out: Path, name: str, hrefs: list[str]) -> list[str]:
+    """What is wrong with a lesson's download links: not one link, or its file missing or not the notebook."""
+    if len(hrefs) != 1:
+        return [f"{name}: {len(hrefs)} download links"]
+    target = out / hrefs[0]
+    if not target.is_file() or target.read_bytes() != (exercises.NOTEBOOK_DIR / name).read_bytes():
+        return [f"{name}: {hrefs[0]} is not the executed notebook"]
+    return []
+
+
+def test_each_lesson_links_its_notebook_and_the_file_is_there(reader):
+    out, summary, seen = reader
+    assert set(seen["downloads"]) == set(summary["notebooks"])
+    assert not [p for name, hrefs in seen["downloads"].items() for p in _download_problems(out, name, hrefs)]
+    assert all(hrefs == [f"notebooks/{name}"] for name, hrefs in seen["downloads"].items())
+    assert _download_problems(out, *seen["moved"])  # planted: a link to a file the site does not hold
+
+
+def test_printed_pipe_tables_are_tables(reader):
+    out, summary, seen = reader
+    counts = {}
+    for name in summary["notebooks"]:
+        expected = _printed_tables(exercises.NOTEBOOK_DIR / name)
+        counts[name[:2]] = len(expected)
+        assert seen["tables"][name] == expected, name  # every cell, in order
+    assert counts["04"] == 6 and counts["05"] >= 6 and counts["06"] == 6, counts
+    name, swapped = seen["swapped"]  # planted: the same cells, two of them swapped, are seen as wrong
+    first = seen["tables"][name][0]
+    assert swapped != first and sorted(map(sorted, swapped)) == sorted(map(sorted, first))
+
+
+def test_a_narrow_screen_hides_the_sidebar_behind_a_button(reader):
+    _, _, seen = reader
+    bad = {rel: _narrow_problems(s) for rel, s in seen["narrow"].items() if _narrow_problems(s)}
+    assert not bad
+    assert sum(s["scrollers"] for s in seen["narrow"].values()) > 0  # long code lines do scroll, visibly
+    assert seen["opened"]["sidebar"] and seen["opened"]["overflow"] <= 0  # the button opens it
+    planted = _narrow_problems(seen["narrow_planted"])  # planted: the wide layout at 420 px
+    assert len(planted) >= 2 and "sidebar" in planted[0], planted
