@@ -1025,13 +1025,15 @@ def site_texts(out: Path) -> dict[str, str]:
 MARKER_LINE = re.compile(r"^\s*### (?:BEGIN|END) (?:SOLUTION|HIDDEN TESTS)\s*$", re.M)
 
 
-def leaked(texts: dict[str, str], secrets: dict[str, list[str]]) -> list[tuple[str, str]]:
+def leaked(texts: dict[str, str], secrets: dict[str, list[str]],
+           lessons: set[str] = frozenset()) -> list[tuple[str, str]]:
     """(file, what) for each solution marker and secret line found in the site's texts. A marker counts as a
-    line of its own anywhere, and as any text outside the package's source pages (exercises.py names them)."""
+    line of its own anywhere, and as any text in a lesson page or a notebook (the package's source, which
+    defines them, and the docs, which name them, may hold them in a line of other text)."""
     found = []
     for rel, text in texts.items():
         markers = [m.group(0).strip() for m in MARKER_LINE.finditer(text)]
-        if not rel.startswith(book.SOURCE + "/"):
+        if rel in lessons or rel.endswith(".ipynb"):
             markers += [m for m in (*exercises.SOLUTION_MARKERS, *exercises.HIDDEN_MARKERS) if m in text]
         found += [(rel, m) for m in markers]
         found += [(rel, line) for lines in secrets.values() for line in lines if line in text]
@@ -1059,11 +1061,14 @@ def student_book(tmp_path_factory):
 def test_the_student_book_holds_no_solution(student_book):
     out, summary, secrets = student_book
     assert summary["edition"] == "student" and summary["figures"] > 0  # the lessons' figures are there
-    assert sum(map(len, secrets.values())) >= 100  # every lecturer notebook's solutions, hidden tests, printouts
+    n = sum(map(len, secrets.values()))
+    assert n >= 100  # every lecturer notebook's solutions, hidden tests, printouts
+    for doc in ("book.md", "teaching.md"):  # the number the docs state
+        assert f"{n} lines of 16 characters" in " ".join((book.DOCS_DIR / doc).read_text(encoding="utf-8").split())
     assert all(secrets[nb.name] for nb in book.lesson_notebooks() if nb.name[:2] in exercises.EXERCISE_NOTEBOOKS)
     texts = site_texts(out)
     assert summary["downloads"] and all(rel in texts for rel in summary["downloads"].values())
-    assert leaked(texts, secrets) == []
+    assert leaked(texts, secrets, set(summary["lesson_pages"].values())) == []
     released = json.loads((out / summary["downloads"]["05_ablation.ipynb"]).read_text(encoding="utf-8"))
     assert "raise NotImplementedError()" in "".join("".join(c["source"]) for c in released["cells"])
     assert not any(c.get("outputs") for c in released["cells"])  # the student notebook: outputs cleared
@@ -1080,7 +1085,8 @@ def test_the_leak_check_finds_a_planted_solution_line(student_book):
     raw = (out / page).read_text(encoding="utf-8")
     code = "<pre><code>" + "\n".join(book.highlight_lines(line)) + "</code></pre>"
     planted[page] = raw + "\n" + html.unescape(re.sub(r"<[^>]+>", "", raw.replace("</main>", code + "</main>")))
-    assert leaked(planted, secrets) == [(page, line)]
+    planted[page] += "\nx = 1  ### BEGIN SOLUTION"  # a marker in a line of code
+    assert leaked(planted, secrets, {page}) == [(page, "### BEGIN SOLUTION"), (page, line)]
     nb_rel = summary["downloads"]["03_losses_explained.ipynb"]
     nb = json.loads((out / nb_rel).read_text(encoding="utf-8"))
     nb["cells"][-1]["source"] = "### BEGIN SOLUTION\n" + secrets["03_losses_explained.ipynb"][0]
