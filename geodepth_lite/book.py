@@ -1,8 +1,12 @@
 """``python -m geodepth_lite book --out DIR``: the executed notebooks as a static web book.
 
-The book is read in a browser like d2l or the UvA tutorials: the landing page (the README), the
-eight lessons (notebooks 00-07, with the outputs they were committed with, nothing re-executed),
-the reference docs, and one page of source per package module. The route, in three steps:
+The book is read in a browser like d2l or the UvA tutorials: a landing page (the project's purpose,
+the README's key figure, the lessons, how to run them), the eight lessons (notebooks 00-07, with the
+outputs they were committed with, nothing re-executed, each with its notebook to download), the
+README and the reference docs, and one page of source per package module; a search over every page,
+an "on this page" list, printed Markdown tables drawn as tables (:mod:`geodepth_lite.book_reader`).
+``--edition student`` leaves out every solution, exercise output and hidden test
+(:func:`student_notebooks`): the book to publish to a class. The route, in three steps:
 
 1. **Jupyter Book 2 (MyST) parses the sources.** The notebooks, the README and docs/ are staged in
    a temporary project and ``jupyter-book build --site`` turns them into MyST's page content: one

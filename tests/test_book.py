@@ -216,6 +216,14 @@ def test_build_renders_and_marks_complete(tmp_path, monkeypatch):
     assert 'id="L1"' in (out / "source/losses.html").read_text()
     assert "lesson.html" in (out / "source/losses.html").read_text()  # the source page names the lesson using it
     assert not (out / book.NEW_DIR).exists() and not (out / ".lock").exists()
+    # the lesson's notebook to download, beside its page, and the page in the search index
+    assert 'href="notebooks/lesson.ipynb" download' in page and summary["downloads"] == {
+        "lesson.ipynb": "notebooks/lesson.ipynb"}
+    assert (out / "notebooks/lesson.ipynb").read_bytes() == (tmp_path / "nbs/lesson.ipynb").read_bytes()
+    index = book.book_reader.read_search_index((out / "_static" / book.SEARCH_INDEX).read_text(encoding="utf-8"))
+    assert [p["u"] for p in index["pages"]][:2] == ["index.html", "lesson.html"]
+    assert {"notebooks/lesson.ipynb", "_static/search-index.js", "_static/book.js"} <= set(
+        book.read_marker(out)["files"])
     book.build(out, notebooks=[tmp_path / "nbs/lesson.ipynb"], docs=[], readme=None, katex=False,
                log=lambda m: None)  # a second build replaces the first
     assert book.read_marker(out)["complete"] is True
@@ -1198,6 +1206,9 @@ def reader(served_book):
             body="window.geodepthSearchIndex = {\"pages\": []};", content_type="text/javascript"))
         page.goto(f"{base}/index.html")  # planted: an index without the lessons
         seen["hits_planted"] = _search(page, word)
+        page.unroute("**/" + book.SEARCH_INDEX)
+        page.goto((out / "index.html").as_uri())  # opened from disk: no server
+        seen["hits_file"] = _search(page, word)
         narrow = browser.new_page(viewport={"width": 420, "height": 800})  # each lesson, as on a phone
         for name, rel in [("", "index.html"), *lessons.items()]:
             narrow.goto(f"{base}/{rel}")
@@ -1235,6 +1246,7 @@ def test_search_finds_a_word_of_a_lesson_and_opens_its_page(reader):
     index = book.book_reader.read_search_index((out / "_static" / book.SEARCH_INDEX).read_text(encoding="utf-8"))
     assert {p["u"] for p in index["pages"]} >= set(summary["pages"])  # every page is searched
     assert seen["hits_planted"] == [], seen["hits_planted"]  # planted: an index without the lesson finds nothing
+    assert any(h.startswith("file://") and h.split("#")[0].endswith("/" + page) for h in seen["hits_file"])
 
 
 def _download_problems(out: Path, name: str, hrefs: list[str]) -> list[str]:
