@@ -60,7 +60,7 @@ from pygments.lexers import get_lexer_by_name
 from pygments.token import STANDARD_TYPES, Name, Operator, Text
 from pygments.util import ClassNotFound
 
-from geodepth_lite import book_reader, exercises, recon, utils
+from geodepth_lite import book_reader, course, exercises, recon, utils
 from geodepth_lite.errors import UserError
 from geodepth_lite.exercises import HIDDEN_MARKERS, NOTEBOOK_DIR, SOLUTION_MARKERS, git_tracked
 
@@ -87,7 +87,7 @@ STATIC = "_static"
 INLINE_TAGS = {"strong": "strong", "emphasis": "em", "underline": "u", "delete": "del", "superscript": "sup",
                "subscript": "sub", "span": "span"}  # MyST node type -> HTML element
 PLOTLY_JS = "plotly.min.js"  # drawn by the 3D views (notebook 07), from the plotly package
-BOOK_JS = "book.js"  # the sidebar's button on a narrow screen, the search
+BOOK_JS_FILE = "book.js"  # the sidebar's button on a narrow screen, the search
 SEARCH_INDEX = "search-index.js"  # the search index, loaded when the search box is first used
 EDITIONS = ("lecturer", "student")
 SOURCE = "source"
@@ -521,6 +521,11 @@ def landing_page(readme: Path | None, notebooks: list[Path], edition: str, log) 
 # --------------------------------------------------------------------------- the student edition
 
 
+def _cell_source(cell: dict) -> str:
+    src = cell.get("source", "")
+    return "".join(src) if isinstance(src, list) else str(src)
+
+
 def student_view(lecturer: dict, released: dict, name: str = "the notebook") -> dict:
     """The lesson as the student book shows it: the cells of the student release (nbgrader's: each
     solution a stub, the hidden tests gone), each with the executed lecturer notebook's outputs only
@@ -535,7 +540,7 @@ def student_view(lecturer: dict, released: dict, name: str = "the notebook") -> 
     for shown, lect in zip(view["cells"], lcells):
         if shown.get("cell_type") != "code":
             continue
-        same = exercises._source(shown) == exercises._source(lect)
+        same = _cell_source(shown) == _cell_source(lect)
         exercise_cell = bool(lect.get("metadata", {}).get("nbgrader"))
         shown["outputs"] = lect.get("outputs", []) if same and not exercise_cell else []
         shown["execution_count"] = lect.get("execution_count") if shown["outputs"] else None
@@ -547,8 +552,6 @@ def student_notebooks(notebooks: list[Path], folder: Path) -> tuple[list[Path], 
     ``folder``: a lesson with a solution region (``course.holds_solutions``) is released with
     ``exercises.write_release`` (nbgrader, checked for leaks) and shown by :func:`student_view`; a
     lesson without one is shown and linked as it is, as the student edition hands it out."""
-    from geodepth_lite import course  # the course's own test of what holds solutions
-
     with_solutions = [nb for nb in notebooks if course.holds_solutions(nb)]
     released = {p.name: p for p in exercises.write_release(folder / "release", with_solutions)} \
         if with_solutions else {}
@@ -1283,7 +1286,7 @@ class Site:
         prefix = "../" * rel.count("/")
         scripts = (f'<script src="{prefix}{STATIC}/{PLOTLY_JS}"></script>' if 'class="geodepth-3d"' in body
                    else "")  # plotly.js only on pages with a 3D view
-        scripts += f'<script src="{prefix}{STATIC}/{BOOK_JS}"></script>'
+        scripts += f'<script src="{prefix}{STATIC}/{BOOK_JS_FILE}"></script>'
         topbar = ('<header class="topbar"><button class="menu-toggle" type="button" aria-controls="sidebar" '
                   f'aria-expanded="false">&#9776; Contents</button><a class="topbar-title" href="{prefix}index.html">'
                   'geodepth-lite</a></header>')
@@ -1396,7 +1399,7 @@ class Site:
     def write_static(self, katex_dir: Path | None) -> None:
         static = utils.make_dir(self.dest / STATIC)
         write_file(static / "book.css", CSS + ("" if katex_dir else MATHML_CSS))
-        write_file(static / BOOK_JS, book_reader.BOOK_JS)
+        write_file(static / BOOK_JS_FILE, book_reader.BOOK_JS)
         write_file(static / "pygments.css", HtmlFormatter(style="default").get_style_defs("pre"))
         if katex_dir:
             for src in sorted(p for p in katex_dir.rglob("*") if p.is_file()):
