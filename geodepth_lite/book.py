@@ -101,6 +101,7 @@ a { color: var(--accent); }
 nav.sidebar { width: 280px; flex: none; border-right: 1px solid var(--line); padding: 1rem; font-size: 14px;
   position: sticky; top: 0; height: 100vh; overflow-y: auto; background: #fbfcfd; }
 nav.sidebar .book-title { font-weight: 700; font-size: 16px; display: block; margin-bottom: .75rem; }
+nav.sidebar .book-title small { display: block; font-weight: 400; font-size: 13px; color: var(--muted); }
 nav.sidebar ul { list-style: none; padding-left: 0; margin: 0 0 .5rem 0; }
 nav.sidebar li { margin: .15rem 0; }
 nav.sidebar li.group { margin-top: .8rem; font-weight: 600; color: var(--muted); text-transform: uppercase;
@@ -1280,7 +1281,7 @@ class Site:
                 f'{self.edition_label()}</a>{search}<ul>{"".join(items)}</ul></nav>')
 
     def edition_label(self) -> str:
-        return " <small>(student edition)</small>" if self.edition == "student" else ""
+        return "<small>student edition</small>" if self.edition == "student" else ""
 
     def write_page(self, rel: str, title: str, current: str, body: str) -> None:
         prefix = "../" * rel.count("/")
