@@ -1288,3 +1288,26 @@ def test_a_narrow_screen_hides_the_sidebar_behind_a_button(reader):
     assert seen["opened"]["sidebar"] and seen["opened"]["overflow"] <= 0  # the button opens it
     planted = _narrow_problems(seen["narrow_planted"])  # planted: the wide layout at 420 px
     assert len(planted) >= 2 and "sidebar" in planted[0], planted
+
+
+def test_the_landing_page_is_the_books_own(served_book):
+    """The landing page: the README's purpose, its key figure (the same PNG as notebook 05 stores), every
+    lesson linked in order, the commands to run them; the README is a page of its own."""
+    out, _, summary = served_book
+    page = (out / "index.html").read_text(encoding="utf-8")
+    text = html.unescape(re.sub(r"<[^>]+>", "", page))
+    readme = book.README.read_text(encoding="utf-8")
+    assert summary["key_figure"] and " ".join(book.book_reader.readme_purpose(readme)[0].split())[:40] in " ".join(
+        text.split()).replace("\u201c", '"').replace("\u201d", '"').replace("**", "")
+    name, section, _ = book.book_reader.key_figure_ref(readme)
+    png = book.book_reader.section_figure(json.loads((exercises.NOTEBOOK_DIR / name).read_text(encoding="utf-8")),
+                                          section)
+    shown = [out / src for src in re.findall(r'<img src="([^"]+)"', page)]
+    assert [p.read_bytes() for p in shown] == [png]
+    other = book.book_reader.section_figure(json.loads((exercises.NOTEBOOK_DIR / name).read_text(encoding="utf-8")),
+                                            "The second study: the paper's losses switched on")  # a wrong figure
+    assert other is not None and [p.read_bytes() for p in shown] != [other]
+    links = re.findall(r'<li>(?:<p>)?<a href="([\w.-]+\.html)">', page.split('id="the-lessons"')[1].split("</ol>")[0])
+    assert links == list(summary["lesson_pages"].values())  # every lesson, in order
+    assert "jupyter lab notebooks/" in text and "build the book" not in text.lower()
+    assert "readme.html" in summary["pages"]
