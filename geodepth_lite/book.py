@@ -1202,11 +1202,12 @@ class Site:
     """The rendered site: reads MyST's output in ``build`` and writes the HTML into ``dest``."""
 
     def __init__(self, build: Path, dest: Path, modules: dict[str, Module], lesson_names: dict[str, Names],
-                 katex: bool, downloads: dict[str, str] | None = None, edition: str = "lecturer"):
+                 katex: bool, downloads: dict[str, str] | None = None, edition: str = "lecturer",
+                 released: frozenset[str] = frozenset()):
         self.build, self.dest, self.modules = Path(build), Path(dest), modules
         self.lesson_names, self.katex = lesson_names, katex
         self.downloads = downloads or {}  # page slug -> the notebook's file name under notebooks/
-        self.edition = edition
+        self.edition, self.released = edition, released  # released: the notebooks linked as the student release
         self.search: list[dict] = []  # the search index's pages, as they are written
         config = json.loads((self.build / "config.json").read_text(encoding="utf-8"))
         project = (config.get("projects") or [{}])[0]
@@ -1302,7 +1303,7 @@ class Site:
         name = self.downloads.get(slug)
         if not name:
             return ""
-        what = ("the student edition: the exercises to solve, outputs cleared" if self.edition == "student"
+        what = ("the student edition: the exercises to solve, outputs cleared" if name in self.released
                 else "executed, with the outputs shown here")
         return (f'<p class="download"><a href="notebooks/{html.escape(name)}" download>Download the notebook '
                 f'<code>{html.escape(name)}</code></a> ({what})</p>')
@@ -1559,13 +1560,14 @@ def _make_site(new: Path, notebooks: list[Path], docs: list[Path], readme: Path 
         if katex_dir is None:
             log(f"book: KaTeX's style sheet is not at hand ({why or 'not asked for'}); the equations are "
                 "drawn by the browser's MathML instead")
-        summary = _render(new, site_dir, shown, downloads, katex_dir, edition)
+        released = frozenset(name for name, src in downloads.items() if src not in notebooks)
+        summary = _render(new, site_dir, shown, downloads, katex_dir, edition, released)
     return {**summary, "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks],
             "edition": edition, "key_figure": figure is not None}
 
 
 def _render(new: Path, site_dir: Path, shown: list[Path], downloads: dict[str, Path], katex_dir: Path | None,
-            edition: str) -> dict:
+            edition: str, released: frozenset[str] = frozenset()) -> dict:
     """Render MyST's content in ``site_dir`` into ``new``, with each lesson's notebook to download."""
     modules = index_package()
     lesson_names, lesson_pages, slug_files = {}, {}, {}
@@ -1577,7 +1579,7 @@ def _render(new: Path, site_dir: Path, shown: list[Path], downloads: dict[str, P
         sources = ["".join(c.get("source", "")) for c in data.get("cells", []) if c.get("cell_type") == "code"]
         lesson_names[slug] = notebook_names(sources, modules)
     utils.make_dir(new)
-    site = Site(site_dir, new, modules, lesson_names, katex_dir is not None, slug_files, edition)
+    site = Site(site_dir, new, modules, lesson_names, katex_dir is not None, slug_files, edition, released)
     site.write_static(katex_dir)
     pages = site.render_pages()
     sources = site.render_sources()

@@ -1080,6 +1080,10 @@ def test_the_student_book_holds_no_solution(student_book):
     released = json.loads((out / summary["downloads"]["05_ablation.ipynb"]).read_text(encoding="utf-8"))
     assert "raise NotImplementedError()" in "".join("".join(c["source"]) for c in released["cells"])
     assert not any(c.get("outputs") for c in released["cells"])  # the student notebook: outputs cleared
+    for name, rel in summary["downloads"].items():  # each lesson links its notebook, saying which it is
+        page = (out / summary["lesson_pages"][name]).read_text(encoding="utf-8")
+        said = "the exercises to solve" if name[:2] in exercises.EXERCISE_NOTEBOOKS else "executed"
+        assert f'href="{rel}" download' in page and said in page.split('class="download"')[1][:300], name
 
 
 def test_the_leak_check_finds_a_planted_solution_line(student_book):
