@@ -1,8 +1,12 @@
 """``python -m geodepth_lite book --out DIR``: the executed notebooks as a static web book.
 
-The book is read in a browser like d2l or the UvA tutorials: the landing page (the README), the
-eight lessons (notebooks 00-07, with the outputs they were committed with, nothing re-executed),
-the reference docs, and one page of source per package module. The route, in three steps:
+The book is read in a browser like d2l or the UvA tutorials: a landing page (the project's purpose,
+the README's key figure, the lessons, how to run them), the eight lessons (notebooks 00-07, with the
+outputs they were committed with, nothing re-executed, each with its notebook to download), the
+README and the reference docs, and one page of source per package module; a search over every page,
+an "on this page" list, printed Markdown tables drawn as tables (:mod:`geodepth_lite.book_reader`).
+``--edition student`` leaves out every solution, exercise output and hidden test
+(:func:`student_notebooks`): the book to publish to a class. The route, in three steps:
 
 1. **Jupyter Book 2 (MyST) parses the sources.** The notebooks, the README and docs/ are staged in
    a temporary project and ``jupyter-book build --site`` turns them into MyST's page content: one
@@ -56,7 +60,7 @@ from pygments.lexers import get_lexer_by_name
 from pygments.token import STANDARD_TYPES, Name, Operator, Text
 from pygments.util import ClassNotFound
 
-from geodepth_lite import recon, utils
+from geodepth_lite import book_reader, course, exercises, recon, utils
 from geodepth_lite.errors import UserError
 from geodepth_lite.exercises import HIDDEN_MARKERS, NOTEBOOK_DIR, SOLUTION_MARKERS, git_tracked
 
@@ -68,7 +72,9 @@ MARKER = ".geodepth-book.json"  # the output folder's marker: whether complete, 
 NEW_DIR = ".geodepth-book-new"  # + "-<pid>": the site being built, inside the output folder until it is complete
 STAGING = re.compile(r"^\.geodepth-book-new-(\d+)$")
 TEMP_STAGING = re.compile(r"^geodepth-(?:book|katex)-(\d+)-[A-Za-z0-9_]+$")  # MyST projects in the temp folder
-BOOK_PATH = re.compile(r"^(?:[\w.-]+\.html|\.nojekyll|source/[\w.-]+\.html|_static(?:/[\w.-]+)+)$")  # what it writes
+# the names it writes: pages, source pages, the lessons' notebooks to download, style sheets, scripts and figures
+BOOK_PATH = re.compile(r"^(?:[\w.-]+\.html|\.nojekyll|source/[\w.-]+\.html|notebooks/[\w.-]+\.ipynb"
+                       r"|_static(?:/[\w.-]+)+)$")
 WRITTEN_BY = "python -m geodepth_lite book"
 NODE_MIN = 18  # Jupyter Book 2 runs on Node.js 18 or newer
 KATEX_VERSION = "0.15.6"  # the KaTeX that jupyter-book 2.1.7 (mystmd 1.11) typesets with
@@ -81,6 +87,9 @@ STATIC = "_static"
 INLINE_TAGS = {"strong": "strong", "emphasis": "em", "underline": "u", "delete": "del", "superscript": "sup",
                "subscript": "sub", "span": "span"}  # MyST node type -> HTML element
 PLOTLY_JS = "plotly.min.js"  # drawn by the 3D views (notebook 07), from the plotly package
+BOOK_JS_FILE = "book.js"  # the sidebar's button on a narrow screen, the search
+SEARCH_INDEX = "search-index.js"  # the search index, loaded when the search box is first used
+EDITIONS = ("lecturer", "student")
 SOURCE = "source"
 
 CSS = """
@@ -92,6 +101,7 @@ a { color: var(--accent); }
 nav.sidebar { width: 280px; flex: none; border-right: 1px solid var(--line); padding: 1rem; font-size: 14px;
   position: sticky; top: 0; height: 100vh; overflow-y: auto; background: #fbfcfd; }
 nav.sidebar .book-title { font-weight: 700; font-size: 16px; display: block; margin-bottom: .75rem; }
+nav.sidebar .book-title small { display: block; font-weight: 400; font-size: 13px; color: var(--muted); }
 nav.sidebar ul { list-style: none; padding-left: 0; margin: 0 0 .5rem 0; }
 nav.sidebar li { margin: .15rem 0; }
 nav.sidebar li.group { margin-top: .8rem; font-weight: 600; color: var(--muted); text-transform: uppercase;
@@ -131,6 +141,43 @@ details.solution > summary, details.hidden-tests > summary { cursor: pointer; co
   user-select: none; text-decoration: none; }
 .source-code .line:target { background: #fff4c2; }
 .source-code .line { display: block; }
+main { overflow-wrap: break-word; }
+pre, .math-display, .printed-table { max-width: 100%; overflow-x: auto; }
+pre { white-space: pre; scrollbar-width: thin; }
+.printed-table table { font-size: 13.5px; margin: .4rem 0; }
+.printed-table td, .printed-table th { white-space: nowrap; }
+.download { font-size: 14px; margin: -.4rem 0 .8rem; }
+.page-toc { border: 1px solid var(--line); border-radius: 4px; padding: .3rem .9rem; margin: .6rem 0 1.2rem;
+  font-size: 14px; background: #fbfcfd; }
+.page-toc-title { font-weight: 600; margin: .2rem 0; }
+.page-toc ul { list-style: none; padding-left: 0; margin: 0 0 .3rem; }
+.page-toc li.d3 { padding-left: 1.1rem; }
+form.search input { width: 100%; font: inherit; font-size: 14px; padding: .3rem .5rem; border: 1px solid var(--line);
+  border-radius: 4px; margin-bottom: .4rem; }
+.search-results { max-height: 55vh; overflow-y: auto; }
+.search-results li { margin: .35rem 0; }
+.search-results .snippet { display: block; color: var(--muted); font-size: 12.5px; line-height: 1.35; }
+.topbar { display: none; }
+@media (min-width: 1580px) {
+  main { margin-right: 270px; }
+  .page-toc { position: fixed; right: 1rem; top: 1.5rem; width: 250px; max-height: calc(100vh - 3rem);
+    overflow-y: auto; margin: 0; }
+}
+@media (max-width: 900px) {
+  .layout { display: block; }
+  .topbar { display: flex; align-items: center; gap: .7rem; position: sticky; top: 0; z-index: 20;
+    background: #fff; border-bottom: 1px solid var(--line); padding: .45rem .9rem; }
+  .topbar-title { font-weight: 700; white-space: nowrap; overflow: hidden; text-overflow: ellipsis; min-width: 0;
+    text-decoration: none; }
+  .menu-toggle { flex: none; font: inherit; font-size: 14px; padding: .25rem .65rem; border: 1px solid var(--line);
+    border-radius: 4px; background: #fbfcfd; color: var(--fg); cursor: pointer; }
+  nav.sidebar { display: none; }
+  body.nav-open nav.sidebar { display: block; position: fixed; top: 2.8rem; left: 0; bottom: 0; height: auto;
+    width: min(320px, 88vw); z-index: 15; box-shadow: 0 0 18px rgba(0, 0, 0, .18); }
+  main { max-width: none; padding: 1rem 1rem 3rem; }
+  main h1 { font-size: 1.55rem; line-height: 1.25; }
+  .pager { flex-wrap: wrap; }
+}
 """
 # where KaTeX's style sheet is missing: hide KaTeX's HTML rendering, show its MathML one
 MATHML_CSS = """
@@ -408,12 +455,21 @@ def tag_solutions(nb: dict) -> dict:
     return nb
 
 
-def stage(project: Path, notebooks: list[Path], docs: list[Path], readme: Path | None) -> None:
-    """Write the MyST project to build into ``project``: index.md (the README), notebooks/ (tagged
-    copies), docs/, myst.yml with the table of contents, and the local site template."""
+KEY_FIGURE_FILE = "key-figure.png"  # the landing page's figure, as staged in the MyST project
+
+
+def stage(project: Path, notebooks: list[Path], docs: list[Path], readme: Path | None, landing: str | None = None,
+          figure: bytes | None = None) -> None:
+    """Write the MyST project to build into ``project``: index.md (the landing page, ``landing``; the README
+    where none is given), its key figure, notebooks/ (tagged copies), the README and docs/ as reference
+    pages, myst.yml with the table of contents, and the local site template."""
     for folder in ("notebooks", "docs", "_template"):
         utils.make_dir(project / folder)
-    if readme is not None:
+    if landing is not None:
+        write_file(project / "index.md", landing)
+        if figure is not None:
+            write_file(project / KEY_FIGURE_FILE, figure)
+    elif readme is not None:
         copy_file(readme, project / "index.md")
     else:
         write_file(project / "index.md", "# geodepth-lite\n\nThe lessons of the workbook, in order.\n")
@@ -427,8 +483,13 @@ def stage(project: Path, notebooks: list[Path], docs: list[Path], readme: Path |
             raise BookError(f"cannot read {nb}: {exc}") from None
         write_file(project / "notebooks" / nb.name, json.dumps(tag_solutions(data), indent=1, ensure_ascii=False))
         lines.append(f"        - file: notebooks/{nb.name}")
-    if docs:
+    readme_page = landing is not None and readme is not None
+    if docs or readme_page:
         lines += ["    - title: Reference", "      children:"]
+    if readme_page:  # beside the landing page, the README is a reference page (its links resolve from the top)
+        text = readme.read_text(encoding="utf-8")
+        write_file(project / "README.md", "---\ntitle: The README\n---\n\n" + text)
+        lines.append("        - file: README.md")
     for doc in docs:
         copy_file(doc, project / "docs" / doc.name)
         lines.append(f"        - file: docs/{doc.name}")
@@ -437,6 +498,80 @@ def stage(project: Path, notebooks: list[Path], docs: list[Path], readme: Path |
     # a local site template: MyST takes its options from it instead of asking its template service
     write_file(project / "_template" / "template.yml",
         "myst: v1\nkind: site\ntitle: geodepth-lite static book (rendered by geodepth_lite.book)\n")
+
+
+def landing_page(readme: Path | None, notebooks: list[Path], edition: str, log) -> tuple[str, bytes | None]:
+    """The landing page's markdown and its key figure (the one the README calls so, drawn in the executed
+    lecturer notebook it names; None where it cannot be found, which the command says)."""
+    text = readme.read_text(encoding="utf-8") if readme is not None else ""
+    lessons, by_name = [], {}
+    for nb in notebooks:
+        data = json.loads(nb.read_text(encoding="utf-8"))
+        by_name[nb.name] = data
+        lessons.append((nb.name, book_reader.first_heading(data)))
+    ref = book_reader.key_figure_ref(text) if text else None
+    figure = book_reader.section_figure(by_name[ref[0]], ref[1]) if ref and ref[0] in by_name else None
+    if text and figure is None:
+        log("book: the key figure the README names was not found in the lessons; the landing page shows none")
+    md = book_reader.landing_markdown(book_reader.readme_purpose(text), lessons,
+                                      (KEY_FIGURE_FILE, ref[2]) if figure is not None else None,
+                                      edition == "student")
+    return md, figure
+
+
+# --------------------------------------------------------------------------- the student edition
+
+
+def _cell_source(cell: dict) -> str:
+    src = cell.get("source", "")
+    return "".join(src) if isinstance(src, list) else str(src)
+
+
+def student_view(lecturer: dict, released: dict, name: str = "the notebook") -> dict:
+    """The lesson as the student book shows it: the cells of the student release (nbgrader's: each
+    solution a stub, the hidden tests gone), each with the executed lecturer notebook's outputs only
+    where the release left its source as it was and it is no exercise cell (an exercise's answer and
+    check cells print the solution's results). A :class:`BookError` where the cells do not match."""
+    lcells, rcells = lecturer.get("cells", []), released.get("cells", [])
+    if len(lcells) != len(rcells) or any(a.get("id") != b.get("id") or a.get("cell_type") != b.get("cell_type")
+                                         for a, b in zip(lcells, rcells)):
+        raise BookError(f"cannot build the student book: the student release of {name} does not have the "
+                        "lecturer notebook's cells")
+    view = json.loads(json.dumps(released))
+    for shown, lect in zip(view["cells"], lcells):
+        if shown.get("cell_type") != "code":
+            continue
+        same = _cell_source(shown) == _cell_source(lect)
+        exercise_cell = bool(lect.get("metadata", {}).get("nbgrader"))
+        shown["outputs"] = lect.get("outputs", []) if same and not exercise_cell else []
+        shown["execution_count"] = lect.get("execution_count") if shown["outputs"] else None
+    return view
+
+
+def student_notebooks(notebooks: list[Path], folder: Path) -> tuple[list[Path], dict[str, Path]]:
+    """(the notebooks the student book renders, the notebook each lesson links for download), written in
+    ``folder``: a lesson with a solution region (``course.holds_solutions``) is released with
+    ``exercises.write_release`` (nbgrader, checked for leaks) and shown by :func:`student_view`; a
+    lesson without one is shown and linked as it is, as the student edition hands it out."""
+    with_solutions = [nb for nb in notebooks if course.holds_solutions(nb)]
+    released = {p.name: p for p in exercises.write_release(folder / "release", with_solutions)} \
+        if with_solutions else {}
+    utils.make_dir(folder / "shown")
+    shown, downloads = [], {}
+    for nb in notebooks:
+        if nb.name not in released:
+            shown.append(nb)
+            downloads[nb.name] = nb
+            continue
+        lecturer = exercises.read_notebook(nb)
+        view = student_view(lecturer, exercises.read_notebook(released[nb.name], solutions=False), nb.name)
+        problems = exercises.leaks(lecturer, view)
+        if problems:
+            raise BookError(f"cannot build the student book: {nb.name} still holds solution text: {problems[0]}")
+        write_file(folder / "shown" / nb.name, json.dumps(view, indent=1, ensure_ascii=False))
+        shown.append(folder / "shown" / nb.name)
+        downloads[nb.name] = released[nb.name]
+    return shown, downloads
 
 
 def run_myst(project: Path, timeout: float = BUILD_TIMEOUT_S) -> Path:
@@ -786,6 +921,7 @@ class PageRenderer:
     def __init__(self, site: "Site", slug: str, names: Names):
         self.site, self.slug, self.names = site, slug, names
         self.used: dict[tuple[str, str], None] = {}  # (module, symbol) in order of first use
+        self.headings: list[tuple[int, str, str]] = []  # (depth, id, text), for "on this page"
 
     # links into the source pages
     def source_href(self, mod: str, sym: str) -> str:
@@ -899,8 +1035,9 @@ class PageRenderer:
         if kind == "stream":
             text = ANSI.sub("", "".join(jd.get("text", "")) if isinstance(jd.get("text"), list)
                             else str(jd.get("text", "")))
-            cls = "stderr" if jd.get("name") == "stderr" else "stdout"
-            return f'<pre class="{cls}">{html.escape(text, quote=False)}</pre>'
+            if jd.get("name") == "stderr":
+                return f'<pre class="stderr">{html.escape(text, quote=False)}</pre>'
+            return book_reader.printed_html(text, "stdout")  # a printed pipe table as a table
         if kind == "error":
             tb = "\n".join(jd.get("traceback") or [f"{jd.get('ename')}: {jd.get('evalue')}"])
             return f'<pre class="stderr">{html.escape(ANSI.sub("", tb), quote=False)}</pre>'
@@ -923,14 +1060,15 @@ class PageRenderer:
             return ('<p class="widget-note"><em>An interactive widget: run the notebook in JupyterLab to use '
                     'it.</em></p>')
         if "text/plain" in data:
-            text = ANSI.sub("", self.output_text(data["text/plain"]))
-            return f"<pre>{html.escape(text, quote=False)}</pre>"
+            return book_reader.printed_html(ANSI.sub("", self.output_text(data["text/plain"])))
         return ""
 
     def n_heading(self, n):
         d = min(max(int(n.get("depth", 2)), 1), 6)
-        hid = html.escape(n.get("html_id") or n.get("identifier") or "")
-        return f'<h{d} id="{hid}">{self.children(n)}</h{d}>'
+        ident = n.get("html_id") or n.get("identifier") or ""
+        inner = self.children(n)
+        self.headings.append((d, ident, " ".join(book_reader.strip_tags(inner).split())))
+        return f'<h{d} id="{html.escape(ident)}">{inner}</h{d}>'
 
     def n_paragraph(self, n):
         return f"<p>{self.children(n)}</p>"
@@ -1064,9 +1202,13 @@ class Site:
     """The rendered site: reads MyST's output in ``build`` and writes the HTML into ``dest``."""
 
     def __init__(self, build: Path, dest: Path, modules: dict[str, Module], lesson_names: dict[str, Names],
-                 katex: bool):
+                 katex: bool, downloads: dict[str, str] | None = None, edition: str = "lecturer",
+                 released: frozenset[str] = frozenset()):
         self.build, self.dest, self.modules = Path(build), Path(dest), modules
         self.lesson_names, self.katex = lesson_names, katex
+        self.downloads = downloads or {}  # page slug -> the notebook's file name under notebooks/
+        self.edition, self.released = edition, released  # released: the notebooks linked as the student release
+        self.search: list[dict] = []  # the search index's pages, as they are written
         config = json.loads((self.build / "config.json").read_text(encoding="utf-8"))
         project = (config.get("projects") or [{}])[0]
         self.index_slug = project.get("index", "index")
@@ -1133,18 +1275,38 @@ class Site:
         items.append('<li class="group">Source</li>')
         cls = ' class="current"' if current == "source-index" else ""
         items.append(f'<li{cls}><a href="{prefix}{SOURCE}/index.html">The package&#8217;s modules</a></li>')
-        return (f'<nav class="sidebar"><a class="book-title" href="{prefix}index.html">geodepth-lite</a>'
-                f'<ul>{"".join(items)}</ul></nav>')
+        search = ('<form class="search" role="search"><input id="search-input" type="search" placeholder="Search the '
+                  'book" aria-label="Search the book" autocomplete="off"></form><ul id="search-results" '
+                  'class="search-results" aria-live="polite"></ul>')
+        return (f'<nav class="sidebar" id="sidebar"><a class="book-title" href="{prefix}index.html">geodepth-lite'
+                f'{self.edition_label()}</a>{search}<ul>{"".join(items)}</ul></nav>')
+
+    def edition_label(self) -> str:
+        return "<small>student edition</small>" if self.edition == "student" else ""
 
     def write_page(self, rel: str, title: str, current: str, body: str) -> None:
         prefix = "../" * rel.count("/")
         scripts = (f'<script src="{prefix}{STATIC}/{PLOTLY_JS}"></script>' if 'class="geodepth-3d"' in body
                    else "")  # plotly.js only on pages with a 3D view
-        doc = (f'{self.head(title, prefix)}<body><div class="layout">{self.sidebar(current, prefix)}'
-               f'<main>{body}</main></div>{scripts}</body></html>\n')
+        scripts += f'<script src="{prefix}{STATIC}/{BOOK_JS_FILE}"></script>'
+        topbar = ('<header class="topbar"><button class="menu-toggle" type="button" aria-controls="sidebar" '
+                  f'aria-expanded="false">&#9776; Contents</button><a class="topbar-title" href="{prefix}index.html">'
+                  'geodepth-lite</a></header>')
+        doc = (f'{self.head(title, prefix)}<body data-root="{prefix}">{topbar}<div class="layout">'
+               f'{self.sidebar(current, prefix)}<main>{body}</main></div>{scripts}</body></html>\n')
         target = self.dest / rel
         utils.make_dir(target.parent)
         write_file(target, doc)
+        self.search.append({"t": title, "u": rel, "s": book_reader.page_sections(body)})
+
+    def download_link(self, slug: str) -> str:
+        name = self.downloads.get(slug)
+        if not name:
+            return ""
+        what = ("the student edition: the exercises to solve, outputs cleared" if name in self.released
+                else "executed, with the outputs shown here")
+        return (f'<p class="download"><a href="notebooks/{html.escape(name)}" download>Download the notebook '
+                f'<code>{html.escape(name)}</code></a> ({what})</p>')
 
     def render_pages(self) -> list[str]:
         pages = [p for p in self.nav if p.get("slug")]
@@ -1154,26 +1316,34 @@ class Site:
             data = self.page_json(slug)
             fm = data.get("frontmatter") or {}
             title = fm.get("title") or p.get("title") or slug
-            names = self.lesson_names.get(slug, Names())
-            r = PageRenderer(self, slug, names)
+            r = PageRenderer(self, slug, self.lesson_names.get(slug, Names()))
             body = r.node(data.get("mdast") or {})
-            if not fm.get("content_includes_title", False):
-                body = f"<h1>{html.escape(title)}</h1>{body}"
+            head = f"<h1>{html.escape(title)}</h1>" if not fm.get("content_includes_title", False) else ""
+            extra = self.download_link(slug) + book_reader.page_toc(r.headings)
+            if head:
+                body = head + extra + body
+            else:  # MyST kept the title as the page's first heading: the link and the list go after it
+                m = re.match(r"^(?:<div[^>]*>)?<h1[^>]*>.*?</h1>", body, re.S)
+                body = body[:m.end()] + extra + body[m.end():] if m else extra + body
             if r.used and data.get("kind") == "Notebook":
                 body += self.used_list(r.used)
             for key in r.used:
                 self.usage.setdefault(key, [])
                 if (slug, title) not in self.usage[key]:
                     self.usage[key].append((slug, title))
-            pager = []
-            if k > 0:
-                pager.append(f'<a href="{pages[k - 1]["slug"]}.html">&larr; {html.escape(pages[k - 1]["title"])}</a>')
-            if k + 1 < len(pages):
-                pager.append(f'<a href="{pages[k + 1]["slug"]}.html">{html.escape(pages[k + 1]["title"])} &rarr;</a>')
-            body += f'<div class="pager">{"".join(pager)}</div>'
+            body += self.pager(pages, k)
             self.write_page(f"{slug}.html", title, slug, body)
             written.append(f"{slug}.html")
         return written
+
+    @staticmethod
+    def pager(pages: list[dict], k: int) -> str:
+        links = []
+        if k > 0:
+            links.append(f'<a href="{pages[k - 1]["slug"]}.html">&larr; {html.escape(pages[k - 1]["title"])}</a>')
+        if k + 1 < len(pages):
+            links.append(f'<a href="{pages[k + 1]["slug"]}.html">{html.escape(pages[k + 1]["title"])} &rarr;</a>')
+        return f'<div class="pager">{"".join(links)}</div>'
 
     def used_list(self, used: dict[tuple[str, str], None]) -> str:
         items = []
@@ -1222,9 +1392,16 @@ class Site:
         written.append(f"{SOURCE}/index.html")
         return written
 
+    def write_search_index(self) -> int:
+        """``_static/search-index.js`` from the pages written; its size in bytes."""
+        text = book_reader.search_index_js(self.search)
+        write_file(self.dest / STATIC / SEARCH_INDEX, text)
+        return len(text.encode("utf-8"))
+
     def write_static(self, katex_dir: Path | None) -> None:
         static = utils.make_dir(self.dest / STATIC)
         write_file(static / "book.css", CSS + ("" if katex_dir else MATHML_CSS))
+        write_file(static / BOOK_JS_FILE, book_reader.BOOK_JS)
         write_file(static / "pygments.css", HtmlFormatter(style="default").get_style_defs("pre"))
         if katex_dir:
             for src in sorted(p for p in katex_dir.rglob("*") if p.is_file()):
@@ -1311,8 +1488,11 @@ def extract_katex(tgz: Path, dest: Path) -> Path:
 
 
 def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | None = None,
-          readme: Path | None = README, katex: bool = True, log=print) -> dict:
+          readme: Path | None = README, katex: bool = True, edition: str = "lecturer", log=print) -> dict:
     """Build the book into ``out``; returns the summary the marker holds (pages, figures, math).
+
+    ``edition``: "lecturer" (the executed notebooks, solutions folded) or "student" (the same outputs, but
+    no solution, no solution output and no hidden test: :func:`student_notebooks`).
 
     ``out`` is checked (:func:`check_out`), locked (``utils.FolderLock``) and filled only when the
     whole site is rendered: the site is made in a hidden folder inside ``out`` and moved in at the end.
@@ -1324,6 +1504,8 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
     readme = Path(readme) if readme is not None and Path(readme).is_file() else None
     if not notebooks:
         raise BookError(f"cannot build the book: no notebook NN_name.ipynb under {NOTEBOOK_DIR}")
+    if edition not in EDITIONS:
+        raise BookError(f"cannot build the book: --edition {edition!r} is not one of {', '.join(EDITIONS)}")
     out = Path(out)
     check_out(out)
     created = utils.missing_dirs(out)
@@ -1338,7 +1520,7 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
         remove_stale_staging(Path(tempfile.gettempdir()))
         if new.exists():
             shutil.rmtree(new)
-        summary = _make_site(new, notebooks, docs, readme, katex, log)
+        summary = _make_site(new, notebooks, docs, readme, katex, log, edition)
         owned, new_files = _plan(out, new)
         publishing = True
         _publish(out, new, owned, new_files, summary)
@@ -1357,11 +1539,17 @@ def build(out: Path, *, notebooks: list[Path] | None = None, docs: list[Path] | 
 
 
 def _make_site(new: Path, notebooks: list[Path], docs: list[Path], readme: Path | None, katex: bool,
-               log) -> dict:
+               log, edition: str = "lecturer") -> dict:
     """Stage, build with MyST and render the whole site into ``new``; returns the summary."""
     with tempfile.TemporaryDirectory(prefix=f"geodepth-book-{os.getpid()}-") as tmp:
         project = Path(tmp, "project")
-        stage(project, notebooks, docs, readme)
+        if edition == "student":
+            log(f"book: the student edition: releasing the exercises of {len(notebooks)} notebooks (nbgrader)")
+            shown, downloads = student_notebooks(notebooks, Path(tmp, "student"))
+        else:
+            shown, downloads = list(notebooks), {nb.name: nb for nb in notebooks}
+        landing, figure = landing_page(readme, notebooks, edition, log)
+        stage(project, shown, docs, readme, landing, figure)
         log(f"book: jupyter-book build --site ({len(notebooks)} notebooks, {len(docs)} docs)")
         site_dir = run_myst(project)
         katex_dir, why = None, ""
@@ -1372,22 +1560,36 @@ def _make_site(new: Path, notebooks: list[Path], docs: list[Path], readme: Path 
         if katex_dir is None:
             log(f"book: KaTeX's style sheet is not at hand ({why or 'not asked for'}); the equations are "
                 "drawn by the browser's MathML instead")
-        modules = index_package()
-        lesson_names, lesson_pages = {}, {}
-        for nb in notebooks:
-            slug = _slug_for(site_dir, nb.name)
-            lesson_pages[nb.name] = f"{slug}.html"
-            data = json.loads(nb.read_text(encoding="utf-8"))
-            sources = ["".join(c.get("source", "")) for c in data.get("cells", []) if c.get("cell_type") == "code"]
-            lesson_names[slug] = notebook_names(sources, modules)
-        utils.make_dir(new)
-        site = Site(site_dir, new, modules, lesson_names, katex_dir is not None)
-        site.write_static(katex_dir)
-        pages = site.render_pages()
-        sources = site.render_sources()
-        write_file(new / ".nojekyll", "")
-    return {"pages": pages, "source_pages": len(sources), "figures": len(site.images),
-            "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks], "lesson_pages": lesson_pages}
+        released = frozenset(name for name, src in downloads.items() if src not in notebooks)
+        summary = _render(new, site_dir, shown, downloads, katex_dir, edition, released)
+    return {**summary, "katex": katex_dir is not None, "notebooks": [nb.name for nb in notebooks],
+            "edition": edition, "key_figure": figure is not None}
+
+
+def _render(new: Path, site_dir: Path, shown: list[Path], downloads: dict[str, Path], katex_dir: Path | None,
+            edition: str, released: frozenset[str] = frozenset()) -> dict:
+    """Render MyST's content in ``site_dir`` into ``new``, with each lesson's notebook to download."""
+    modules = index_package()
+    lesson_names, lesson_pages, slug_files = {}, {}, {}
+    for nb in shown:
+        slug = _slug_for(site_dir, nb.name)
+        lesson_pages[nb.name] = f"{slug}.html"
+        slug_files[slug] = nb.name
+        data = json.loads(nb.read_text(encoding="utf-8"))
+        sources = ["".join(c.get("source", "")) for c in data.get("cells", []) if c.get("cell_type") == "code"]
+        lesson_names[slug] = notebook_names(sources, modules)
+    utils.make_dir(new)
+    site = Site(site_dir, new, modules, lesson_names, katex_dir is not None, slug_files, edition, released)
+    site.write_static(katex_dir)
+    pages = site.render_pages()
+    sources = site.render_sources()
+    utils.make_dir(new / "notebooks")
+    for name, src in downloads.items():
+        copy_file(src, new / "notebooks" / name)
+    search_bytes = site.write_search_index()
+    write_file(new / ".nojekyll", "")
+    return {"pages": pages, "source_pages": len(sources), "figures": len(site.images), "lesson_pages": lesson_pages,
+            "downloads": {name: f"notebooks/{name}" for name in downloads}, "search_index_bytes": search_bytes}
 
 
 def _slug_for(site_dir: Path, filename: str) -> str:
@@ -1404,15 +1606,19 @@ def add_arguments_book(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("site"),
                    help="folder for the web site (default: site); new, empty, or one this command wrote before "
                    "(it is replaced only when the new site is complete); never a folder of files git tracks")
+    p.add_argument("--edition", choices=EDITIONS, default="lecturer",
+                   help="lecturer (default): the executed lessons with their solutions folded, for the lecturer and "
+                   "a reader; student: the same lessons and outputs without any solution, solution output or "
+                   "hidden test, each lesson linking its student notebook: the book to publish to a class")
     p.add_argument("--no-katex", action="store_true",
                    help="do not fetch KaTeX's style sheet and fonts from npm: equations are drawn by the "
                    "browser's MathML")
 
 
 def run_book(args) -> int:
-    summary = build(args.out, katex=not args.no_katex)
-    print(f"book: {len(summary['pages'])} pages ({len(summary['notebooks'])} lessons), {summary['source_pages']} "
-          f"source pages, {summary['figures']} figures, in {args.out}")
+    summary = build(args.out, katex=not args.no_katex, edition=getattr(args, "edition", "lecturer"))
+    print(f"book ({summary['edition']} edition): {len(summary['pages'])} pages ({len(summary['notebooks'])} "
+          f"lessons), {summary['source_pages']} source pages, {summary['figures']} figures, in {args.out}")
     print(f"book: read it with a static server, e.g. python -m http.server -d {args.out} 8000, then open "
           "http://localhost:8000/")
     return 0

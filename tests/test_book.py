@@ -216,6 +216,14 @@ def test_build_renders_and_marks_complete(tmp_path, monkeypatch):
     assert 'id="L1"' in (out / "source/losses.html").read_text()
     assert "lesson.html" in (out / "source/losses.html").read_text()  # the source page names the lesson using it
     assert not (out / book.NEW_DIR).exists() and not (out / ".lock").exists()
+    # the lesson's notebook to download, beside its page, and the page in the search index
+    assert 'href="notebooks/lesson.ipynb" download' in page and summary["downloads"] == {
+        "lesson.ipynb": "notebooks/lesson.ipynb"}
+    assert (out / "notebooks/lesson.ipynb").read_bytes() == (tmp_path / "nbs/lesson.ipynb").read_bytes()
+    index = book.book_reader.read_search_index((out / "_static" / book.SEARCH_INDEX).read_text(encoding="utf-8"))
+    assert [p["u"] for p in index["pages"]][:2] == ["index.html", "lesson.html"]
+    assert {"notebooks/lesson.ipynb", "_static/search-index.js", "_static/book.js"} <= set(
+        book.read_marker(out)["files"])
     book.build(out, notebooks=[tmp_path / "nbs/lesson.ipynb"], docs=[], readme=None, katex=False,
                log=lambda m: None)  # a second build replaces the first
     assert book.read_marker(out)["complete"] is True
@@ -312,7 +320,7 @@ def test_a_rebuild_keeps_the_users_files_and_removes_only_its_own(tmp_path, monk
     # a page of the book's that the user changed is theirs now: refused with one line, nothing changed
     (out / "lesson.html").write_text("my notes on the lesson")
     before = _tree(out)
-    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    monkeypatch.setattr(book, "build", lambda out, **kw: build(out))
     assert cli.main(["book", "--out", str(out)]) == 2
     one_line_error(capsys, str(out / "lesson.html"), "did not write it")
     assert _tree(out) == before
@@ -421,7 +429,7 @@ def test_a_full_disk_names_the_file_and_keeps_the_old_site(tmp_path, monkeypatch
         return real_write(self, data)
 
     monkeypatch.setattr(Path, "write_bytes", full)
-    monkeypatch.setattr(book, "build", lambda out, katex=True: build(out))
+    monkeypatch.setattr(book, "build", lambda out, **kw: build(out))
     assert cli.main(["book", "--out", str(out)]) == 2
     line = one_line_error(capsys, "no space left on device", "lesson.html")
     assert re.search(r"cannot write \S*/\.geodepth-book-new-\d+/lesson\.html: no space left on device$", line)
@@ -848,3 +856,465 @@ def test_planted_html_in_outputs_cannot_run_script(planted_site):
     assert seen["ran"] == [] and seen["dialogs"] == [] and seen["global"] is None, seen
     assert seen["frames"] == [""]  # the output with a script: in an iframe sandboxed of every permission
     assert "planted table" in seen["text"] and "planted link" in seen["text"]  # the harmless part is shown
+
+
+# --------------------------------------------------------------------------- printed tables, pieces for the reader
+
+def _matrix(table_html: str) -> list[list[str]]:
+    """The cell texts of an HTML table, row by row (read with the standard library's parser)."""
+    from html.parser import HTMLParser
+
+    rows: list[list[str]] = []
+
+    class Cells(HTMLParser):
+        cell = None
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "tr":
+                rows.append([])
+            elif tag in ("td", "th"):
+                self.cell = []
+
+        def handle_endtag(self, tag):
+            if tag in ("td", "th"):
+                rows[-1].append("".join(self.cell))
+                self.cell = None
+
+        def handle_data(self, data):
+            if self.cell is not None:
+                self.cell.append(data)
+
+    Cells(convert_charrefs=True).feed(table_html)
+    return rows
+
+
+PRINTED = ("| case | lambda2 | note |\n|:---|---:|:-:|\n| **teach** | 0.003 | `predict` a \\| b |\n"
+           "| 2 | 1 | <script>x</script> |")
+PRINTED_CELLS = [["case", "lambda2", "note"], ["teach", "0.003", "predict a | b"], ["2", "1", "<script>x</script>"]]
+
+
+def test_a_printed_pipe_table_becomes_a_table():
+    table = book.book_reader.pipe_table(PRINTED.split("\n"))
+    assert _matrix(table) == PRINTED_CELLS
+    assert "<strong>teach</strong>" in table and "<code>predict</code>" in table
+    assert "<script>" not in table and "&lt;script&gt;" in table  # the cell text is escaped
+    assert 'style="text-align:left"' in table and 'style="text-align:right"' in table
+    assert 'style="text-align:center"' in table
+    blocks = book.book_reader.text_blocks("12 runs ready\n" + PRINTED + "\n6 of 6 within\n")
+    assert [k for k, _ in blocks] == ["text", "table", "text"] and blocks[0][1] == "12 runs ready"
+    out = book.book_reader.printed_html("12 runs ready\n" + PRINTED + "\n", "stdout")
+    assert out.startswith('<pre class="stdout">12 runs ready</pre><div class="printed-table"><table')
+
+
+def test_malformed_pipe_tables_stay_text():
+    ragged = "| a | b |\n|---|---|\n| 1 | 2 | 3 |"  # a body row with a cell more than the header
+    no_separator = "| a | b |\n| 1 | 2 |\n| 3 | 4 |"
+    short_separator = "| a | b | c |\n|---|---|\n| 1 | 2 | 3 |"
+    not_dashes = "| a | b |\n|-x-|---|\n| 1 | 2 |"
+    header_only = "| a | b |"
+    for text in (ragged, no_separator, short_separator, not_dashes, header_only, "a | b\n---|---\n1 | 2"):
+        assert book.book_reader.pipe_table(text.split("\n")) is None, text
+        pre = f'<pre class="stdout">{html.escape(text, quote=False)}</pre>'
+        assert book.book_reader.printed_html(text, "stdout") == pre
+    # a ragged table in a printed block leaves the well-formed one beside it a table (notebook 05 prints both)
+    mixed = book.book_reader.text_blocks(ragged + "\nbetween\n" + PRINTED)
+    assert [k for k, _ in mixed] == ["text", "table"] and mixed[0][1] == ragged + "\nbetween"
+
+
+def test_the_table_check_fails_on_swapped_cells(monkeypatch):
+    """The planted defect: a converter that swaps a row's first two cells; the check above sees it."""
+    real = book.book_reader.pipe_cells
+    monkeypatch.setattr(book.book_reader, "pipe_cells", lambda line: (lambda c: [c[1], c[0], *c[2:]])(real(line)))
+    table = book.book_reader.pipe_table(PRINTED.split("\n"))
+    assert table is not None and _matrix(table) != PRINTED_CELLS
+    # and a converter that cuts every row to two cells takes a ragged table for a table: the check above sees it
+    monkeypatch.setattr(book.book_reader, "pipe_cells", lambda line: real(line)[:2])
+    assert book.book_reader.pipe_table("| a | b |\n|---|---|\n| 1 | 2 | 3 |".split("\n")) is not None
+
+
+def test_page_sections_for_the_search_index():
+    body = ('<h1 id="t">Title</h1><p>Intro <span class="katex"><span>x2</span></span> text</p><pre>code_only</pre>'
+            '<h2 id="a">Part <code>A</code></h2><p>alpha &amp; beta</p><details class="solution"><summary>S'
+            '</summary><pre>secret</pre></details><nav class="page-toc"><a href="#a">Part A</a></nav>'
+            '<img src="x.png"><h3>no id</h3><p>gamma</p>')
+    assert book.book_reader.page_sections(body) == [["t", "Title", "Intro text"],
+                                                    ["a", "Part A", "alpha & beta no id gamma"]]
+    js = book.book_reader.search_index_js([{"t": "T", "u": "p.html", "s": [["a", "h", "</script> x"]]}])
+    assert book.book_reader.read_search_index(js)["pages"][0]["s"][0][2] == "</script> x"
+
+
+def test_the_landing_page_shows_the_readmes_key_figure():
+    readme = book.README.read_text(encoding="utf-8")
+    name, section, caption = book.book_reader.key_figure_ref(readme)
+    assert name == "05_ablation.ipynb" and section and caption.startswith("[notebook 05](")
+    nb = json.loads((exercises.NOTEBOOK_DIR / name).read_text(encoding="utf-8"))
+    png = book.book_reader.section_figure(nb, section)
+    assert png is not None and png.startswith(b"\x89PNG\r\n\x1a\n")
+    assert book.book_reader.section_figure(nb, section + " (no such section)") is None
+    purpose = book.book_reader.readme_purpose(readme)
+    assert purpose and "workbook" in purpose[0] and not any("build the book" in p.lower() for p in purpose)
+    md = book.book_reader.landing_markdown(purpose, [(name, "05 · The ablation")], ("key-figure.png", caption), False)
+    assert "![The key figure](key-figure.png)" in md and "[05 · The ablation](notebooks/05_ablation.ipynb)" in md
+    assert "jupyter lab notebooks/" in md
+
+
+def _exercise_nb(answer: str, check: str, cell_ids=("a", "b", "c")) -> dict:
+    meta = {"answer": {"nbgrader": {"grade_id": "ex01-1-answer", "solution": True, "grade": False}},
+            "check": {"nbgrader": {"grade_id": "ex01-1-check", "solution": False, "grade": True, "points": 1}}}
+    out = [{"output_type": "stream", "name": "stdout", "text": "printed\n"}]
+    return {"cells": [
+        {"id": cell_ids[0], "cell_type": "code", "metadata": {}, "source": "x = 1\nprint('lesson')",
+         "outputs": [{"output_type": "stream", "name": "stdout", "text": "lesson\n"}], "execution_count": 1},
+        {"id": cell_ids[1], "cell_type": "code", "metadata": meta["answer"], "source": answer, "outputs": out,
+         "execution_count": 2},
+        {"id": cell_ids[2], "cell_type": "code", "metadata": meta["check"], "source": check, "outputs": out,
+         "execution_count": 3}], "metadata": {}, "nbformat": 4, "nbformat_minor": 5}
+
+
+def test_the_student_view_keeps_lesson_outputs_only():
+    lecturer = _exercise_nb("y = None\n### BEGIN SOLUTION\ny = secret_answer(2)\n### END SOLUTION",
+                            "assert y\n### BEGIN HIDDEN TESTS\nassert y == hidden_value(2)\n### END HIDDEN TESTS")
+    released = _exercise_nb("y = None\n# YOUR CODE HERE\nraise NotImplementedError()", "assert y\n")
+    for c in released["cells"]:
+        c["outputs"], c["execution_count"] = [], None
+    view = book.student_view(lecturer, released)
+    assert [len(c["outputs"]) for c in view["cells"]] == [1, 0, 0]  # the lesson's output; no exercise output
+    assert view["cells"][0]["execution_count"] == 1 and view["cells"][1]["source"] == released["cells"][1]["source"]
+    assert exercises.leaks(lecturer, view) == []
+    changed = json.loads(json.dumps(released))
+    changed["cells"][0]["source"] = "x = 2"  # a cell the release changed: its lecturer output is not shown
+    assert book.student_view(lecturer, changed)["cells"][0]["outputs"] == []
+    with pytest.raises(book.BookError, match="does not have the lecturer notebook's cells"):
+        book.student_view(lecturer, _exercise_nb("", "", cell_ids=("a", "c", "b")))
+
+
+# --------------------------------------------------------------------------- the student book holds no solution
+
+PACKAGE_TEXT = "\n".join(p.read_text(encoding="utf-8") for p in sorted(book.PACKAGE_DIR.rglob("*.py")))
+
+
+def secret_lines(nb: dict) -> list[str]:
+    """What a student must not see of a lecturer notebook: the lines of its solutions and hidden tests, and
+    what its exercise cells printed (the solution's results), where at least 16 characters long and shown
+    nowhere else: not in a line of the notebook outside those regions, not in its other outputs, not in
+    the package's source (the student edition ships the package)."""
+    public, secret = set(), []
+    shown = []
+    for c in nb["cells"]:
+        src = "".join(c.get("source", ""))
+        solution, rest = exercises._split_solutions(src)
+        visible = exercises.visible_check(src).splitlines()
+        secret += solution + [ln for ln in rest if ln not in visible and ln.strip() not in exercises.HIDDEN_MARKERS]
+        shown += visible
+        printed = [ln for o in c.get("outputs", []) for ln in "".join(o.get("text", "")).splitlines()]
+        (secret.extend if c.get("metadata", {}).get("nbgrader") else public.update)(ln.strip() for ln in printed)
+    public.update(ln.strip() for ln in shown)
+    text = "\n".join(shown) + PACKAGE_TEXT
+    return sorted({ln.strip() for ln in secret if len(ln.strip()) >= 16 and ln.strip() not in public
+                   and ln.strip() not in text})
+
+
+def site_texts(out: Path) -> dict[str, str]:
+    """Every text file of a built site as a reader gets it: a page's HTML and its text (tags dropped, entities
+    read: highlighted code is one span per token), a notebook's JSON and its cells' sources and printed
+    outputs, the scripts (the search index) as they are."""
+    texts = {}
+    for p in sorted(Path(out).rglob("*")):
+        if not p.is_file() or p.suffix not in (".html", ".ipynb", ".js", ".json", ".css"):
+            continue
+        raw = p.read_text(encoding="utf-8", errors="replace")
+        if p.suffix == ".html":
+            raw += "\n" + html.unescape(re.sub(r"<[^>]+>", "", raw))
+        elif p.suffix == ".ipynb":
+            cells = json.loads(raw).get("cells", [])
+            raw += "\n" + "\n".join("".join(c.get("source", "")) + "\n" + "\n".join(
+                "".join(o.get("text", "")) for o in c.get("outputs", [])) for c in cells)
+        texts[p.relative_to(out).as_posix()] = raw
+    return texts
+
+
+MARKER_LINE = re.compile(r"^\s*### (?:BEGIN|END) (?:SOLUTION|HIDDEN TESTS)\s*$", re.M)
+
+
+def leaked(texts: dict[str, str], secrets: dict[str, list[str]],
+           lessons: set[str] = frozenset()) -> list[tuple[str, str]]:
+    """(file, what) for each solution marker and secret line found in the site's texts. A marker counts as a
+    line of its own anywhere, and as any text in a lesson page or a notebook (the package's source, which
+    defines them, and the docs, which name them, may hold them in a line of other text)."""
+    found = []
+    for rel, text in texts.items():
+        markers = [m.group(0).strip() for m in MARKER_LINE.finditer(text)]
+        if rel in lessons or rel.endswith(".ipynb"):
+            markers += [m for m in (*exercises.SOLUTION_MARKERS, *exercises.HIDDEN_MARKERS) if m in text]
+        found += [(rel, m) for m in markers]
+        found += [(rel, line) for lines in secrets.values() for line in lines if line in text]
+    return found
+
+
+@pytest.fixture(scope="module")
+def student_book(tmp_path_factory):
+    """The student edition of the book, built once from the committed lessons (no docs, two source pages)."""
+    try:
+        book.check_node()
+        book.check_jupyter_book()
+    except book.BookError as exc:
+        if os.environ.get(REQUIRE_ENV, "") not in ("", "0"):
+            pytest.fail(f"{REQUIRE_ENV}=1, but the student book cannot be built: {exc}")
+        pytest.skip(f"student book: {exc}")
+    out = tmp_path_factory.mktemp("student") / "site"
+    with pytest.MonkeyPatch.context() as mp:
+        _few_modules(mp)
+        summary = book.build(out, docs=[], readme=None, katex=False, edition="student", log=lambda m: None)
+    secrets = {nb.name: secret_lines(json.loads(nb.read_text(encoding="utf-8"))) for nb in book.lesson_notebooks()}
+    return out, summary, secrets
+
+
+def test_the_student_book_holds_no_solution(student_book):
+    out, summary, secrets = student_book
+    assert summary["edition"] == "student" and summary["figures"] > 0  # the lessons' figures are there
+    n = sum(map(len, secrets.values()))
+    assert n >= 100  # every lecturer notebook's solutions, hidden tests, printouts
+    for doc in ("book.md", "teaching.md"):  # the number the docs state
+        assert f"{n} lines of 16 characters" in " ".join((book.DOCS_DIR / doc).read_text(encoding="utf-8").split())
+    assert all(secrets[nb.name] for nb in book.lesson_notebooks() if nb.name[:2] in exercises.EXERCISE_NOTEBOOKS)
+    texts = site_texts(out)
+    assert summary["downloads"] and all(rel in texts for rel in summary["downloads"].values())
+    assert leaked(texts, secrets, set(summary["lesson_pages"].values())) == []
+    released = json.loads((out / summary["downloads"]["05_ablation.ipynb"]).read_text(encoding="utf-8"))
+    assert "raise NotImplementedError()" in "".join("".join(c["source"]) for c in released["cells"])
+    assert not any(c.get("outputs") for c in released["cells"])  # the student notebook: outputs cleared
+    for name, rel in summary["downloads"].items():  # each lesson links its notebook, saying which it is
+        page = (out / summary["lesson_pages"][name]).read_text(encoding="utf-8")
+        said = "the exercises to solve" if name[:2] in exercises.EXERCISE_NOTEBOOKS else "executed"
+        assert f'href="{rel}" download' in page and said in page.split('class="download"')[1][:300], name
+
+
+def test_the_leak_check_finds_a_planted_solution_line(student_book):
+    """The planted defect: one line of a solution written into a lesson page (highlighted, as the book
+    writes code) and into a downloadable notebook, and a marker into the search index."""
+    out, summary, secrets = student_book
+    texts = site_texts(out)
+    line = secrets["05_ablation.ipynb"][0]
+    page = summary["lesson_pages"]["05_ablation.ipynb"]
+    planted = dict(texts)
+    raw = (out / page).read_text(encoding="utf-8")
+    code = "<pre><code>" + "\n".join(book.highlight_lines(line)) + "</code></pre>"
+    planted[page] = raw + "\n" + html.unescape(re.sub(r"<[^>]+>", "", raw.replace("</main>", code + "</main>")))
+    planted[page] += "\nx = 1  ### BEGIN SOLUTION"  # a marker in a line of code
+    assert leaked(planted, secrets, {page}) == [(page, "### BEGIN SOLUTION"), (page, line)]
+    nb_rel = summary["downloads"]["03_losses_explained.ipynb"]
+    nb = json.loads((out / nb_rel).read_text(encoding="utf-8"))
+    nb["cells"][-1]["source"] = "### BEGIN SOLUTION\n" + secrets["03_losses_explained.ipynb"][0]
+    (Path(str(out) + "-planted") / "notebooks").mkdir(parents=True)
+    (Path(str(out) + "-planted") / nb_rel).write_text(json.dumps(nb))
+    found = leaked(site_texts(Path(str(out) + "-planted")), secrets)
+    assert (nb_rel, "### BEGIN SOLUTION") in found and (nb_rel, secrets["03_losses_explained.ipynb"][0]) in found
+    index = "_static/" + book.SEARCH_INDEX
+    assert set(leaked({index: texts[index] + "### END HIDDEN TESTS"}, secrets)) == {(index, "### END HIDDEN TESTS")}
+
+
+# --------------------------------------------------------------------------- the reader's features in a browser
+
+def _search_word(lesson: str) -> str:
+    """A word of the lesson's markdown that no other lesson's markdown holds (its most frequent one of 9+ letters)."""
+    words = {}
+    for nb in book.lesson_notebooks():
+        md = " ".join("".join(c["source"]) for c in json.loads(nb.read_text(encoding="utf-8"))["cells"]
+                      if c["cell_type"] == "markdown")
+        words[nb.name] = re.findall(r"\b[a-z]{9,}\b", md.lower())
+    others = {w for name, ws in words.items() if name != lesson for w in ws}
+    ours = [w for w in words[lesson] if w not in others]
+    return max(sorted(set(ours)), key=ours.count)
+
+
+def _printed_tables(nb: Path) -> list[list[list[str]]]:
+    """The pipe tables a notebook printed, read here on their own: runs of ``|`` lines whose second line is
+    dashes and whose rows all have the header's cell count; cells without their ** and ` marks."""
+    tables = []
+    for c in json.loads(nb.read_text(encoding="utf-8"))["cells"]:
+        for o in c.get("outputs", []):
+            if o.get("name") == "stderr":
+                continue
+            text = "".join(o.get("text", "") or o.get("data", {}).get("text/plain", ""))
+            for run in re.findall(r"(?m)(?:^\|.*\|$\n?)+", text):
+                rows = [[x.strip().replace("**", "").replace("`", "") for x in ln.strip()[1:-1].split("|")]
+                        for ln in run.strip().split("\n")]
+                if (len(rows) >= 2 and all(re.fullmatch(r":?-+:?", x) for x in rows[1])
+                        and all(len(r) == len(rows[0]) for r in rows)):
+                    tables.append([rows[0], *rows[2:]])
+    return tables
+
+
+NARROW = """() => {
+  const side = document.querySelector('nav.sidebar'), button = document.querySelector('.menu-toggle');
+  const title = document.querySelector('.topbar-title'), main = document.querySelector('main');
+  const visible = e => !!e && getComputedStyle(e).display !== 'none' && e.getBoundingClientRect().width > 0;
+  const wide = [...document.querySelectorAll('main pre, main .printed-table, main .math-display')]
+    .filter(e => e.scrollWidth > e.clientWidth + 1);
+  return {sidebar: visible(side), button: visible(button),
+          overflow: document.documentElement.scrollWidth - window.innerWidth,
+          body_overflow: document.body.scrollWidth - window.innerWidth,
+          title_lines: title ? Math.round(title.getBoundingClientRect().height /
+                                          parseFloat(getComputedStyle(title).lineHeight)) : 0,
+          main_width: main.getBoundingClientRect().width, width: window.innerWidth,
+          scrollers: wide.length,
+          cut: wide.filter(e => !['auto', 'scroll'].includes(getComputedStyle(e).overflowX)
+                                 || e.getBoundingClientRect().right > window.innerWidth + 1).length};
+}"""
+
+
+def _narrow_problems(seen: dict) -> list[str]:
+    """What is wrong with a page at 420 px, as NARROW saw it."""
+    problems = []
+    if seen["sidebar"] or not seen["button"]:
+        problems.append(f"the sidebar shows ({seen['sidebar']}) or the menu button does not ({seen['button']})")
+    if seen["overflow"] > 0 or seen["body_overflow"] > 0:
+        problems.append(f"the page is {seen['overflow']} px wider than the screen")
+    if seen["title_lines"] != 1 or seen["main_width"] < 0.9 * seen["width"]:
+        problems.append(f"the title takes {seen['title_lines']} lines, the text {seen['main_width']:.0f} px")
+    if seen["cut"]:
+        problems.append(f"{seen['cut']} long code or output blocks are cut off instead of scrolling")
+    return problems
+
+
+def _table_cells(page, k: int) -> list[list[str]]:
+    return page.evaluate("k => [...document.querySelectorAll('main .printed-table table')[k].rows]"
+                         ".map(r => [...r.cells].map(c => c.innerText.trim()))", k)
+
+
+def _search(page, word: str) -> list[str]:
+    page.fill("#search-input", word)
+    page.wait_for_function("() => document.querySelectorAll('#search-results li').length > 0", timeout=10_000)
+    return page.evaluate("() => [...document.querySelectorAll('#search-results a')].map(a => a.href)")
+
+
+@pytest.fixture(scope="module")
+def reader(served_book):
+    """The built book read as a reader does: searched, its notebooks downloaded, its printed tables read, and
+    every lesson at 420 px wide; each check also run once on a page with a defect planted in the browser."""
+    from playwright.sync_api import sync_playwright
+
+    out, base, summary = served_book
+    lessons = summary["lesson_pages"]
+    seen: dict = {"narrow": {}, "tables": {}, "downloads": {}}
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        word = seen["word"] = _search_word("03_losses_explained.ipynb")
+        page.goto(f"{base}/index.html")
+        seen["hits"] = _search(page, word)
+        target = next((h for h in seen["hits"] if h.split("#")[0].endswith("/" + lessons["03_losses_explained.ipynb"])),
+                      None)
+        if target:
+            page.locator(f'#search-results a[href="{target[len(base) + 1:]}"]').first.click()
+            page.wait_for_load_state("load")
+            seen["landed"] = (page.url.split("#")[0], word in page.locator("main").inner_text().lower())
+        page.route("**/" + book.SEARCH_INDEX, lambda route: route.fulfill(
+            body="window.geodepthSearchIndex = {\"pages\": []};", content_type="text/javascript"))
+        page.goto(f"{base}/index.html")  # planted: an index without the lessons
+        seen["hits_planted"] = _search(page, word)
+        page.unroute("**/" + book.SEARCH_INDEX)
+        page.goto((out / "index.html").as_uri())  # opened from disk: no server
+        seen["hits_file"] = _search(page, word)
+        narrow = browser.new_page(viewport={"width": 420, "height": 800})  # each lesson, as on a phone
+        for name, rel in [("", "index.html"), *lessons.items()]:
+            narrow.goto(f"{base}/{rel}")
+            seen["narrow"][rel] = narrow.evaluate(NARROW)
+            n = 0
+            if name:
+                seen["downloads"][name] = narrow.evaluate(
+                    "() => [...document.querySelectorAll('main a[download]')].map(a => a.getAttribute('href'))")
+                n = narrow.locator("main .printed-table table").count()
+                seen["tables"][name] = [_table_cells(narrow, k) for k in range(n)]
+            if name and "moved" not in seen:  # planted: the download link pointing at a file the site lacks
+                narrow.evaluate("() => document.querySelector('main a[download]').setAttribute('href', "
+                                "'notebooks/missing.ipynb')")
+                seen["moved"] = (name, narrow.evaluate(
+                    "() => [...document.querySelectorAll('main a[download]')].map(a => a.getAttribute('href'))"))
+            if n and "swapped" not in seen:  # planted: two cells of the first printed table swapped
+                narrow.evaluate("() => { const r = document.querySelector('main .printed-table table').rows[1];"
+                                " r.insertBefore(r.cells[1], r.cells[0]); }")
+                seen["swapped"] = (name, _table_cells(narrow, 0))
+        narrow.click(".menu-toggle")
+        seen["opened"] = narrow.evaluate(NARROW)
+        narrow.click(".menu-toggle")
+        narrow.add_style_tag(content="nav.sidebar { display: block !important; } main pre { overflow-x: visible "
+                             "!important; max-width: none !important; }")  # planted: the wide-screen layout
+        seen["narrow_planted"] = narrow.evaluate(NARROW)
+        browser.close()
+    return out, summary, seen
+
+
+def test_search_finds_a_word_of_a_lesson_and_opens_its_page(reader):
+    out, summary, seen = reader
+    page = summary["lesson_pages"]["03_losses_explained.ipynb"]
+    assert any(h.split("#")[0].endswith("/" + page) for h in seen["hits"]), (seen["word"], seen["hits"][:5])
+    assert seen["landed"][0].endswith("/" + page) and seen["landed"][1], seen["landed"]
+    index = book.book_reader.read_search_index((out / "_static" / book.SEARCH_INDEX).read_text(encoding="utf-8"))
+    assert {p["u"] for p in index["pages"]} >= set(summary["pages"])  # every page is searched
+    assert seen["hits_planted"] == [], seen["hits_planted"]  # planted: an index without the lesson finds nothing
+    assert any(h.startswith("file://") and h.split("#")[0].endswith("/" + page) for h in seen["hits_file"])
+
+
+def _download_problems(out: Path, name: str, hrefs: list[str]) -> list[str]:
+    """What is wrong with a lesson's download links: not one link, or its file missing or not the notebook."""
+    if len(hrefs) != 1:
+        return [f"{name}: {len(hrefs)} download links"]
+    target = out / hrefs[0]
+    if not target.is_file() or target.read_bytes() != (exercises.NOTEBOOK_DIR / name).read_bytes():
+        return [f"{name}: {hrefs[0]} is not the executed notebook"]
+    return []
+
+
+def test_each_lesson_links_its_notebook_and_the_file_is_there(reader):
+    out, summary, seen = reader
+    assert set(seen["downloads"]) == set(summary["notebooks"])
+    assert not [p for name, hrefs in seen["downloads"].items() for p in _download_problems(out, name, hrefs)]
+    assert all(hrefs == [f"notebooks/{name}"] for name, hrefs in seen["downloads"].items())
+    assert _download_problems(out, *seen["moved"])  # planted: a link to a file the site does not hold
+
+
+def test_printed_pipe_tables_are_tables(reader):
+    out, summary, seen = reader
+    counts = {}
+    for name in summary["notebooks"]:
+        expected = _printed_tables(exercises.NOTEBOOK_DIR / name)
+        counts[name[:2]] = len(expected)
+        assert seen["tables"][name] == expected, name  # every cell, in order
+    assert counts["04"] == 6 and counts["05"] >= 6 and counts["06"] == 6, counts
+    name, swapped = seen["swapped"]  # planted: the same cells, two of them swapped, are seen as wrong
+    first = seen["tables"][name][0]
+    assert swapped != first and sorted(map(sorted, swapped)) == sorted(map(sorted, first))
+
+
+def test_a_narrow_screen_hides_the_sidebar_behind_a_button(reader):
+    _, _, seen = reader
+    bad = {rel: _narrow_problems(s) for rel, s in seen["narrow"].items() if _narrow_problems(s)}
+    assert not bad
+    assert sum(s["scrollers"] for s in seen["narrow"].values()) > 0  # long code lines do scroll, visibly
+    assert seen["opened"]["sidebar"] and seen["opened"]["overflow"] <= 0  # the button opens it
+    planted = _narrow_problems(seen["narrow_planted"])  # planted: the wide layout at 420 px
+    assert len(planted) >= 2 and "sidebar" in planted[0], planted
+
+
+def test_the_landing_page_is_the_books_own(served_book):
+    """The landing page: the README's purpose, its key figure (the same PNG as notebook 05 stores), every
+    lesson linked in order, the commands to run them; the README is a page of its own."""
+    out, _, summary = served_book
+    page = (out / "index.html").read_text(encoding="utf-8")
+    text = html.unescape(re.sub(r"<[^>]+>", "", page))
+    readme = book.README.read_text(encoding="utf-8")
+    assert summary["key_figure"] and " ".join(book.book_reader.readme_purpose(readme)[0].split())[:40] in " ".join(
+        text.split()).replace("\u201c", '"').replace("\u201d", '"').replace("**", "")
+    name, section, _ = book.book_reader.key_figure_ref(readme)
+    png = book.book_reader.section_figure(json.loads((exercises.NOTEBOOK_DIR / name).read_text(encoding="utf-8")),
+                                          section)
+    shown = [out / src for src in re.findall(r'<img src="([^"]+)"', page)]
+    assert [p.read_bytes() for p in shown] == [png]
+    other = book.book_reader.section_figure(json.loads((exercises.NOTEBOOK_DIR / name).read_text(encoding="utf-8")),
+                                            "The second study: the paper's losses switched on")  # a wrong figure
+    assert other is not None and [p.read_bytes() for p in shown] != [other]
+    links = re.findall(r'<li>(?:<p>)?<a href="([\w.-]+\.html)">', page.split('id="the-lessons"')[1].split("</ol>")[0])
+    assert links == list(summary["lesson_pages"].values())  # every lesson, in order
+    assert "jupyter lab notebooks/" in text and "build the book" not in text.lower()
+    assert "readme.html" in summary["pages"]
