@@ -1,10 +1,22 @@
-"""``python -m geodepth_lite reproduce``: run the numbered notebooks, then write the report.
+"""``python -m geodepth_lite reproduce``: train the models, run the numbered notebooks, write the report.
 
-Each ``notebooks/NN_*.ipynb`` runs in order with papermill (parameters ``profile`` and
-``run_dir``, plus any ``-p NAME VALUE`` the notebooks declare) into ``runs/<profile>/``.
-Everything the user asked for is checked before the first notebook starts: the
-profile, the notebook selection, and that every extra parameter is declared in the
-``parameters`` cell of at least one selected notebook (with a value of the same type).
+Each ``notebooks/NN_*.ipynb`` runs with papermill (parameters ``profile`` and ``run_dir``, plus
+any ``-p NAME VALUE`` the notebooks declare) into ``runs/<profile>/``. Everything the user asked
+for is checked before anything starts: the profile, the notebook selection, and that every extra
+parameter is declared in the ``parameters`` cell of at least one selected notebook (with a value
+of the same type).
+
+The work is a set of jobs, each in a process of its own (``ProcessJob``): one per model the
+notebooks load that is not trained yet (``run_cache.train_run``), one per notebook. A notebook's
+job needs the jobs of the models it declares in its metadata (``notebook_models``). ``run_jobs``
+keeps as many jobs running as the cores hold at the profile's threads per run (two on two cores
+under ``teach``): while a model is left to train one of them trains, the longest chain of work
+first, and the others run the notebooks that are ready, so the notebooks that load no model run
+beside the training and each other one starts as soon as its models are trained. One progress
+line says what runs, how many jobs are done and about how long is left (``seconds_left``). A
+failed job stops new ones from starting, the running ones finish, and the command ends with one
+line naming it; everything finished is kept. The report is written after every job ended, from
+what the notebooks wrote, in the notebooks' order, whatever order they finished in.
 
 Output contract (what the notebooks write and the report reads), all under run_dir:
 - ``notebooks/NN_topic.ipynb``: the executed notebooks;
@@ -16,6 +28,7 @@ Output contract (what the notebooks write and the report reads), all under run_d
 - ``.reproduce/NN_topic.json``: written after a notebook finished; a rerun skips
   notebooks whose marker matches the notebook's source and parameters, so an
   interrupted ``reproduce`` continues where it stopped (``--force`` reruns all);
+- ``.reproduce/logs/<job>.txt``: what each job's process printed (a failed one's traceback);
 - ``report.md`` and ``report.json``: every table and figure, grouped by notebook.
 """
 
