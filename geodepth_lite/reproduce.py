@@ -517,7 +517,10 @@ class ProcessJob:
         if self.proc.is_alive():
             return None
         self.proc.join()
-        said = self._recv.recv() if self._recv.poll() else None
+        try:
+            said = self._recv.recv() if self._recv.poll() else None
+        except EOFError:  # it ended before it could say (e.g. it could not start)
+            said = None
         if self.proc.exitcode == 0 and said == "":
             return ""
         return said or f"{self.job.name} failed: its process ended with exit code {self.proc.exitcode}"

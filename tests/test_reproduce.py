@@ -344,6 +344,7 @@ def test_jobs_run_in_processes_of_their_own_and_a_failure_names_its_log(tmp_path
     the job and its log, which holds the traceback."""
     import functools
     import operator
+    import os
 
     ok, log = tmp_path / "ok.txt", tmp_path / "bad.txt"
     jobs = [reproduce.Job("writer", functools.partial(Path.write_text, ok, "x"), log=tmp_path / "w.txt"),
@@ -352,6 +353,9 @@ def test_jobs_run_in_processes_of_their_own_and_a_failure_names_its_log(tmp_path
         reproduce.run_jobs(jobs, 2, poll_s=0.05)
     assert str(err.value) == f"divider failed (ZeroDivisionError: division by zero); its output: {log}"
     assert ok.read_text() == "x" and "ZeroDivisionError" in log.read_text()
+    # a process that ends without a word (killed, or it could not start) is named with its exit code
+    with pytest.raises(reproduce.JobFailed, match="^quitter failed: its process ended with exit code 3$"):
+        reproduce.run_jobs([reproduce.Job("quitter", functools.partial(os._exit, 3))], 1, poll_s=0.05)
 
 
 # --------------------------------------------------------------------------- reproduce with fake jobs
