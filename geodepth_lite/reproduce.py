@@ -1,10 +1,22 @@
-"""``python -m geodepth_lite reproduce``: run the numbered notebooks, then write the report.
+"""``python -m geodepth_lite reproduce``: train the models, run the numbered notebooks, write the report.
 
-Each ``notebooks/NN_*.ipynb`` runs in order with papermill (parameters ``profile`` and
-``run_dir``, plus any ``-p NAME VALUE`` the notebooks declare) into ``runs/<profile>/``.
-Everything the user asked for is checked before the first notebook starts: the
-profile, the notebook selection, and that every extra parameter is declared in the
-``parameters`` cell of at least one selected notebook (with a value of the same type).
+Each ``notebooks/NN_*.ipynb`` runs with papermill (parameters ``profile`` and ``run_dir``, plus
+any ``-p NAME VALUE`` the notebooks declare) into ``runs/<profile>/``. Everything the user asked
+for is checked before anything starts: the profile, the notebook selection, and that every extra
+parameter is declared in the ``parameters`` cell of at least one selected notebook (with a value
+of the same type).
+
+The work is a set of jobs, each in a process of its own (``ProcessJob``): one per model the
+notebooks load that is not trained yet (``run_cache.train_run``), one per notebook. A notebook's
+job needs the jobs of the models it declares in its metadata (``notebook_models``). ``run_jobs``
+keeps as many jobs running as the cores hold at the profile's threads per run (two on two cores
+under ``teach``): while a model is left to train one of them trains, the longest chain of work
+first, and the others run the notebooks that are ready, so the notebooks that load no model run
+beside the training and each other one starts as soon as its models are trained. One progress
+line says what runs, how many jobs are done and about how long is left (``seconds_left``). A
+failed job stops new ones from starting, the running ones finish, and the command ends with one
+line naming it; everything finished is kept. The report is written after every job ended, from
+what the notebooks wrote, in the notebooks' order, whatever order they finished in.
 
 Output contract (what the notebooks write and the report reads), all under run_dir:
 - ``notebooks/NN_topic.ipynb``: the executed notebooks;
@@ -16,6 +28,7 @@ Output contract (what the notebooks write and the report reads), all under run_d
 - ``.reproduce/NN_topic.json``: written after a notebook finished; a rerun skips
   notebooks whose marker matches the notebook's source and parameters, so an
   interrupted ``reproduce`` continues where it stopped (``--force`` reruns all);
+- ``.reproduce/logs/<job>.txt``: what each job's process printed (a failed one's traceback);
 - ``report.md`` and ``report.json``: every table and figure, grouped by notebook.
 """
 
@@ -28,19 +41,30 @@ import functools
 import hashlib
 import json
 import logging
+import multiprocessing
 import os
+import shutil
+import signal
 import sys
 import time
+import traceback
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TextIO
 
 from geodepth_lite import config, run_cache, study, study2, utils
+from geodepth_lite.datasets import resolve_dataset
 from geodepth_lite.tables import markdown_table
 
 MARKER_DIR = ".reproduce"
+JOB_POLL_S = 0.5  # seconds between two looks at the running jobs
 
 
-class NotebookFailed(RuntimeError):
+class JobFailed(RuntimeError):
+    """A job of ``reproduce`` (a training run or a notebook) failed; the one-line message names it."""
+
+
+class NotebookFailed(JobFailed):
     """A notebook raised while running; the message names it and its executed copy."""
 
 
@@ -189,6 +213,23 @@ def notebook_models(nb: Path) -> list[dict]:
     return specs
 
 
+def notebook_runs(profile: str, nb: Path, given: dict) -> tuple[list[tuple[int, int, dict]], int | None]:
+    """The models notebook ``nb`` loads with its parameters ``given`` (over its defaults), as
+    (case, seed, overrides) runs, and the worker count it asks for (None: none asked)."""
+    p = {**notebook_parameters(nb), **given}
+    runs: list[tuple[int, int, dict]] = []
+    workers = None
+    for spec in notebook_models(nb):
+        value = lambda key: p[spec[key]] if isinstance(spec.get(key), str) else spec[key]  # noqa: E731
+        cases = value("cases") if "cases" in spec else [value("case")]
+        seeds = value("seeds") if "seeds" in spec else [value("seed")]
+        overrides = SETTINGS[spec["settings"]](profile)
+        runs += [(int(c), int(s), dict(overrides)) for c in cases for s in seeds]
+        if "workers" in spec:
+            workers = int(value("workers")) or None
+    return runs, workers
+
+
 def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tuple[int, int, dict]], int | None]:
     """The models that the notebooks of ``plan`` ([(notebook, its parameters)]) declare
     (``notebook_models``), as (case, seed, overrides) runs for ``run_cache.ensure_runs``, and the
@@ -197,24 +238,20 @@ def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tup
     runs: list[tuple[int, int, dict]] = []
     workers = None
     for nb, given in plan:
-        p = {**notebook_parameters(nb), **given}
-        for spec in notebook_models(nb):
-            value = lambda key: p[spec[key]] if isinstance(spec.get(key), str) else spec[key]  # noqa: E731
-            cases = value("cases") if "cases" in spec else [value("case")]
-            seeds = value("seeds") if "seeds" in spec else [value("seed")]
-            overrides = SETTINGS[spec["settings"]](profile)
-            runs += [(int(c), int(s), dict(overrides)) for c in cases for s in seeds]
-            if "workers" in spec:
-                workers = int(value("workers")) or None
+        nb_runs, nb_workers = notebook_runs(profile, nb, given)
+        runs += nb_runs
+        workers = nb_workers if nb_workers is not None else workers
     unique = [r for i, r in enumerate(runs) if r not in runs[:i]]
     return unique, workers
 
 
 def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, params: dict[str, Any] | None = None,
               run_dir: str | os.PathLike | None = None, force: bool = False, progress: bool = True,
-              dry_run: bool = False) -> Path:
-    """Run the selected numbered notebooks into ``run_dir`` (default runs/<profile>/) and write
-    report.md / report.json there; returns the report.md path. Checks everything first."""
+              dry_run: bool = False, start: Callable[[Job], Any] | None = None) -> Path:
+    """Train the models the selected numbered notebooks load and run the notebooks into ``run_dir``
+    (default runs/<profile>/), side by side (``plan_jobs``, ``run_jobs``), then write report.md /
+    report.json there; returns the report.md path. Checks everything first. ``start``: how a job is
+    started (default: ``ProcessJob``, a process of its own)."""
     config.get_profile(profile)
     selected = select_notebooks(notebooks, list_notebooks())
     if not selected:
@@ -232,19 +269,101 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
             print(f"{'skip' if done else 'run '} {nb.name} {p}")
         return out / "report.md"
     log = _read_json(out / "report.json").get("notebooks", {}) if (out / "report.json").exists() else {}
-    train_models(profile, *training_runs(profile, [(nb, p) for nb, p, done in plan if not done]), progress=progress)
-    for nb, p, done in plan:
+    for nb, _, done in plan:
         if done:
             print(f"[reproduce] {nb.name}: complete, skipped (--force reruns it)", flush=True)
-            continue
-        seconds = run_notebook(nb, p, out, inject_run_dir=not (run_dir is None and str(out) == str(
-            resolve_run_dir(profile, ""))), progress=progress)
-        log[nb.stem] = {"seconds": round(seconds, 1)}
+    inject = not (run_dir is None and str(out) == str(resolve_run_dir(profile, "")))
+    jobs, slots = plan_jobs(profile, plan, out, inject_run_dir=inject, progress=progress)
+    if jobs:
+        trains = sum(j.kind == "train" for j in jobs)
+        print(f"[reproduce] {trains} model(s) to train and {len(jobs) - trains} notebook(s) to run, {slots} at a "
+              f"time (an interrupted run continues from its last epoch; each job's output: "
+              f"{out / MARKER_DIR / 'logs'})", flush=True)
+        run_jobs(jobs, slots, start=start or functools.partial(ProcessJob, env=job_env(profile)),
+                 show=JobProgress(len(jobs), slots, enabled=progress))
+    ran = {nb.stem for nb, _, done in plan if not done}
     for nb, _, _ in plan:
         m = out / MARKER_DIR / f"{nb.stem}.json"
-        if m.exists() and nb.stem not in log:
+        if m.exists() and (nb.stem in ran or nb.stem not in log):
             log[nb.stem] = {"seconds": round(_read_json(m).get("seconds", float("nan")), 1)}
     return write_report(out, profile, log)
+
+
+def job_env(profile: str) -> dict:
+    """The environment of each job's process: where the profile fixes the threads per run, a
+    notebook's kernel gets as many (training sets its own from the configuration)."""
+    threads = config.make_config(profile)["threads"]
+    return {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)} if threads else {}
+
+
+def job_slots(profile: str, workers: int | None) -> int:
+    """Jobs at once: ``workers`` when a notebook asks for it, else the cores over the profile's
+    threads per run (one where the profile does not fix them)."""
+    if workers:
+        return workers
+    threads = config.make_config(profile)["threads"]
+    return max(1, (os.cpu_count() or 1) // threads) if threads else 1
+
+
+def recorded_seconds(nb: Path, default: float = 60.0) -> float:
+    """How long ``nb`` took when it was last executed: the duration papermill recorded in its
+    metadata (``metadata.papermill.duration``, the record docs/timings.md states), else ``default``."""
+    duration = json.loads(nb.read_text()).get("metadata", {}).get("papermill", {}).get("duration")
+    return float(duration) if isinstance(duration, (int, float)) and duration > 0 else default
+
+
+def run_label(profile: str, case: int, seed: int, overrides: dict) -> str:
+    """A training job's name: "case 4 seed 0 (predict model, 96 px)", "case 1 seed 2 (64 px)"."""
+    size = config.make_config(profile, case, seed, **overrides)["image_size"]
+    kind = next((k for k, f in SETTINGS.items() if k != "ablation" and overrides and f(profile) == overrides), "")
+    return f"case {case} seed {seed} ({kind + ' model, ' if kind else ''}{size} px)"
+
+
+def plan_jobs(profile: str, plan: list[tuple[Path, dict, bool]], out: Path, *, inject_run_dir: bool,
+              progress: bool) -> tuple[list[Job], int]:
+    """The jobs of ``plan`` ([(notebook, parameters, done)]) and how many run at once: one per model
+    the notebooks not done load that is not trained yet (``run_cache.train_run``), then one per
+    notebook not done (``run_notebook``), needing the jobs of the models it loads. Datasets (and
+    the ablation's evaluation sets) are built here first, before any job starts."""
+    todo = [(nb, p) for nb, p, done in plan if not done]
+    runs, workers = training_runs(profile, todo)
+    folders: dict[Path, str] = {}
+    train = []
+    for c, s, o in runs:
+        folder = run_cache.checkpoint_dir(profile, c, s, **o)
+        if folder not in folders and not run_cache.is_complete(profile, c, s, **o):
+            name = run_label(profile, c, s, o)
+            folders[folder] = name if name not in folders.values() else f"{name} [{folder.name}]"
+            train.append((c, s, o, folder))
+    scoring = any(spec["settings"] == "ablation" for nb, _ in todo for spec in notebook_models(nb))
+    after = prepare_training(profile, [(c, s, o) for c, s, o, _ in train], progress=progress, sets=scoring)
+    logs = out / MARKER_DIR / "logs"
+    jobs = [Job(folders[folder], functools.partial(run_cache.train_run, profile, c, s, o, after=after), (),
+                60 * run_cache.estimated_minutes(config.make_config(profile, c, s, **o)), "train",
+                logs / f"{folder.name}.txt") for c, s, o, folder in train]
+    for nb, p in todo:
+        wanted = [run_cache.checkpoint_dir(profile, c, s, **o) for c, s, o in notebook_runs(profile, nb, p)[0]]
+        needs = tuple(dict.fromkeys(folders[f] for f in wanted if f in folders))
+        jobs.append(Job(nb.stem, functools.partial(run_notebook, nb, p, out, inject_run_dir=inject_run_dir,
+                                                   progress=False), needs, recorded_seconds(nb), "notebook",
+                        logs / f"{nb.stem}.txt"))
+    if jobs:
+        utils.make_dir(logs)
+    return jobs, job_slots(profile, workers)
+
+
+def prepare_training(profile: str, runs: list[tuple[int, int, dict]], *, progress: bool, sets: bool = False):
+    """Before the ``runs`` train: each one's dataset found or built, and where one is a run of the
+    ablation's default subset, the evaluation sets that its training process scores it on (with
+    ``sets``, in any case: notebooks that score the ablation's runs read them, and jobs running side
+    by side then never build one dataset twice at once). Returns the ``after`` hook for
+    ``run_cache.train_run`` (None when no run is scored)."""
+    for c, s, o in runs:
+        resolve_dataset(config.make_config(profile, c, s, **o), progress=progress)
+    scored = any(study.is_subset_run(profile, *r) for r in runs)
+    if scored or sets:
+        study.evaluation_sets(profile, progress=progress)  # scored by the process that trains it, on these sets
+    return functools.partial(study.score_if_subset_run, profile) if scored else None
 
 
 def train_models(profile: str, runs: list[tuple[int, int, dict]], workers: int | None, *, progress: bool) -> None:
@@ -256,10 +375,7 @@ def train_models(profile: str, runs: list[tuple[int, int, dict]], workers: int |
     print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
           "(an interrupted one continues from its last epoch) ...", flush=True)
     t0 = time.perf_counter()
-    after = None
-    if any(study.is_subset_run(profile, *r) for r in todo):  # scored by the process that trains it, on these sets
-        study.evaluation_sets(profile, progress=progress)
-        after = functools.partial(study.score_if_subset_run, profile)
+    after = prepare_training(profile, todo, progress=progress)
     run_cache.ensure_runs(profile, todo, workers=workers, progress=progress, after=after)
     print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
 
@@ -336,6 +452,223 @@ def write_report(run_dir: Path, profile: str, notebook_log: dict | None = None) 
     utils.write_json_atomic(run_dir / "report.json", report)
     utils.write_bytes_atomic(run_dir / "report.md", "\n".join(md).encode())
     return run_dir / "report.md"
+
+
+# --------------------------------------------------------------------------- the jobs and their scheduler
+
+
+@dataclass
+class Job:
+    """One training run or one notebook execution. ``fn()`` does it (picklable: it runs in a process
+    of its own); it starts once every job named in ``needs`` has finished. ``seconds``: its expected
+    duration (the progress line's estimate); ``kind``: "train" or "notebook"; ``log``: where its
+    process's output goes (None: the console)."""
+
+    name: str
+    fn: Callable[[], Any]
+    needs: tuple[str, ...] = ()
+    seconds: float = 0.0
+    kind: str = "train"
+    log: Path | None = None
+
+
+def _job_main(name: str, fn: Callable[[], Any], conn, log: str | None, env: dict) -> None:
+    """A job's process: its output into ``log``, ``env`` over the environment (a notebook's kernel
+    inherits it), then ``fn()``; sends "" on success, else the one line naming the job."""
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # stopped: clean up (a notebook's kernel) and end
+    os.environ.update(env)
+    if log is not None:
+        fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        os.dup2(fd, 1)
+        os.dup2(fd, 2)
+    try:
+        fn()
+    except BaseException as exc:  # noqa: BLE001 - every failure goes back as one line
+        conn.send(failure_line(name, exc, log))
+        traceback.print_exc()  # into its log
+        sys.stderr.flush()
+        raise SystemExit(1) from None
+    conn.send("")
+
+
+def failure_line(name: str, exc: BaseException, log: str | None = None) -> str:
+    """One line naming the failed job: a notebook's own message, else the job, the error and its log."""
+    if isinstance(exc, NotebookFailed):
+        return " ".join(str(exc).split())
+    first = (str(exc).strip().splitlines() or [""])[0]
+    where = f"; its output: {log}" if log else ""
+    return f"{name} failed ({type(exc).__name__}: {first}){where}"[:2000]
+
+
+class ProcessJob:
+    """A job running in a process of its own (spawned: no state shared with this one)."""
+
+    def __init__(self, job: Job, env: dict | None = None):
+        ctx = multiprocessing.get_context("spawn")
+        self.job = job
+        self._recv, send = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=_job_main, args=(job.name, job.fn, send, str(job.log) if job.log else None,
+                                                        dict(env or {})), name=f"reproduce {job.name}")
+        self.proc.start()
+        send.close()
+
+    def result(self) -> str | None:
+        """None while it runs; "" once it finished; the one line that names it once it failed."""
+        if self.proc.is_alive():
+            return None
+        self.proc.join()
+        try:
+            said = self._recv.recv() if self._recv.poll() else None
+        except EOFError:  # it ended before it could say (e.g. it could not start)
+            said = None
+        if self.proc.exitcode == 0 and said == "":
+            return ""
+        return said or f"{self.job.name} failed: its process ended with exit code {self.proc.exitcode}"
+
+    def stop(self) -> None:
+        """Stop it (Ctrl-C or an error here): SIGTERM lets it clean up; SIGKILL after 30 s."""
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(30)
+            if self.proc.is_alive():
+                self.proc.kill()
+                self.proc.join()
+
+
+def chain_seconds(jobs: list[Job], own: dict[str, float]) -> dict[str, float]:
+    """Per job, ``own`` seconds of it plus the longest chain of jobs that wait on it (critical path)."""
+    after: dict[str, list[str]] = {j.name: [] for j in jobs}
+    for j in jobs:
+        for n in j.needs:
+            after.setdefault(n, []).append(j.name)
+    memo: dict[str, float] = {}
+
+    def chain(name: str) -> float:
+        if name not in memo:
+            memo[name] = own.get(name, 0.0) + max((chain(n) for n in after.get(name, [])), default=0.0)
+        return memo[name]
+
+    return {j.name: chain(j.name) for j in jobs}
+
+
+def seconds_left(jobs: list[Job], done: set[str], elapsed: dict[str, float], slots: int) -> float:
+    """About how long the jobs not done yet still take on ``slots`` workers: their expected seconds
+    (a running job's less its ``elapsed``, at least 0) over the workers, or the longest chain of
+    them where that is longer."""
+    own = {j.name: 0.0 if j.name in done else max(j.seconds - elapsed.get(j.name, 0.0), 0.0) for j in jobs}
+    chains = chain_seconds(jobs, own)
+    return max(sum(own.values()) / max(slots, 1), max(chains.values(), default=0.0))
+
+
+def next_job(waiting: list[Job], done: set[str], running: list[Job], rank: dict[str, float]) -> Job | None:
+    """The job to start next, of those ``waiting`` whose needs are ``done``: while no training run
+    is ``running``, the training run with the longest chain of work (``rank``) waiting on it, so the
+    models, which everything else waits for, always train; else the ready notebooks before the
+    training runs, each by its chain (the longest first). None when none is ready."""
+    ready = [j for j in waiting if set(j.needs) <= done]
+    trains = [j for j in ready if j.kind == "train"]
+    if trains and not any(j.kind == "train" for j in running):
+        return min(trains, key=lambda j: -rank[j.name])
+    return min(ready, key=lambda j: (j.kind != "notebook", -rank[j.name]), default=None)
+
+
+def run_jobs(jobs: list[Job], slots: int, *, start: Callable[[Job], Any] = ProcessJob,
+             show: JobProgress | None = None, poll_s: float | None = None) -> None:
+    """Run ``jobs``, at most ``slots`` at once, each once the jobs it ``needs`` finished, in the
+    order of ``next_job``. ``start(job)`` starts one and returns a handle with ``result()`` (None
+    while running, "" done, else the failure's line) and ``stop()``. A failed job stops new ones
+    from starting; the running ones finish, then :class:`JobFailed` names it. Ctrl-C (or an error
+    here) stops the running jobs and is raised again."""
+    names = [j.name for j in jobs]
+    unknown = sorted({n for j in jobs for n in j.needs} - set(names))
+    if len(set(names)) != len(names) or unknown:
+        raise ValueError(f"jobs: names must be unique and every need a job's name (unknown: {unknown})")
+    show = show or JobProgress(len(jobs), slots, enabled=False)
+    rank = chain_seconds(jobs, {j.name: j.seconds for j in jobs})
+    waiting = list(jobs)
+    running: dict[str, tuple[Job, Any, float]] = {}
+    done: set[str] = set()
+    failed: list[str] = []
+    try:
+        while waiting or running:
+            while not failed and len(running) < slots:
+                job = next_job(waiting, done, [j for j, _, _ in running.values()], rank)
+                if job is None:
+                    break
+                waiting.remove(job)
+                running[job.name] = (job, start(job), time.monotonic())
+                show.event(f"started {job.name}")
+            if not running:  # a failure, or needs that can never be met
+                break
+            ended = [(name, h.result()) for name, (_, h, _) in list(running.items())]
+            ended = [(name, r) for name, r in ended if r is not None]
+            for name, reason in ended:
+                job, _, t0 = running.pop(name)
+                if reason:
+                    failed.append(reason)
+                    show.event(f"FAILED {name} after {time.monotonic() - t0:.0f} s")
+                else:
+                    done.add(name)
+                    show.event(f"{name} done in {time.monotonic() - t0:.0f} s")
+            now = time.monotonic()
+            show.update(list(running), len(done), seconds_left(
+                jobs, done, {n: now - t0 for n, (_, _, t0) in running.items()}, slots), changed=bool(ended))
+            if not ended:
+                time.sleep(JOB_POLL_S if poll_s is None else poll_s)
+    except BaseException:
+        for _, handle, _ in running.values():
+            handle.stop()
+        raise
+    finally:
+        show.close()
+    if failed:
+        raise JobFailed(failed[0] + (f" ({len(waiting)} job(s) not started; run the same command again to continue: "
+                                     "finished work is kept)" if waiting else ""))
+    if waiting:
+        raise RuntimeError(f"jobs never ready: {', '.join(j.name for j in waiting)}")
+
+
+class JobProgress:
+    """One progress line: what runs, how many jobs of all are done, about how long is left. On a
+    terminal it is rewritten in place (as tqdm does); elsewhere it is printed as a plain line when a
+    job starts or ends and every ``every`` seconds. ``enabled`` False: only the started/done lines."""
+
+    def __init__(self, total: int, slots: int, *, enabled: bool = True, stream: TextIO | None = None,
+                 tty: bool | None = None, every: float = 60.0):
+        self.total, self.slots, self.enabled, self.every = total, slots, enabled, every
+        self.stream = stream or sys.stdout
+        self.tty = self.stream.isatty() if tty is None else tty
+        self.last, self.shown = 0.0, ""
+
+    def line(self, running: list[str], done: int, left: float) -> str:
+        when = "under a minute" if left < 60 else f"about {left / 60:.0f} min"
+        return f"[reproduce] {done}/{self.total} done; running: {', '.join(running) or 'nothing'}; {when} left"
+
+    def event(self, text: str) -> None:
+        clear = "\r\x1b[K" if self.tty and self.shown else ""
+        self.stream.write(f"{clear}[reproduce] {text}\n")
+        if self.tty and self.shown:
+            self.stream.write(self.shown)
+        self.stream.flush()
+
+    def update(self, running: list[str], done: int, left: float, *, changed: bool = False) -> None:
+        if not self.enabled:
+            return
+        text, now = self.line(running, done, left), time.monotonic()
+        if self.tty:
+            width = shutil.get_terminal_size((120, 20)).columns - 1
+            self.shown = "\r" + text[:width] + "\x1b[K"
+            self.stream.write(self.shown)
+        elif changed or now - self.last >= self.every:
+            self.stream.write(text + "\n")
+            self.last = now
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty and self.shown:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.shown = ""
 
 
 # --------------------------------------------------------------------------- CLI
@@ -456,7 +789,7 @@ def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
     try:
         report = reproduce(args.profile, notebooks=args.notebooks, params=params, run_dir=args.out,
                            force=args.force, progress=not args.no_progress, dry_run=args.dry_run)
-    except NotebookFailed as exc:
+    except JobFailed as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     if not args.dry_run:

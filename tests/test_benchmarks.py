@@ -306,3 +306,25 @@ def test_the_docs_state_the_recorded_sdf_loss_comparison():
             assert rec[f"compare_{side}{k}_s"] == sorted(rec["compare_times"][f"{side}{k}"])[rec["repeats"] // 2]
     assert stated_compare_figures_hold(text, rec)
     assert not stated_compare_figures_hold(text.replace("| 1.99x |", "| 2.99x |"), rec)  # the check can fail
+
+
+def test_bench_step_precision_times_the_variants_side_by_side(tmp_path, capsys):
+    """At a tiny size: float32 and channels_last on the same batch and weights, each repetition's
+    ratio over float32's in the same repetition, and the channels_last network really in that format."""
+    out = tmp_path / "levers.json"
+    g = load("bench_step_precision.py")
+    assert g["main"](["--profile", "smoke", "--case", "1", "--frames", "4", "--steps", "2", "--repeats", "2",
+                      "--variants", "channels_last", "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert list(rec["variants"]) == ["fp32", "channels_last"] and rec["threads"] == 1
+    fp32, cl = rec["variants"]["fp32"], rec["variants"]["channels_last"]
+    assert fp32["ratio"] == 1.0 and len(cl["repetitions_s"]) == 2
+    assert cl["paired_ratios"] == [a / b for a, b in zip(cl["repetitions_s"], fp32["repetitions_s"])]
+    assert "| channels_last |" in capsys.readouterr().out
+    cfg = config.make_config("smoke", 1, 0)
+    net = train.build_network(cfg)
+    batch = {"image": torch.zeros(2, 3, 32, 32)}
+    s = g["Stepper"](net, cfg, batch, [], False, True)
+    assert s.batch["image"].is_contiguous(memory_format=torch.channels_last)
+    assert all(p.is_contiguous(memory_format=torch.channels_last) for p in s.net.parameters() if p.dim() == 4)
+    assert not all(p.is_contiguous(memory_format=torch.channels_last) for p in net.parameters() if p.dim() == 4)

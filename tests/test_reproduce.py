@@ -191,3 +191,286 @@ def test_the_study2_target_runs_notebook_05_on_the_second_studys_tables(tmp_path
     run_dir = tmp_path / "run"
     assert cli.main(["reproduce", "--study2", "--out", str(run_dir), "--no-progress"]) == 0
     assert calls == ["teach"] and (run_dir / "seen.txt").read_text() == str(tables)
+
+
+# --------------------------------------------------------------------------- the jobs' scheduler (fake jobs)
+
+
+class ThreadJob:
+    """A stand-in for ``reproduce.ProcessJob``: the job's function in a thread of this process."""
+
+    def __init__(self, job, env=None):
+        import threading
+
+        self.job, self.error = job, None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        try:
+            self.job.fn()
+        except Exception as exc:  # noqa: BLE001 - the scheduler reports it
+            self.error = reproduce.failure_line(self.job.name, exc)
+
+    def result(self):
+        return None if self.thread.is_alive() else (self.error or "")
+
+    def stop(self):
+        pass
+
+
+class Timeline:
+    """Fake jobs that record when they start and end (seconds since the first start)."""
+
+    def __init__(self):
+        import threading
+        import time
+
+        self.lock, self.t0, self.clock, self.spans = threading.Lock(), time.monotonic(), time.monotonic, {}
+
+    def job(self, name, seconds, fail=False):
+        def fn():
+            import time
+
+            with self.lock:
+                self.spans[name] = [self.clock() - self.t0, None]
+            time.sleep(seconds)
+            with self.lock:
+                self.spans[name][1] = self.clock() - self.t0
+            if fail:
+                raise RuntimeError("planted failure")
+
+        return fn
+
+
+def max_running(spans: dict) -> int:
+    """The most jobs whose [start, end) intervals overlap at one instant."""
+    edges = sorted([(s, 1) for s, _ in spans.values()] + [(e, -1) for _, e in spans.values()])  # ends first
+    now = most = 0
+    for _, step in edges:
+        now += step
+        most = max(most, now)
+    return most
+
+
+def too_early(spans: dict, needs: dict) -> list[str]:
+    """The jobs that started before one of the jobs they need had ended."""
+    return [n for n, ns in needs.items() if n in spans and any(spans[n][0] < spans[d][1] for d in ns)]
+
+
+def test_the_timeline_checks_catch_a_bad_schedule():
+    """The two checks below flag three jobs at once, and a job started before its need ended."""
+    bad = {"a": [0.0, 1.0], "b": [0.1, 0.5], "c": [0.2, 0.6], "n": [0.9, 1.2]}
+    assert max_running(bad) == 3 and max_running({"a": [0, 1], "b": [1, 2]}) == 1
+    assert too_early(bad, {"n": ("a",), "c": ("b",)}) == ["n", "c"]
+    assert too_early(bad, {"n": ("b", "c")}) == []
+
+
+def _fake_jobs(tl: Timeline, fail: str = ""):
+    J = reproduce.Job
+    jobs = [J("predict", tl.job("predict", 0.30, fail == "predict"), seconds=600),
+            J("abl1", tl.job("abl1", 0.12), seconds=180), J("abl2", tl.job("abl2", 0.12), seconds=180),
+            J("abl3", tl.job("abl3", 0.12), seconds=180),
+            J("nb00", tl.job("nb00", 0.05), (), 4, "notebook"), J("nb01", tl.job("nb01", 0.05), (), 21, "notebook"),
+            J("nb04", tl.job("nb04", 0.05), ("predict",), 50, "notebook"),
+            J("nb05", tl.job("nb05", 0.05), ("abl1", "abl2", "abl3"), 30, "notebook"),
+            J("nb07", tl.job("nb07", 0.05), ("predict", "abl1"), 37, "notebook")]
+    return jobs, {j.name: j.needs for j in jobs}
+
+
+def test_the_scheduler_keeps_two_jobs_running_each_after_its_needs():
+    """At most two at once (and two at once while enough are ready); a notebook only after the
+    models it loads; the notebooks that load none start while the models still train."""
+    tl = Timeline()
+    jobs, needs = _fake_jobs(tl)
+    reproduce.run_jobs(jobs, 2, start=ThreadJob, poll_s=0.002)
+    spans = tl.spans
+    assert sorted(spans) == sorted(needs) and all(e is not None for _, e in spans.values())
+    assert max_running(spans) == 2
+    assert too_early(spans, needs) == []
+    first_model = min(spans[n][1] for n in ("predict", "abl1", "abl2", "abl3"))
+    assert spans["nb00"][0] < first_model  # beside the models from the start, not after them
+    assert spans["predict"][0] < spans["abl1"][0]  # the longest chain of work first among the models
+
+
+def test_a_failed_job_stops_new_ones_and_is_named():
+    """The failed job is named in one line; the job running beside it finishes; no job starts after."""
+    tl = Timeline()
+    jobs, _ = _fake_jobs(tl, fail="predict")
+    with pytest.raises(reproduce.JobFailed) as err:
+        reproduce.run_jobs(jobs, 2, start=ThreadJob, poll_s=0.002)
+    msg = str(err.value)
+    assert msg.startswith("predict failed (RuntimeError: planted failure)") and "\n" not in msg
+    failed_at = tl.spans["predict"][1]
+    assert all(s < failed_at for n, (s, _) in tl.spans.items())  # nothing started after the failure
+    assert all(e is not None for _, e in tl.spans.values())  # the running ones finished
+    assert "nb04" not in tl.spans and "nb07" not in tl.spans
+
+
+def test_the_time_left_counts_the_longest_chain_and_the_workers():
+    """Hand-computed: A 100 s and B 100 s, C 50 s after A, on two workers: the chain A-C (150 s) is
+    longer than the work over the workers (250 / 2); A 40 s in, 110 s; everything done, 0."""
+    J = reproduce.Job
+    jobs = [J("A", None, (), 100), J("B", None, (), 100), J("C", None, ("A",), 50, "notebook")]
+    assert reproduce.seconds_left(jobs, set(), {}, 2) == 150
+    assert reproduce.seconds_left(jobs, set(), {"A": 40, "B": 40}, 2) == 110
+    assert reproduce.seconds_left(jobs, {"A"}, {"B": 90}, 1) == 60
+    assert reproduce.seconds_left(jobs, {"A", "B", "C"}, {}, 2) == 0
+    assert reproduce.seconds_left([J("A", None, (), 100), J("B", None, (), 100)], set(), {}, 2) == 100
+
+
+def test_the_progress_line_in_place_on_a_terminal_and_as_lines_elsewhere():
+    import io
+
+    plain = io.StringIO()
+    show = reproduce.JobProgress(9, 2, stream=plain, tty=False, every=3600)
+    show.update(["predict", "nb00"], 3, 600, changed=True)
+    show.update(["predict", "nb00"], 3, 590)  # nothing changed, not yet time for a line
+    show.event("nb00 done in 4 s")
+    assert plain.getvalue() == ("[reproduce] 3/9 done; running: predict, nb00; about 10 min left\n"
+                                "[reproduce] nb00 done in 4 s\n")
+    term = io.StringIO()
+    show = reproduce.JobProgress(9, 2, stream=term, tty=True)
+    show.update(["predict"], 4, 30)
+    show.update(["abl1"], 5, 20)
+    assert "\n" not in term.getvalue() and term.getvalue().count("\r") == 2
+    assert term.getvalue().endswith("[reproduce] 5/9 done; running: abl1; under a minute left\x1b[K")
+    show.close()
+    assert term.getvalue().endswith("\n")
+
+
+def test_jobs_run_in_processes_of_their_own_and_a_failure_names_its_log(tmp_path):
+    """The real ``ProcessJob``: one job writes a file, one divides by zero; the failure's line names
+    the job and its log, which holds the traceback."""
+    import functools
+    import operator
+    import os
+
+    ok, log = tmp_path / "ok.txt", tmp_path / "bad.txt"
+    jobs = [reproduce.Job("writer", functools.partial(Path.write_text, ok, "x"), log=tmp_path / "w.txt"),
+            reproduce.Job("divider", functools.partial(operator.truediv, 1, 0), log=log)]
+    with pytest.raises(reproduce.JobFailed) as err:
+        reproduce.run_jobs(jobs, 2, poll_s=0.05)
+    assert str(err.value) == f"divider failed (ZeroDivisionError: division by zero); its output: {log}"
+    assert ok.read_text() == "x" and "ZeroDivisionError" in log.read_text()
+    # a process that ends without a word (killed, or it could not start) is named with its exit code
+    with pytest.raises(reproduce.JobFailed, match="^quitter failed: its process ended with exit code 3$"):
+        reproduce.run_jobs([reproduce.Job("quitter", functools.partial(os._exit, 3))], 1, poll_s=0.05)
+
+
+# --------------------------------------------------------------------------- reproduce with fake jobs
+
+
+@pytest.fixture
+def fake_jobs(tmp_path, monkeypatch):
+    """Notebooks 01 (no model), 02 (cases 1 and 2 of the ablation) and 03 (no model); training and
+    notebook execution replaced by fakes that record their spans and write tables as a notebook does;
+    the jobs run in threads. Case 2 trains longest: 02 ends last."""
+    from geodepth_lite import notebook, run_cache
+
+    d = tmp_path / "nbs"
+    d.mkdir()
+    params = 'profile = "teach"  # p\nrun_dir = ""  # out'
+    for name in ("01_first", "02_models", "03_third"):
+        _notebook(d / f"{name}.ipynb", params, "x = 1")
+    nb = nbformat.read(str(d / "02_models.ipynb"), as_version=4)
+    nb.metadata["geodepth_lite"] = {"models": [{"cases": [1, 2], "seeds": [0], "settings": "ablation"}]}
+    nbformat.write(nb, str(d / "02_models.ipynb"))
+    monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)
+    tl = Timeline()
+    delay = {"01_first": 0.3, "02_models": 0.02, "03_third": 0.01, "case1": 0.1, "case2": 0.8}
+
+    def fake_notebook(nb, params, out, *, inject_run_dir, progress):
+        tl.job(nb.stem, delay[nb.stem])()
+        k = nb.stem[:2]
+        notebook.save_table(out, f"{k}_numbers", ["what", "value"], [["k", int(k)]], title=f"T{k}")
+        (out / "figures").mkdir(exist_ok=True)
+        (out / "figures" / f"{k}_line.png").write_bytes(b"png")
+        reproduce.utils.write_json_atomic(out / reproduce.MARKER_DIR / f"{nb.stem}.json",
+                                          {**reproduce._marker(nb, params), "seconds": float(k) * 60})
+        return float(k)
+
+    def fake_train(profile, case, seed, overrides, *, after=None, progress=False):
+        tl.job(f"case{case}", delay[f"case{case}"])()
+
+    monkeypatch.setattr(reproduce, "run_notebook", fake_notebook)
+    monkeypatch.setattr(run_cache, "train_run", fake_train)
+    monkeypatch.setattr(run_cache, "is_complete", lambda *a, **k: False)
+    monkeypatch.setattr(reproduce, "prepare_training", lambda *a, **k: None)
+    monkeypatch.setattr(reproduce, "ProcessJob", ThreadJob)
+    monkeypatch.setattr(reproduce, "JOB_POLL_S", 0.005)
+    return tl
+
+
+def test_reproduce_trains_and_runs_side_by_side_and_the_report_keeps_its_order(fake_jobs, capsys):
+    """Through the command: two at once, notebook 02 after both of its models, 01 and 03 beside them
+    while they train; 02 ends last, and the report still reads 01, 02, 03."""
+    from geodepth_lite import cli
+
+    assert cli.main(["reproduce", "--profile", "smoke"]) == 0
+    spans = fake_jobs.spans
+    assert sorted(spans) == ["01_first", "02_models", "03_third", "case1", "case2"]
+    assert max_running(spans) == 2
+    assert too_early(spans, {"02_models": ("case1", "case2")}) == []
+    assert spans["01_first"][0] < min(spans["case1"][1], spans["case2"][1])
+    assert spans["03_third"][0] < spans["case2"][1]
+    assert spans["02_models"][1] > max(spans["01_first"][1], spans["03_third"][1])  # 02 ended last
+    out = reproduce.utils.runs_dir() / "smoke"
+    md = (out / "report.md").read_text()
+    heads = [line for line in md.splitlines() if line.startswith("## ")]
+    assert heads == ["## 01_first", "## 02_models", "## 03_third"]
+    assert md.index("| 01_first | 1.0 |") < md.index("| 02_models | 2.0 |") < md.index("| 03_third | 3.0 |")
+    report = json.loads((out / "report.json").read_text())
+    assert list(report["tables"]) == ["01_numbers", "02_numbers", "03_numbers"]
+    assert report["figures"] == ["figures/01_line.png", "figures/02_line.png", "figures/03_line.png"]
+    said = capsys.readouterr().out
+    assert "2 model(s) to train and 3 notebook(s) to run, 2 at a time" in said
+    assert "[reproduce] 5/5 done; running: nothing; under a minute left" in said
+
+
+def test_a_failed_training_job_ends_the_command_with_its_name(fake_jobs, monkeypatch, capsys):
+    """Case 2's training fails: one line names it, exit 1; the notebook that loads it never starts,
+    the notebooks that ran beside it keep what they wrote; no report."""
+    from geodepth_lite import cli, run_cache
+
+    trained = run_cache.train_run
+
+    def failing(profile, case, seed, overrides, **kw):
+        trained(profile, case, seed, overrides, **kw)
+        if case == 2:
+            raise ValueError("planted")
+
+    monkeypatch.setattr(run_cache, "train_run", failing)
+    assert cli.main(["reproduce", "--profile", "smoke", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: case 2 seed 0 (64 px) failed (ValueError: planted)")
+    assert sorted(fake_jobs.spans) == ["01_first", "03_third", "case1", "case2"]
+    out = reproduce.utils.runs_dir() / "smoke"
+    assert not (out / "report.md").exists()
+    assert (out / ".reproduce" / "01_first.json").exists() and (out / "tables" / "03_numbers.json").exists()
+
+
+def test_the_real_notebooks_jobs_wait_for_the_models_they_load(tmp_path, monkeypatch):
+    """From the real notebooks' metadata (nothing trained): 14 training jobs; 00-03 need none, 04
+    and 06 the predict model, 05 the twelve ablation runs, 07 the predict model and the one for real
+    frames. Estimates: ``run_cache.estimated_minutes`` and each notebook's recorded duration."""
+    from geodepth_lite import config, run_cache
+
+    monkeypatch.setattr(run_cache, "is_complete", lambda *a, **k: False)
+    monkeypatch.setattr(reproduce, "prepare_training", lambda *a, **k: None)
+    plan = [(nb, {"profile": "teach", "run_dir": str(tmp_path)}, False) for nb in reproduce.list_notebooks()]
+    jobs, slots = reproduce.plan_jobs("teach", plan, tmp_path, inject_run_dir=True, progress=False)
+    assert slots == max(1, reproduce.os.cpu_count() or 1)
+    trains = {j.name: j for j in jobs if j.kind == "train"}
+    predict, real = "case 4 seed 0 (predict model, 96 px)", "case 4 seed 0 (real model, 96 px)"
+    ablation = {f"case {c} seed {s} (64 px)" for c in (1, 2, 3, 4) for s in (0, 1, 2)}
+    assert set(trains) == ablation | {predict, real}
+    needs = {j.name[:2]: set(j.needs) for j in jobs if j.kind == "notebook"}
+    assert needs == {"00": set(), "01": set(), "02": set(), "03": set(), "04": {predict}, "05": ablation,
+                     "06": {predict}, "07": {predict, real}}
+    cfg = config.make_config("teach", 4, 0, **run_cache.predict_settings("teach"))
+    assert trains[predict].seconds == 60 * run_cache.estimated_minutes(cfg)
+    for j in jobs:
+        if j.kind == "notebook":
+            nb = next(nb for nb, _, _ in plan if nb.stem == j.name)
+            assert j.seconds == json.loads(nb.read_text())["metadata"]["papermill"]["duration"] > 0
