@@ -46,11 +46,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 DEBUG_ENV = "GEODEPTH_DEBUG"  # set to 1 for full tracebacks, as --debug does
 
-# Modules whose checks of the user's input still raise a plain ValueError rather than UserError:
-# a ValueError raised there (its innermost frame) still reads as the user's mistake, exit 2, until
-# their checks raise UserError; then the module leaves this set. A ValueError raised anywhere else
-# is a bug (exit 1).
-VALUE_ERROR_MODULES = frozenset({"geodepth_lite.reproduce"})
 
 
 def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
@@ -96,19 +91,9 @@ def error_line(exc: BaseException) -> str:
     return " ".join(lines)
 
 
-def raised_in(exc: BaseException) -> str:
-    """The module (``__name__``) of the frame that raised ``exc``: its traceback's innermost frame."""
-    tb = exc.__traceback__
-    while tb is not None and tb.tb_next is not None:
-        tb = tb.tb_next
-    return "" if tb is None else str(tb.tb_frame.f_globals.get("__name__", ""))
-
-
 def is_user_error(exc: BaseException) -> bool:
     """True for a failure the user can fix (exit 2), False for a bug in geodepth-lite (exit 1)."""
-    if isinstance(exc, (UserError, OSError)):  # OSError: FileNotFoundError, FileExistsError, FileProblem...
-        return True
-    return isinstance(exc, ValueError) and raised_in(exc) in VALUE_ERROR_MODULES
+    return isinstance(exc, (UserError, OSError))  # OSError: FileNotFoundError, FileExistsError, FileProblem...
 
 
 def bug_line(command: str, exc: BaseException) -> str:

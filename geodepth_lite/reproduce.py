@@ -54,6 +54,7 @@ from typing import Any, Callable, TextIO
 
 from geodepth_lite import config, run_cache, study, study2, utils
 from geodepth_lite.datasets import resolve_dataset
+from geodepth_lite.errors import UserError
 from geodepth_lite.tables import markdown_table
 
 MARKER_DIR = ".reproduce"
@@ -102,7 +103,7 @@ def notebook_parameters(path: Path) -> dict[str, Any]:
     nb = nbformat.read(str(path), as_version=4)
     cells = [c for c in nb.cells if c.cell_type == "code" and "parameters" in c.get("metadata", {}).get("tags", [])]
     if len(cells) != 1:
-        raise ValueError(f"{path.name}: expected exactly one cell tagged 'parameters', found {len(cells)}")
+        raise UserError(f"{path.name}: expected exactly one cell tagged 'parameters', found {len(cells)}")
     params = {}
     for node in ast.parse(cells[0].source).body:
         if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
@@ -122,7 +123,7 @@ def select_notebooks(only: list[str] | None, available: list[Path]) -> list[Path
         key = item.removesuffix(".ipynb")
         match = [p for p in available if p.stem == key or p.stem.split("_")[0] == key.zfill(2)]
         if not match:
-            raise ValueError(f"--notebooks: no notebook {item!r}; available: {', '.join(p.stem for p in available)}")
+            raise UserError(f"--notebooks: no notebook {item!r}; available: {', '.join(p.stem for p in available)}")
         chosen += [p for p in match if p not in chosen]
     return sorted(chosen)
 
@@ -141,21 +142,21 @@ def check_parameters(notebooks: list[Path], extra: dict[str, Any]) -> dict[Path,
     for name in ("profile", "run_dir"):
         lacking = [nb.name for nb, ps in declared.items() if name not in ps]
         if lacking:
-            raise ValueError(f"notebook(s) {', '.join(lacking)} do not declare the parameter {name!r}")
+            raise UserError(f"notebook(s) {', '.join(lacking)} do not declare the parameter {name!r}")
     for name in ("profile", "run_dir"):
         if name in extra:
-            raise ValueError(f"-p {name}: use --profile / --out instead")
+            raise UserError(f"-p {name}: use --profile / --out instead")
     per_nb: dict[Path, dict[str, Any]] = {nb: {} for nb in notebooks}
     for name, value in extra.items():
         owners = [nb for nb, ps in declared.items() if name in ps]
         if not owners:
             known = sorted({k for ps in declared.values() for k in ps} - {"profile", "run_dir"})
-            raise ValueError(f"unknown notebook parameter {name!r}: the selected notebooks declare "
+            raise UserError(f"unknown notebook parameter {name!r}: the selected notebooks declare "
                              f"{', '.join(known) or 'only profile and run_dir'}")
         for nb in owners:
             default = declared[nb][name]
             if default is not None and not _same_kind(default, value):
-                raise ValueError(f"parameter {name!r} of {nb.name} expects {type(default).__name__} "
+                raise UserError(f"parameter {name!r} of {nb.name} expects {type(default).__name__} "
                                  f"(default {default!r}), got {value!r}")
             per_nb[nb][name] = value
     return per_nb
@@ -208,7 +209,7 @@ def notebook_models(nb: Path) -> list[dict]:
     specs = meta.get("models", [])
     for spec in specs:
         if spec.get("settings") not in SETTINGS:
-            raise ValueError(f"{nb.name}: metadata {MODELS_KEY}.models: settings must be one of {', '.join(SETTINGS)}, "
+            raise UserError(f"{nb.name}: metadata {MODELS_KEY}.models: settings must be one of {', '.join(SETTINGS)}, "
                              f"got {spec.get('settings')!r}")
     return specs
 
@@ -719,7 +720,7 @@ def _study_notebook_declares(name: str) -> None:
     """Refuse ``--study2`` before any training when notebook 05 has no parameter ``name``."""
     nb = [p for p in list_notebooks() if p.stem.startswith("05")]
     if nb and name not in notebook_parameters(nb[0]):
-        raise ValueError(f"{nb[0].name} does not declare the parameter {name!r}: it cannot read the tables "
+        raise UserError(f"{nb[0].name} does not declare the parameter {name!r}: it cannot read the tables "
                          "that --study2 writes")
 
 
@@ -745,7 +746,7 @@ def run_reproduce(args: argparse.Namespace) -> int:
     params: dict[str, Any] = {}
     for name, value in args.parameter:
         if name in params:
-            raise ValueError(f"-p {name} given twice")
+            raise UserError(f"-p {name} given twice")
         params[name] = parse_value(value)
     if args.dry_run:
         return _run_reproduce(args, params)
@@ -775,7 +776,7 @@ def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
     studies = [(flag, which, fn) for flag, which, fn in (("study", study, run_study), ("study2", study2, run_study2))
                if getattr(args, flag, False)]
     if studies and args.notebooks:
-        raise ValueError(f"--{studies[0][0]} runs notebook 05 on the study's tables: leave out --notebooks")
+        raise UserError(f"--{studies[0][0]} runs notebook 05 on the study's tables: leave out --notebooks")
     for flag, which, fn in studies:  # the study's tables first, then notebook 05 reads them
         if args.dry_run:
             runs = which.study_runs(args.profile)

@@ -2,11 +2,13 @@
 for a failure of geodepth-lite's own (naming the command and asking for ``--debug``) but 2 for
 the user's (``UserError``) or a file the system refused (``OSError``)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import cli, losses, metrics, predict, sdf
+from geodepth_lite import cli, losses, metrics, predict, reproduce, sdf
 from geodepth_lite.errors import UserError
 
 
@@ -66,10 +68,8 @@ def test_a_user_mistake_prints_its_one_line_and_exits_2(tmp_path, capsys):
     assert _stderr_lines(capsys) == ["error: --batch-size must be at least 1, got 0"]
 
 
-def test_a_value_error_of_a_module_not_yet_converted_reads_as_the_users():
-    """``VALUE_ERROR_MODULES`` keeps the former reading for the modules whose checks still raise a
-    plain ValueError; a plain ValueError raised elsewhere is a bug."""
-    assert cli.VALUE_ERROR_MODULES == {"geodepth_lite.reproduce"}
+def test_a_plain_value_error_is_a_bug_wherever_it_is_raised():
+    """Only UserError (and OSError) read as the user's mistake: a plain ValueError is a bug."""
     with pytest.raises(ValueError, match="same shape") as elsewhere:
         metrics.compute_depth_metrics(np.ones((1, 4, 4)), np.ones((1, 4, 5)))
     assert not cli.is_user_error(elsewhere.value)
@@ -80,6 +80,7 @@ def test_a_value_error_of_a_module_not_yet_converted_reads_as_the_users():
     (lambda: losses.group_weights([1.0, -1.0, 0.0]), "non-negative"),
     (lambda: sdf.resolve_method("bogus", torch.device("cpu")), "unknown nearest-neighbour method"),
     (lambda: sdf.check_sdf_options("view", "sphere"), "sdf sampling"),
+    (lambda: reproduce.select_notebooks(["99"], [Path("00_intro.ipynb")]), "no notebook '99'"),
 ])
 def test_the_settings_a_user_gives_raise_user_errors(call, words):
     """Settings a configuration or a flag carries (loss weights, the SDF's options) are the user's to fix:
