@@ -335,6 +335,7 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
         for nb, content in sources.items():  # open-ended exercises graded by hand, as in a course
             marked = copy.deepcopy(content)
             grade_by_hand(marked)
+            student_wording(marked)
             (source / nb.name).write_text(json.dumps(marked, indent=1, ensure_ascii=False) + "\n")
         names = ", ".join(nb.name for nb in sources)
         run_nbgrader(["generate_assignment", ASSIGNMENT, "--force"], Path(tmp), f"release {names}")
@@ -350,6 +351,25 @@ def _release_into(out: Path, sources: dict[Path, dict]) -> list[Path]:
             utils.write_bytes_atomic(out / nb.name, (released / nb.name).read_bytes())
             written.append(out / nb.name)
     return written
+
+
+LECTURER_NOTE = ("This copy shows the solutions; a class gets the student version without them "
+                 "(`python -m geodepth_lite exercises`), and nbgrader grades it, with a few more checks kept hidden "
+                 "until grading.")
+STUDENT_NOTE = ("This is the student version: the answer cells are yours to fill in, and nbgrader grades them, "
+                "with a few more checks kept hidden until grading.")
+
+
+def student_wording(nb: dict) -> int:
+    """Replace (in place) the lessons' sentence that says the copy shows the solutions with the student
+    version's; returns how many markdown cells changed."""
+    changed = 0
+    for cell in nb.get("cells", []):
+        src = "".join(cell.get("source", ""))
+        if cell.get("cell_type") == "markdown" and LECTURER_NOTE in src:
+            cell["source"] = src.replace(LECTURER_NOTE, STUDENT_NOTE).splitlines(keepends=True)
+            changed += 1
+    return changed
 
 
 def grade_by_hand(nb: dict) -> list[str]:

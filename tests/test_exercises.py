@@ -61,6 +61,17 @@ def test_release_holds_no_solution_text_and_no_outputs(released):
         assert len(E.notebook_exercises(student)) == len(E.notebook_exercises(source))
 
 
+def test_the_release_speaks_as_the_student_version(released):
+    """Each lesson's note that "this copy shows the solutions" becomes the student version's in the release,
+    and only there: the lecturer's notebooks keep it."""
+    for p in NOTEBOOKS:
+        src = "\n".join("".join(c["source"]) for c in _load(p)["cells"])
+        out = "\n".join("".join(c["source"]) for c in released[p.name]["cells"])
+        assert E.LECTURER_NOTE in src and E.LECTURER_NOTE not in out and E.STUDENT_NOTE in out, p.name
+    plain = {"cells": [{"cell_type": "code", "source": E.LECTURER_NOTE}]}
+    assert E.student_wording(plain) == 0 and plain["cells"][0]["source"] == E.LECTURER_NOTE
+
+
 def test_release_holds_no_solution_line_and_no_marker_anywhere(released):
     """Every string of every released notebook (sources, metadata, outputs) against every solution line
     of notebooks 01-07 and the markers (the scan itself is shown to fail in test_course.py)."""
