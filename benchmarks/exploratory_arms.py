@@ -2,12 +2,16 @@
 
     python benchmarks/exploratory_arms.py match --out notebooks/study2/exploratory
     python benchmarks/exploratory_arms.py run --out notebooks/study2/exploratory
+    python benchmarks/exploratory_arms.py floor --out notebooks/study2/exploratory
 
 ``match`` measures the plan's ratio of the box-grid SDF term to the frustum term on the teach
 profile's silog Case 1 seed 0 predictions over the validation split, and writes ``match.json`` (the
 ratio, E1's lambda3 by the plan's rule, the UTC time and the commit). ``run`` reads that record,
 trains (or reuses) the 16 runs two side by side, scores them on the studies' sets and writes
-``runs.csv``, ``frames.csv.gz``, ``baselines.csv`` and ``provenance.csv`` beside it.
+``runs.csv``, ``frames.csv.gz``, ``baselines.csv`` and ``provenance.csv`` beside it. ``floor``
+looks at E2's predictions: on every 4th confirmation frame (120), the share of valid pixels each run
+predicts at the depth head's floor (below 0.02) and below 0.1x the true depth after median scaling,
+written to ``floor.json``.
 """
 
 from __future__ import annotations
@@ -43,13 +47,42 @@ def run(out: Path, workers: int) -> int:
     return 0
 
 
+def floor(out: Path) -> int:
+    import torch
+
+    from geodepth_lite import checkpoint, inference, run_cache, utils
+
+    lam = exploratory.read_match(out)["lambda3"]
+    ds = study.evaluation_sets("teach")[study.PRIMARY]
+    batch = inference.collate([ds[i] for i in range(0, len(ds), 4)])
+    gt = batch["depth"]
+    valid = (gt > 0) & torch.isfinite(gt)
+    rows = []
+    for arm, case, seed, settings in exploratory.arm_runs(lam):
+        if arm != "E2":
+            continue
+        model, _ = checkpoint.load_model(run_cache.checkpoint_dir("teach", case, seed, **settings) / "checkpoint.pt")
+        with torch.no_grad():
+            pred = model(batch["image"]).float()
+        scaled = pred[valid] * (gt[valid].median() / pred[valid].median())
+        rows.append({"arm": arm, "seed": seed, "frames": int(gt.shape[0]),
+                     "at_floor_pct": 100 * float((pred[valid] < 0.02).float().mean()),
+                     "below_tenth_pct": 100 * float((scaled < 0.1 * gt[valid]).float().mean())})
+        print(rows[-1])
+    utils.write_json_atomic(out / "floor.json", {"what": "E2's valid pixels at the head's floor (< 0.02) and "
+                                                         "below 0.1x the true depth (median-scaled), every 4th "
+                                                         "confirmation frame", "rows": rows})
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("step", choices=("match", "run"))
+    ap.add_argument("step", choices=("match", "run", "floor"))
     ap.add_argument("--out", required=True, type=Path, help="the folder of the arms' record and tables")
     ap.add_argument("--workers", type=int, default=2, help="runs side by side (default 2)")
     args = ap.parse_args(argv)
-    return match(args.out) if args.step == "match" else run(args.out, args.workers)
+    return {"match": lambda: match(args.out), "run": lambda: run(args.out, args.workers),
+            "floor": lambda: floor(args.out)}[args.step]()
 
 
 if __name__ == "__main__":

@@ -185,3 +185,11 @@ def lines(comps: list[dict]) -> list[str]:
     return [f"exploratory, {PRIMARY}, {tbl.METRIC_LABELS[t['metric']]}: {t['label']}: {t['mean']:+.2f}% "
             f"[{t['low']:+.2f}, {t['high']:+.2f}] ({100 * t['level']:.0f}%, p = {t['p']:.3f}; paper {t['paper']:+.1f}%)"
             f" -> {t['verdict']}" for t in comps]
+
+
+def markdown_rows(comps: list[dict]) -> list[str]:
+    """:func:`arm_comparisons` as the rows of the docs' table: arm, metric, mean, 95% interval, p, paper,
+    verdict (each marked exploratory)."""
+    return [f"| {t['label']} | {tbl.METRIC_LABELS[t['metric']]} | {t['mean']:+.1f} | "
+            f"[{t['low']:+.1f}, {t['high']:+.1f}] | {t['p']:.3f} | {t['paper']:+.1f} | exploratory: {t['verdict']} |"
+            for t in comps]

@@ -2,6 +2,7 @@
 list, the comparisons on tables with known answers, and the committed record and tables."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -164,3 +165,14 @@ def test_the_committed_runs_are_the_plans_runs(committed):
     assert {(r["arm"], r["seed"]) for r in runs if r["set"] == study.PRIMARY} == {(a, s) for a in ("E1", "E2")
                                                                                   for s in SEEDS}
     assert all(r["frames"] == 480 for r in runs if r["set"] == study.PRIMARY)
+
+
+def test_the_docs_table_is_the_committed_comparisons(committed):
+    """docs/training_and_evaluation.md's table of the arms is computed from the committed tables; the
+    row of a comparison whose interval end is 0.1 points off is not in it."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "training_and_evaluation.md").read_text()
+    comps = exploratory.arm_comparisons(study.read_tables(), committed["arms"])
+    rows = exploratory.markdown_rows(comps)
+    assert len(rows) == 4 and all(r in text for r in rows), [r for r in rows if r not in text]
+    off = exploratory.markdown_rows([{**comps[0], "high": comps[0]["high"] + 0.1}])[0]
+    assert off not in text

@@ -11,7 +11,9 @@ The README, notebook 05's prose and docs/training_and_evaluation.md are read par
 - the second study's Case 4 set beside the first study's is labelled exploratory and not
   pre-registered, with its own figures;
 - words stronger than an interval ("nothing moves", "loses its gain", "agree with every verdict")
-  and "Holm-corrected" intervals (they are Bonferroni intervals) do not appear.
+  and "Holm-corrected" intervals (they are Bonferroni intervals) do not appear;
+- a paragraph about the exploratory arms (E1, E2; docs/exploratory_plan.md) says they are
+  exploratory, and its bounds and intervals are theirs (`notebooks/study2/exploratory/`).
 
 `tests/data/study_sentences_before.md` holds the sentences these checks were written against, as
 they stood before; each of its paragraphs must be caught.
@@ -23,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from geodepth_lite import study, study2
+from geodepth_lite import exploratory, study, study2
 
 ROOT = Path(__file__).resolve().parent.parent
 BEFORE = ROOT / "tests" / "data" / "study_sentences_before.md"
@@ -48,6 +50,7 @@ INTERVAL = re.compile(r"(?:\(|interval )([+-]?\d+\.\d)% to ([+-]?\d+\.\d)%")
 EXPLORATORY_MEAN = re.compile(r"([+-]\d+\.\d) points")
 EXPLORATORY_CI = re.compile(r"(\d+)% interval \[?([+-]?\d+\.\d)(?: to |, )([+-]?\d+\.\d)\]? points")
 NUMBER = re.compile(r"\d+\.\d")
+ARMS = re.compile(r"\bE[12]\b|exploratory arms?")
 
 
 def flat(text: str) -> str:
@@ -79,8 +82,21 @@ def facts() -> dict:
     l1 = {round(max(abs(t["low"]), abs(t["high"])), 1) for t in fam
           if t.get("term") == "l1" and t["verdict"].startswith("no ")}
     intervals = {(round(t["low"], 1), round(t["high"], 1)) for t in fam}
+    arms = exploratory.arm_comparisons(t1, exploratory.read_arms())
     return {"bounds": bounds, "silog_abs_range": (min(silog_abs), max(silog_abs)), "l1": l1,
-            "intervals": intervals, "exploratory": study2.exploratory_vs_first(t1, t2)}
+            "intervals": intervals, "exploratory": study2.exploratory_vs_first(t1, t2),
+            "arm_bounds": {round(max(abs(t["low"]), abs(t["high"])), 1) for t in arms
+                           if t["verdict"].startswith("no ")},
+            "arm_intervals": {(round(t["low"], 1), round(t["high"], 1)) for t in arms}}
+
+
+def _with_arms(para: str, f: dict) -> tuple[dict, list[str]]:
+    """The facts a paragraph is held to: a paragraph about the exploratory arms may quote their bounds
+    and intervals, and must say that they are exploratory."""
+    if not ARMS.search(para):
+        return f, []
+    own = {**f, "bounds": f["bounds"] | f["arm_bounds"], "intervals": f["intervals"] | f["arm_intervals"]}
+    return own, [] if "exploratory" in para else ["speaks of the exploratory arms without saying they are exploratory"]
 
 
 def _numbers_problems(para: str, f: dict) -> list[str]:
@@ -104,8 +120,9 @@ def _numbers_problems(para: str, f: dict) -> list[str]:
 
 
 def _exploratory_problems(para: str, f: dict) -> list[str]:
-    if not ("first study" in para and "Case 4" in para and ("lambda2 = 1" in para or "full weight" in para)
-            and ("gain" in para or "points" in para)):
+    if ARMS.search(para) or not ("first study" in para and "Case 4" in para
+                                 and ("lambda2 = 1" in para or "full weight" in para)
+                                 and ("gain" in para or "points" in para)):
         return []
     e, out = f["exploratory"], []
     if "exploratory" not in para or "not pre-registered" not in para:
@@ -127,10 +144,11 @@ def problems(text: str, f: dict) -> list[str]:
     """Every sentence-level problem of ``text``: one line each, with the paragraph's start."""
     out = []
     for para in paragraphs(text):
-        found = [why for pat, why in OVERCLAIMS.items() if re.search(pat, para, re.I)]
+        own, found = _with_arms(para, f)
+        found += [why for pat, why in OVERCLAIMS.items() if re.search(pat, para, re.I)]
         if SCALE.search(para) and "64 px" not in para:
             found.append("a verdict about the paper without the scale (synthetic frames, 64 px, 8 epochs)")
-        found += _numbers_problems(para, f) + _exploratory_problems(para, f)
+        found += _numbers_problems(para, own) + _exploratory_problems(para, own)
         out += [f"{para[:60]}...: {why}" for why in found]
     return out
 
@@ -174,3 +192,15 @@ def test_wrong_figures_are_caught(facts):
     assert problems("lowers RMSE by 3.2% (interval -5.0% to -1.3%; paper -13%)", facts) == []
     lo, hi = facts["silog_abs_range"]
     assert problems(f"changes beyond {lo:.1f}-{hi + 0.1:.1f}% excluded with silog", facts)
+
+
+def test_sentences_about_the_exploratory_arms_are_held_to_their_tables(facts):
+    """An arm's interval passes in a paragraph about the arms that says they are exploratory; the same
+    paragraph without the word, or with an interval end moved by 0.1, fails; the arm's interval is
+    not accepted in a paragraph about the studies."""
+    lo, hi = sorted(facts["arm_intervals"] - facts["intervals"])[0]
+    good = f"The exploratory arm E1 changes RMSE by x% (interval {lo:+.1f}% to {hi:+.1f}%)."
+    assert problems(good, facts) == []
+    assert problems(good.replace("exploratory ", ""), facts)
+    assert problems(good.replace(f"{hi:+.1f}%", f"{hi + 0.1:+.1f}%"), facts)
+    assert problems(f"Case 3 changes RMSE by x% (interval {lo:+.1f}% to {hi:+.1f}%).", facts)
