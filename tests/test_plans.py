@@ -16,6 +16,7 @@ AMENDMENTS = "\n## Amendments\n"
 PINNED = {
     "docs/study_plan.md": "fcf664c5fc8b6387ef56dd4ea5e9d70aa85c5c6b3e0203653ecf9851a5c830c9",
     "docs/study_plan_2.md": "3eea30b4182cceb2d31028339e72de811bd3c1a92fc54186b698470a4fa0adb5",
+    "docs/exploratory_plan.md": "0c94ab662cc20c361de8662389714e1315213f1b9892409995e3e6d80c44bfde",  # fbb7ca4
 }
 
 
