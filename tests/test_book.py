@@ -1318,3 +1318,24 @@ def test_the_landing_page_is_the_books_own(served_book):
     assert links == list(summary["lesson_pages"].values())  # every lesson, in order
     assert "jupyter lab notebooks/" in text and "build the book" not in text.lower()
     assert "readme.html" in summary["pages"]
+
+
+def test_cells_tagged_remove_cell_are_left_out_of_the_lesson_pages(served_book):
+    """The lessons' "record" cells (which save the numbers tests/test_results.py checks) carry the
+    ``remove-cell`` tag: the longest line of each is on no HTML page of the book, while the longest line
+    of the code cell before it is, so the check reads text from where those cells would be."""
+    out, _, _ = served_book
+    pages = [text for rel, text in site_texts(out).items() if rel.endswith(".html")]
+    seen = 0
+    for nb_path in book.lesson_notebooks():
+        cells = json.loads(nb_path.read_text(encoding="utf-8"))["cells"]
+        for i, cell in enumerate(cells):
+            if "remove-cell" not in cell["metadata"].get("tags", []):
+                continue
+            gone = max("".join(cell["source"]).splitlines(), key=len).strip()
+            kept = next(max("".join(c["source"]).splitlines(), key=len).strip() for c in cells[i - 1::-1]
+                        if c["cell_type"] == "code" and "remove-cell" not in c["metadata"].get("tags", []))
+            assert not any(gone in text for text in pages), f"{nb_path.name}: {gone!r} is shown"
+            assert any(kept in text for text in pages), f"{nb_path.name}: {kept!r} is not found"
+            seen += 1
+    assert seen == 7
