@@ -220,7 +220,7 @@ def worker_batches(loader):
             shutdown()
 
 
-class TrainingDiverged(ValueError):
+class TrainingDiverged(UserError):
     """A non-finite loss or weight: training stops at once, naming the epoch, step, term and lr."""
 
 
