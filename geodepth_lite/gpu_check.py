@@ -76,7 +76,7 @@ from geodepth_lite.errors import UserError
 from geodepth_lite.model import DepthNet
 
 MARKER = ".gpu-check"
-EPOCH_KEYS = ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_rmse", "val_abs_rel")
+EPOCH_KEYS = ("epoch", "epoch_s", "train_frames_per_s", "data_wait_share", "train_total", "val_rmse", "val_abs_rel")
 PAPER_TRAIN, PAPER_VAL, PAPER_EPOCHS = 3600, 900, 18  # the paper split and epochs (config "paper")
 
 
@@ -244,14 +244,19 @@ def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
 
     res["sdf_loss_batch_s"] = _median_time(sdf_step, dev, repeats)
     net = DepthNet().to(dev).train()
+    net_cl = DepthNet().to(dev).train().to(memory_format=torch.channels_last)
     image = torch.rand(batch, 3, size, size, device=dev)
+    image_cl = image.contiguous(memory_format=torch.channels_last)
 
-    def net_step():
+    def net_step(net=net, image=image):
         with inference.autocast(dev):
             out = net(image)
         out.float().mean().backward()
 
-    res["network_fwd_bwd_s"] = _median_time(net_step, dev, repeats)
+    nchw, nhwc = _paired_medians([net_step, lambda: net_step(net_cl, image_cl)], dev, repeats)
+    # the layout the paper runs train in: channels_last where its median is less (ties: the default layout)
+    res.update(network_fwd_bwd_nchw_s=nchw, network_fwd_bwd_channels_last_s=nhwc, channels_last=nhwc < nchw)
+    res["network_fwd_bwd_s"] = min(nchw, nhwc)
     res["sdf_share_of_step"] = res["sdf_loss_batch_s"] / (res["sdf_loss_batch_s"] + res["network_fwd_bwd_s"])
     return res
 
@@ -331,7 +336,7 @@ def markdown(report: dict) -> str:
                   f"{1e3 * b['search_batch_s']:.1f} ms per batch ({1e3 * b['search_batch_s'] / b['batch']:.2f} ms "
                   f"per field); agrees with cKDTree on {b['agree']} of {b['queries']} queries |",
                   f"| SDF loss forward + backward, same batch | {1e3 * b['sdf_loss_batch_s']:.1f} ms |",
-                  f"| DepthNet forward + backward (autocast), same batch | {1e3 * b['network_fwd_bwd_s']:.1f} ms |",
+                  "| DepthNet forward + backward (autocast), same batch | " + _layout_words(b) + " |",
                   f"| SDF share of a step (uncached) | {100 * b['sdf_share_of_step']:.1f} % |"]
     elif b:
         lines.append(f"| nearest-point search | {b.get('status', '')} |")
@@ -350,6 +355,15 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _layout_words(b: dict) -> str:
+    """DepthNet's step in the two memory formats and the one the paper runs use (records before both were
+    timed hold one figure)."""
+    if "network_fwd_bwd_nchw_s" not in b:
+        return f"{1e3 * b['network_fwd_bwd_s']:.1f} ms"
+    return (f"{1e3 * b['network_fwd_bwd_nchw_s']:.1f} ms (NCHW), {1e3 * b['network_fwd_bwd_channels_last_s']:.1f} ms "
+            f"(channels_last); the runs train in {'channels_last' if b['channels_last'] else 'NCHW'}")
+
+
 def _full_lines(report: dict) -> list[str]:
     """The rows of ``--full``: the paper run, its test scores, the SDF share, the runs together."""
     full, lines = report.get("paper_run"), []
@@ -366,6 +380,11 @@ def _full_lines(report: dict) -> list[str]:
         lines.append(f"| paper profile run, time per epoch | first {done[0]['epoch_s']:.1f} s, later {per:.1f} s "
                      f"(median); last {last['train_frames_per_s']:.1f} frames/s; val RMSE "
                      f"{last.get('val_rmse', float('nan')):.3f}, Abs Rel {last.get('val_abs_rel', float('nan')):.4f} |")
+    if "run_s" in full:
+        lines.append(f"| paper profile run end to end (process start to exit: data onto the device, every epoch, "
+                     f"every checkpoint) | {full['run_s']:.1f} s ({full['run_s'] / 60:.2f} min); data on the device: "
+                     f"{full.get('device_data')} (read in {full.get('load_data_s', float('nan')):.1f} s), "
+                     f"channels_last: {full.get('channels_last')} |")
     if "prediction" in full:
         p = full["prediction"]
         lines.append(f"| paper profile, 18 epochs at the run's pace (3600 + 900 frames) | {p['total_min']} min "
@@ -377,6 +396,10 @@ def _full_lines(report: dict) -> list[str]:
                                  for name in ("model", "shading_prior", "constant")) + " |")
     elif t:
         lines.append(f"| TEST split scores | {t['status']} |")
+    if "best" in t:
+        bt = t["best"]
+        lines.append(f"| TEST split, the model of the least validation Abs Rel (epoch {bt['epoch']}, val Abs Rel "
+                     f"{bt['val_abs_rel']:.4f}): Abs Rel / RMSE | {bt['abs_rel']:.4f} / {bt['rmse']:.3f} |")
     sh = report.get("sdf_share", {})
     if "share_first" in sh:
         lines.append(f"| SDF loss share of a training step (batch {sh['batch']}, {sh['size']} px, {sh['grid']}^3) | "
@@ -506,14 +529,15 @@ def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) ->
         return save()
     root = Path(root["root"])
     sizes = ["--image-size", "32", "--batch-size", "4", "--epochs", "2"] if tiny else []
-    common = ["--profile", "paper", "--cases", "4", "--dataset", str(root), "--device", str(dev), "--no-progress"]
+    common = ["--profile", "paper", "--cases", "4", "--dataset", str(root), "--device", str(dev), "--no-progress",
+              "--keep-best"] + (["--channels-last"] if report.get("search", {}).get("channels_last") else [])
     left = args.full_timeout - run["data_s"]
     run = _step(report, "paper_run", lambda: paper_run(work / "full", common + sizes, left, run, save), save)
     print(f"gpu-check: paper profile run {run['status']}, {len(run.get('epochs', []))} epochs", flush=True)
     ckpt = work / "full" / "case4_seed0" / "checkpoint.pt"
     _step(report, "paper_test", lambda: test_split_scores(ckpt, root, dev), save)
     _step(report, "sdf_share", lambda: sdf_step_share(dev, root, size, 2 if tiny else 20, 6 if tiny else 32,
-                                                      1 if tiny else args.repeats), save)
+                                                      1 if tiny else args.repeats, "--channels-last" in common), save)
     ks = ["1", "2"] if tiny else ["1", "2", "4", "8"]
     frames = ["--train-frames", "8", "--val-frames", "2"] if tiny else [
         "--train-frames", str(args.many_frames), "--val-frames", "20"]
@@ -540,7 +564,9 @@ def paper_run(out: Path, argv: list[str], seconds: float, run: dict, save) -> di
     group = json.loads((out / "train_many.json").read_text())
     one = group["runs"][0]
     res = {**run, "status": one["status"], "exit": code, "seconds": round(time.perf_counter() - t0, 1),
-           "epochs": one["epochs"], "config_hash": one["config_hash"]}
+           "epochs": one["epochs"], "config_hash": one["config_hash"], "run_s": one["seconds"]}
+    sessions = (checkpoint.read_log_file(folder) or {}).get("provenance") or [{}]
+    res.update({k: sessions[-1][k] for k in ("device_data", "load_data_s", "channels_last") if k in sessions[-1]})
     if one["epochs"]:
         res["prediction"] = predict_paper_time(one["epochs"], run["train_frames"], run["val_frames"])
     return res
@@ -557,8 +583,17 @@ def test_split_scores(ckpt: Path, root: Path, dev) -> dict:
     res = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"], error_maps=0)
     rows = {"model": res["overall"], **{name: b["overall"] for name, b in base.items()}}
     epoch = int(checkpoint.read_checkpoint(ckpt)["epoch"])
-    return {"status": "completed", "frames": res["n"], "model_epoch": epoch,
-            **{name: {"abs_rel": r["abs_rel"], "rmse": r["rmse"]} for name, r in rows.items()}}
+    out = {"status": "completed", "frames": res["n"], "model_epoch": epoch,
+           **{name: {"abs_rel": r["abs_rel"], "rmse": r["rmse"]} for name, r in rows.items()}}
+    best = ckpt.parent / train.BEST_NAME
+    if best.is_file():  # the model chosen on the validation split (train --keep-best), beside the last epoch's
+        state = checkpoint.read_checkpoint(best)
+        model, cfg = checkpoint.load_model(best, dev)
+        r = evaluate.evaluate_model(model, ds, image_size=cfg["image_size"], error_maps=0)["overall"]
+        e = int(state["epoch"])
+        out["best"] = {"epoch": e, "val_abs_rel": float(state["history"][e - 1]["val_abs_rel"]),
+                       "abs_rel": r["abs_rel"], "rmse": r["rmse"]}
+    return out
 
 
 def share_words(sh: dict, when: str) -> str:
@@ -570,26 +605,29 @@ def share_words(sh: dict, when: str) -> str:
     return f"{100 * sh[f'share_{when}']:.1f} % ({1e3 * c4:.1f} ms a step)"
 
 
-def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: int) -> dict:
+def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: int,
+                   channels_last: bool = False) -> dict:
     """The SDF loss's share of a paper-profile training step (forward, every loss term, backward,
     Adam step) on one batch of the training frames: 1 - (Case 2 step) / (Case 4 step), Case 2 being
     Case 4 without the SDF term; with the ground-truth fields searched anew (the first epoch) and
-    taken from the cache by frame id (every later epoch), as training does."""
+    taken from the cache by frame id (every later epoch), as training does; in the runs' memory format."""
     ds = datasets.load_split(root, "train", size, limit=batch)
     data = inference.to_device(inference.collate([ds[i] for i in range(len(ds))]), dev)
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    image = data["image"].contiguous(memory_format=fmt)
     steps = {}
     ids = [("train", i) for i in range(len(ds))]  # the ground truth's fields keyed by frame, as training keys them
     for case in (4, 2):
         cfg = config.make_config("paper", case, 0, image_size=size, batch_size=batch)
         cfg["sdf_grid"] = grid
         torch.manual_seed(0)
-        net = DepthNet().to(dev).train()
+        net = DepthNet().to(dev).train().to(memory_format=fmt)
         opt = torch.optim.Adam(net.parameters(), lr=cfg["lr"])
 
         def step(cfg=cfg, net=net, opt=opt):
             opt.zero_grad(set_to_none=True)
             with inference.autocast(dev):
-                pred = net(data["image"])
+                pred = net(image)
             train.compute_losses(pred, data, cfg, frame_ids=ids)[0].backward()
             opt.step()
 
@@ -603,7 +641,8 @@ def sdf_step_share(dev, root: Path, size: int, batch: int, grid: int, repeats: i
     later = _paired_medians([steps[4], steps[2]], dev, repeats)  # the warm-up fills the cache
     times = {"case4_first_s": first[0], "case2_first_s": first[1], "case4_later_s": later[0],
              "case2_later_s": later[1]}
-    return {"status": "completed", "batch": len(ds), "size": size, "grid": grid, **times,
+    return {"status": "completed", "batch": len(ds), "size": size, "grid": grid, "channels_last": channels_last,
+            **times,
             "share_first": 1 - times["case2_first_s"] / times["case4_first_s"],
             "share_later": 1 - times["case2_later_s"] / times["case4_later_s"]}
 

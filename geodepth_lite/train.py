@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 from geodepth_lite import checkpoint as ckpt_io
 from geodepth_lite import config, distributed, inference, losses, provenance, utils
 from geodepth_lite.augment import augment_batch
-from geodepth_lite.datasets import MemoryDataset, load_split, resolve_dataset
+from geodepth_lite.datasets import DeviceBatches, DeviceSplit, MemoryDataset, load_split, read_frames, resolve_dataset
 from geodepth_lite.errors import UserError
 from geodepth_lite.metrics import METRIC_NAMES, frame_metrics_torch
 from geodepth_lite.model import DepthNet
@@ -126,8 +126,12 @@ def validate(model, dataset, cfg: dict, device: torch.device, batch_size: int | 
     frames (:func:`frame_space`), so cached ground-truth fields are keyed by frame id. Nothing here
     draws a random number or changes the model's weights."""
     model.eval()
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size or cfg["batch_size"], shuffle=False,
-                                         collate_fn=inference.collate)
+    bs = batch_size or cfg["batch_size"]
+    if isinstance(dataset, DeviceSplit):
+        torch.empty((), dtype=torch.int64).random_()  # the draw a DataLoader makes (its base seed): the same run
+        loader = dataset.batches(bs)
+    else:
+        loader = torch.utils.data.DataLoader(dataset, batch_size=bs, shuffle=False, collate_fn=inference.collate)
     keys = log_keys()
     skip_sdf = not cfg.get("val_sdf", True) and losses.group_weights(cfg["lambdas"])["lambda3"] > 0
     vcfg = cfg if not skip_sdf else {**cfg, "lambdas": [*cfg["lambdas"][:2], 0.0]}
@@ -182,7 +186,8 @@ def build_network(cfg: dict, network=None) -> torch.nn.Module:
 
 def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress: bool = True,
         device: str | torch.device | None = None, num_workers: int | None = None,
-        cache: str | bool = "auto", stop_after: int | None = None, network=None) -> Path:
+        cache: str | bool = "auto", stop_after: int | None = None, network=None, device_data: bool | None = None,
+        keep_best: bool = False, channels_last: bool = False) -> Path:
     """Train DepthNet with ``cfg`` (see ``config.make_config``) into ``run_dir``; return the checkpoint path.
 
     resume: continue from ``run_dir/checkpoint.pt`` when it exists (same configuration
@@ -191,6 +196,14 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
     network: train this network instead of DepthNet (see ``build_network``); None (the default)
         trains DepthNet, with the same weights as ever. The configuration does not record it: a run
         folder holds one network, and its checkpoint loads into that network (``checkpoint.load_weights``).
+    device_data: keep both splits decoded on the training device (``datasets.DeviceSplit``) and gather each
+        batch there; None (the default): on CUDA where they take at most a quarter of its free memory. The
+        batches, their order and every random draw are the loader's: the same run either way.
+    keep_best: also keep ``best.pt``, a copy of the checkpoint of the epoch with the least validation Abs Rel
+        so far (a model chosen on the validation split; ``checkpoint.pt`` stays the last epoch's).
+    channels_last: the network and its input in ``torch.channels_last`` memory format (on CUDA, tensor-core
+        convolutions without layout changes); the same network and the same numbers up to rounding.
+    The run's provenance records ``device_data`` and ``channels_last`` as used.
     """
     if network is not None and not callable(network):
         raise TypeError(f"network must be a class or a callable (cfg) -> nn.Module, got {network!r}")
@@ -201,8 +214,10 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
         # repeatable on any machine with the same CPU instruction set.
         torch.set_num_threads(cfg["threads"])
     try:
-        return Trainer(cfg, Path(run_dir), device=device, progress=progress, network=network).train(
-            resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
+        trainer = Trainer(cfg, Path(run_dir), device=device, progress=progress, network=network)
+        trainer.options = {"device_data": device_data, "keep_best": bool(keep_best),
+                           "channels_last": bool(channels_last)}
+        return trainer.train(resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
     finally:
         torch.set_num_threads(threads_before)
 
@@ -220,6 +235,9 @@ def worker_batches(loader):
             shutdown()
 
 
+BEST_NAME = "best.pt"  # keep_best: the checkpoint of the epoch with the least validation Abs Rel
+
+
 class TrainingDiverged(UserError):
     """A non-finite loss or weight: training stops at once, naming the epoch, step, term and lr."""
 
@@ -235,6 +253,7 @@ class Trainer:
         self.is_main = self.rank == 0
         self.progress = progress and self.is_main
         self.ckpt_path = run_dir / ckpt_io.CHECKPOINT_NAME
+        self.options = {"device_data": None, "keep_best": False, "channels_last": False}
         if self.device.type == "cuda":  # fixed image sizes: cuDNN picks each convolution's fastest algorithm once
             torch.backends.cudnn.benchmark = True
 
@@ -270,6 +289,8 @@ class Trainer:
         # 3. model, optimizer, learning-rate schedule, in the order that fixes the random draws
         utils.seed_everything(cfg["seed"])
         self.model = build_network(cfg, self.network).to(self.device)
+        if self.options["channels_last"]:
+            self.model = self.model.to(memory_format=torch.channels_last)
         opt_cls = torch.optim.AdamW if cfg["optimizer"] == "adamw" else torch.optim.Adam
         self.opt = opt_cls(self.model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]),
                            weight_decay=cfg["weight_decay"])
@@ -286,13 +307,17 @@ class Trainer:
         start = 0 if state is None else self.restore(state)
         # this session's provenance after the earlier sessions' (a resumed run keeps theirs)
         earlier = provenance.earlier_sessions(ckpt_io.read_log_file(self.run_dir)) if state is not None else []
-        self.sessions = [*earlier, provenance.session(cfg, self.device, start)]
+        self.sessions = [*earlier, {**provenance.session(cfg, self.device, start),
+                                    "device_data": self.device_data, "load_data_s": round(self.load_s, 2),
+                                    "channels_last": self.options["channels_last"]}]
         self.net = torch.nn.parallel.DistributedDataParallel(self.model) if self.distributed else self.model
         # 5. the epochs, a checkpoint after each
         for done, epoch in enumerate(range(start, cfg["epochs"]), start=1):
             self.history.append(self.run_epoch(epoch))
             if self.is_main:
                 self.save(epoch)
+                if self.options["keep_best"]:
+                    self.keep_best()
             if self.distributed:
                 torch.distributed.barrier()
             if stop_after is not None and done >= stop_after:
@@ -323,22 +348,50 @@ class Trainer:
             torch.distributed.barrier()
         if not self.is_main:
             root = resolve_dataset(cfg, progress=False)
-        self.train_ds = load_split(root, "train", cfg["image_size"], cache=cache, limit=cfg["train_frames"])
-        self.val_ds = (load_split(root, "val", cfg["image_size"], cache=cache, limit=cfg["val_frames"])
-                       if self.is_main else None)
+        t0 = time.perf_counter()
+        self.device_data = self.use_device_data(root)
+        if self.device_data:
+            self.train_ds = DeviceSplit(load_split(root, "train", cfg["image_size"], cache=False,
+                                                   limit=cfg["train_frames"]), self.device)
+            self.val_ds = (DeviceSplit(load_split(root, "val", cfg["image_size"], cache=False,
+                                                  limit=cfg["val_frames"]), self.device) if self.is_main else None)
+            if self.is_main and self.progress:
+                print(f"decoded {len(self.train_ds)} + {len(self.val_ds)} frames onto {self.device} in "
+                      f"{time.perf_counter() - t0:.1f} s")
+        else:
+            self.train_ds = load_split(root, "train", cfg["image_size"], cache=cache, limit=cfg["train_frames"])
+            self.val_ds = (load_split(root, "val", cfg["image_size"], cache=cache, limit=cfg["val_frames"])
+                           if self.is_main else None)
+        self.load_s = time.perf_counter() - t0
         # frame ids key the cached ground-truth SDF fields where no augmentation changes a frame's ground truth
         self.spaces = {split: frame_space(root, split, cfg["image_size"]) for split in ("train", "val")}
         if len(self.train_ds) == 0:
             raise UserError(f"dataset {root} has no training frames")
-        in_memory = isinstance(self.train_ds, MemoryDataset)
+        in_memory = isinstance(self.train_ds, (MemoryDataset, DeviceSplit))
         self.num_workers = utils.workers_fit_temp_dir(
             (0 if in_memory else min(4, os.cpu_count() or 1)) if num_workers is None else num_workers)
+
+    def use_device_data(self, root) -> bool:
+        """Whether both splits go onto the device (``fit``'s ``device_data``; None: CUDA, and they take at
+        most a quarter of its free memory)."""
+        asked = self.options["device_data"]
+        if asked is not None:
+            return bool(asked)
+        if self.device.type != "cuda":
+            return False
+        cfg = self.cfg
+        n = sum(min(len(read_frames(root, split)), cfg[f"{split}_frames"] or 1 << 62) for split in ("train", "val"))
+        free, _ = torch.cuda.mem_get_info(self.device)
+        return DeviceSplit.nbytes(n, cfg["image_size"]) <= free // 4
 
     def make_loader(self) -> None:
         cfg = self.cfg
         self.sampler = torch.utils.data.DistributedSampler(self.train_ds, num_replicas=self.world, rank=self.rank,
                                                            shuffle=True, seed=cfg["seed"], drop_last=False)
         self.loader_gen = torch.Generator().manual_seed(cfg["seed"])
+        if self.device_data:
+            self.loader = DeviceBatches(self.train_ds, self.sampler, cfg["batch_size"], self.loader_gen)
+            return
         self.loader = torch.utils.data.DataLoader(
             self.train_ds, batch_size=cfg["batch_size"], sampler=self.sampler, num_workers=self.num_workers,
             collate_fn=inference.collate, worker_init_fn=utils.worker_init, generator=self.loader_gen,
@@ -414,8 +467,11 @@ class Trainer:
         """Augment, forward, losses: (loss, {term: value}, prediction (B, 1, H, W), the batch as seen)."""
         ids = self.frame_ids(batch, "train")  # read from the loader's batch, on the host
         batch = augment_batch(inference.to_device(batch, self.device), self.cfg["augment"])
+        image = batch["image"]
+        if self.options["channels_last"]:
+            image = image.contiguous(memory_format=torch.channels_last)
         with inference.autocast(self.device):
-            pred = self.net(batch["image"])  # (B, 1, H, W)
+            pred = self.net(image)  # (B, 1, H, W)
         loss, terms = compute_losses(pred, batch, self.cfg, ids)
         return loss, terms, pred, batch
 
@@ -426,6 +482,14 @@ class Trainer:
         self.scaler.step(self.opt)
         self.scaler.update()
         self.schedule.step()
+
+    def keep_best(self) -> None:
+        """``best.pt``: a copy of the checkpoint just written when its epoch has the least validation Abs Rel
+        of the run so far (ties: the earlier epoch stays)."""
+        scores = [float(r.get("val_abs_rel", math.nan)) for r in self.history]
+        last = scores[-1]
+        if math.isfinite(last) and all(not (s <= last) for s in scores[:-1]):
+            utils.write_bytes_atomic(self.run_dir / BEST_NAME, self.ckpt_path.read_bytes())
 
     def save(self, epoch: int) -> None:
         ckpt_io.save_checkpoint(self.ckpt_path, {

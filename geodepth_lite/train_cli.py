@@ -61,6 +61,10 @@ def add_setting_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-cache", action="store_true",
                         help="stream from disk instead of caching the dataset in memory")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--keep-best", action="store_true",
+                        help="also keep best.pt: the checkpoint of the epoch with the least validation Abs Rel")
+    parser.add_argument("--channels-last", action="store_true",
+                        help="the network in channels_last memory format (on CUDA: faster tensor-core convolutions)")
     parser.add_argument("--no-verify", action="store_true",
                         help="skip checking the dataset against its checksums.sha256 before training")
 
@@ -91,7 +95,8 @@ def run_train(args: argparse.Namespace) -> int:
         if not args.no_verify:
             integrity.check_dataset(resolve_dataset(cfg, progress=not args.no_progress), ("train", "val"))
     path = train.fit(cfg, run_dir, resume=args.resume, progress=not args.no_progress, device=args.device,
-                     num_workers=args.num_workers, cache=False if args.no_cache else "auto")
+                     num_workers=args.num_workers, cache=False if args.no_cache else "auto",
+                     keep_best=args.keep_best, channels_last=args.channels_last)
     if distributed.is_main_process():
         rows = checkpoint.read_log(run_dir)
         last = rows[-1] if rows else {}

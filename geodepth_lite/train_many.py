@@ -127,6 +127,7 @@ def settings_argv(args: argparse.Namespace) -> list[str]:
         out += ["--num-workers", str(args.num_workers)]
     if args.no_cache:
         out.append("--no-cache")
+    out += [flag for flag, on in (("--keep-best", args.keep_best), ("--channels-last", args.channels_last)) if on]
     return out
 
 
@@ -268,7 +269,8 @@ def run_group(runs: list[Run], concurrency: int, *, time_limit: float | None = N
 
 
 def run_summary(run: Run) -> dict:
-    keep = ("epoch", "epoch_s", "train_frames_per_s", "train_total", "val_total", "val_rmse", "val_abs_rel")
+    keep = ("epoch", "epoch_s", "train_frames_per_s", "data_wait_share", "train_total", "val_total", "val_rmse",
+            "val_abs_rel")
     return {"case": run.case, "seed": run.seed, "folder": str(run.folder), "config_hash": run.config_hash,
             "status": run.status, "seconds": round(max(run.ended - run.started, 0.0), 2),
             "started_at": round(run.started_at, 2), "ended_at": round(run.ended_at, 2),

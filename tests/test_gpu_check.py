@@ -71,8 +71,16 @@ def test_the_full_dry_run_records_every_step_without_heavy_imports(tmp_path):
     assert [r["epoch"] for r in full["epochs"]] == [1, 2] and all(r["val_rmse"] > 0 for r in full["epochs"])
     pred = full["prediction"]
     assert pred["total_s"] == pytest.approx(pred["first_epoch_s"] + 17 * pred["later_epoch_s"], abs=1.0)
+    assert full["run_s"] > 0 and full["device_data"] is False and "load_data_s" in full  # on the CPU: the loader
+    search = rep["search"]  # both memory formats timed; the runs train in the faster one
+    assert search["channels_last"] == (search["network_fwd_bwd_channels_last_s"] < search["network_fwd_bwd_nchw_s"])
+    assert full["channels_last"] == search["channels_last"] == rep["sdf_share"]["channels_last"]
     test = rep["paper_test"]  # the TEST split: the model beside two baselines on the same frames
     assert test["frames"] == 4 and test["model_epoch"] == 2
+    scores = [r["val_abs_rel"] for r in full["epochs"]]  # and the model chosen on the validation split
+    assert test["best"]["epoch"] == 1 + scores.index(min(scores)) and test["best"]["val_abs_rel"] == min(scores)
+    assert test["best"]["abs_rel"] > 0
+    assert test["best"]["epoch"] != 2 or test["best"]["abs_rel"] == test["model"]["abs_rel"]
     assert all(test[name]["abs_rel"] > 0 and test[name]["rmse"] > 0 for name in ("model", "shading_prior", "constant"))
     share = rep["sdf_share"]
     assert share["share_first"] == 1 - share["case2_first_s"] / share["case4_first_s"]
@@ -83,6 +91,8 @@ def test_the_full_dry_run_records_every_step_without_heavy_imports(tmp_path):
     assert "| paper profile run, Case 4 seed 0, 12 + 4 frames | 2 of 2 epochs" in table
     assert "agrees with cKDTree" in table
     assert "| TEST split, 4 frames (model after epoch 2): Abs Rel / RMSE | model " in table
+    assert "| TEST split, the model of the least validation Abs Rel (epoch " in table
+    assert "| paper profile run end to end (process start to exit" in table
     assert "| K runs together |" in table and "| 2 |" in table and "SDF loss share of a training step" in table
 
 

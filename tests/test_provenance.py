@@ -28,7 +28,8 @@ def test_a_fresh_run_logs_its_provenance(smoke_root, tmp_path):
     assert (rec["first_epoch"], rec["epochs_done"]) == (0, 1)
     assert rec["config_hash"] == config.config_hash(cfg)
     assert rec["torch"] == torch.__version__ and rec["numpy"] == numpy.__version__
-    assert rec["device"] == "cpu" and rec["threads"] == torch.get_num_threads() and rec["cpu"]
+    # the threads the run trained with: the profile's where it fixes them (fit restores the caller's after)
+    assert rec["device"] == "cpu" and rec["threads"] == (cfg["threads"] or torch.get_num_threads()) and rec["cpu"]
     root = utils.project_root()
     if root is not None and (root / ".git").exists():  # a checkout: the commit is HEAD's
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)

@@ -4,7 +4,8 @@ Laid out as monodepth2's ``datasets/`` (one module per dataset):
 
 - ``synthetic``: the generated set as a torch Dataset (``SyntheticDepthDataset``), the one resize
   recipe (``resize_image``, ``resize_frame``), ``resolve_dataset`` and the training splits kept in
-  memory (``load_split``, ``MemoryDataset``, ``MEMORY_CACHE``);
+  memory (``load_split``, ``MemoryDataset``, ``MEMORY_CACHE``) or on a CUDA device (``DeviceSplit``,
+  ``DeviceBatches``);
 - ``base``: what the public datasets share: ``PublicDepthDataset`` (the torch Dataset and the
   description of a dataset in one), the registry (``REGISTRY``, ``register``, ``dataset_class``)
   and ``open_dataset``;
@@ -50,6 +51,8 @@ from .subsets import check_eval_subsets, count_subset_frames, format_check, load
 from .synthetic import (
     CACHE_LIMIT_BYTES,
     MEMORY_CACHE,
+    DeviceBatches,
+    DeviceSplit,
     MemoryDataset,
     SyntheticDepthDataset,
     load_split,
@@ -68,7 +71,8 @@ DATASETS = tuple(REGISTRY)  # the registered names, for compatibility
 
 __all__ = [
     "CACHE_LIMIT_BYTES", "DATASETS", "MEMORY_CACHE", "REGISTRY", "C3VDDataset", "ColonDepthDataset",
-    "EndoSLAMDataset", "MemoryDataset", "PublicDepthDataset", "SimCol3DDataset", "SyntheticDepthDataset",
+    "DeviceBatches", "DeviceSplit", "EndoSLAMDataset", "MemoryDataset", "PublicDepthDataset", "SimCol3DDataset",
+    "SyntheticDepthDataset",
     "check_eval_subsets", "count_subset_frames", "dataset_class", "format_check", "load_split", "load_subset_manifest",
     "open_dataset", "read_frames", "register", "resize_frame", "resize_image", "resolve_dataset",
 ]

@@ -18,6 +18,8 @@ nowhere) and invalid zeros stay zeros; K by ``camera.scale_intrinsics``.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +140,81 @@ class MemoryDataset(torch.utils.data.Dataset):
 
 
 MEMORY_CACHE: dict[tuple, MemoryDataset] = {}
+
+
+class DeviceSplit:
+    """A split decoded once into tensors on one device (a CUDA run's data, where they fit in its memory):
+    each batch is gathered there, with no decoding, collating, pinning or host-to-device copy per step.
+
+    ``batch(indices)`` is the dict ``inference.collate`` makes of ``ds[i] for i in indices`` (the same
+    keys, values and order), its tensors on ``device`` except "index", which stays on the host (frame ids
+    are read from it). Frames are decoded ``chunk`` at a time by ``threads`` threads (image reading lets
+    other threads run), so the host holds one chunk, not the split."""
+
+    def __init__(self, ds, device: torch.device | str, *, threads: int | None = None, chunk: int = 256):
+        self.device = torch.device(device)
+        n = len(ds)
+        self.organ: list[str] = []
+        self.group: list[str] = []
+        self.index: list[int] = []
+        self.tensors: dict[str, torch.Tensor] = {}
+        with ThreadPoolExecutor(max_workers=threads or min(16, os.cpu_count() or 1)) as pool:
+            for start in range(0, n, chunk):
+                items = list(pool.map(ds.__getitem__, range(start, min(n, start + chunk))))
+                for key in ("image", "depth", "K", "valid"):
+                    if key not in items[0]:
+                        continue
+                    part = torch.stack([torch.as_tensor(it[key]) for it in items])
+                    if key not in self.tensors:
+                        self.tensors[key] = torch.empty((n, *part.shape[1:]), dtype=part.dtype, device=self.device)
+                    self.tensors[key][start:start + len(items)] = part.to(self.device)
+                self.organ += [it.get("organ", "") for it in items]
+                self.group += [it.get("group", "") for it in items]
+                self.index += [int(it.get("index", start + j)) for j, it in enumerate(items)]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def batch(self, indices) -> dict:
+        """The frames ``indices`` (host ints) as one batch (class docstring)."""
+        idx = [int(i) for i in indices]
+        at = torch.tensor(idx, dtype=torch.long).to(self.device)
+        out = {key: self.tensors[key].index_select(0, at) for key in ("image", "depth", "K")}
+        out.update(organ=[self.organ[i] for i in idx], group=[self.group[i] for i in idx],
+                   index=torch.tensor([self.index[i] for i in idx]))
+        if "valid" in self.tensors:
+            out["valid"] = self.tensors["valid"].index_select(0, at)
+        return out
+
+    def batches(self, batch_size: int):
+        """Every frame in order, ``batch_size`` at a time (the last batch may be smaller)."""
+        for start in range(0, len(self), batch_size):
+            yield self.batch(range(start, min(len(self), start + batch_size)))
+
+    @staticmethod
+    def nbytes(n: int, image_size) -> int:
+        """Bytes that ``n`` frames of ``image_size`` take on the device (image, depth, a mask; float32)."""
+        h, w = _size(image_size) or (320, 320)
+        return n * 5 * h * w * 4
+
+
+class DeviceBatches:
+    """The training batches of a :class:`DeviceSplit` in the order of ``sampler``, ``batch_size`` at a
+    time, as a ``DataLoader(split, batch_size, sampler=sampler, generator=generator)`` gives them. Like
+    that loader, each pass draws one number from ``generator`` (the loader's base seed), so the
+    generator's state after an epoch, which checkpoints keep, is the loader's."""
+
+    def __init__(self, split: DeviceSplit, sampler, batch_size: int, generator: torch.Generator):
+        self.split, self.sampler, self.batch_size, self.generator = split, sampler, batch_size, generator
+
+    def __len__(self) -> int:
+        return -(-len(self.sampler) // self.batch_size)
+
+    def __iter__(self):
+        torch.empty((), dtype=torch.int64).random_(generator=self.generator)
+        order = list(self.sampler)
+        for start in range(0, len(order), self.batch_size):
+            yield self.split.batch(order[start:start + self.batch_size])
 
 
 def load_split(root: Path, split: str, image_size: int | None, *, cache: str | bool = "auto",
