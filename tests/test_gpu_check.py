@@ -168,39 +168,85 @@ def _stated_figures(rec: dict) -> dict[str, str]:
     """The figures README and docs/timings.md quote from a gpu-check record, recomputed from it."""
     import statistics
 
-    epochs = rec["paper_run"]["epochs"]
+    epochs, run = rec["paper_run"]["epochs"], rec["paper_run"]
     first, later = epochs[0]["epoch_s"], statistics.median(e["epoch_s"] for e in epochs[1:])
     test, share, search = rec["paper_test"], rec["sdf_share"], rec["search"]
+    done = sum(e["epoch_s"] for e in epochs)
     return {
-        "first": f"{first:.1f} s", "later": f"{later:.1f} s", "total": f"{(first + 17 * later) / 60:.1f} min",
+        "first": f"{first:.1f} s", "later": f"{later:.1f} s", "epochs": f"{done:.0f} s",
+        "run": f"{run['run_s']:.1f} s ({run['run_s'] / 60:.2f} min)", "load": f"{run['load_data_s']:.1f} s",
+        "rest": f"{run['run_s'] - done - run['load_data_s']:.1f} s",
         "search": f"{1e3 * search['methods']['triton']['batch_s']:.2f} ms",
-        "share": f"{100 * share['share_later']:.1f} %",
+        "share": f"{100 * share['share_later']:.1f} %", "share_first": f"{100 * share['share_first']:.1f} %",
         "model": f"{test['model']['abs_rel']:.4f}", "prior": f"{test['shading_prior']['abs_rel']:.4f}",
-        "net": f"{1e3 * search['network_fwd_bwd_s']:.1f} ms",
-        "done": f"{len(epochs)} of 18 epochs",
+        "best": f"{test['best']['abs_rel']:.4f}", "best_epoch": f"epoch {test['best']['epoch']}",
+        "nchw": f"{1e3 * search['network_fwd_bwd_nchw_s']:.1f} ms",
+        "channels_last": f"{1e3 * search['network_fwd_bwd_channels_last_s']:.1f} ms",
+        "data": f"{run['data_s']:.1f} s",
     }
+
+
+def _normalised(name: str) -> str:
+    return " ".join((ROOT / name).read_text().split())
 
 
 def test_the_stated_gpu_figures_come_from_the_committed_record():
     """README and docs/timings.md quote the H200 record in benchmarks/gpu/; recomputed here."""
-    rec = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-27_b.json").read_text())
+    rec = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-27_c.json").read_text())
     figures = _stated_figures(rec)
-    assert figures["total"] == "3.8 min"  # the figure the README states in bold
-    texts = {name: " ".join((ROOT / name).read_text().split()) for name in ("README.md", "docs/timings.md")}
-    in_readme = ("first", "later", "total", "search", "share", "model", "prior")
+    assert figures["run"] == "211.9 s (3.53 min)"  # the figure the README states in bold
+    texts = {name: _normalised(name) for name in ("README.md", "docs/timings.md")}
+    in_readme = ("first", "later", "run", "search", "share", "model", "prior", "best", "best_epoch")
 
     def missing(text, keys=tuple(figures)):
         return [what for what in keys if figures[what] not in text]
 
     assert missing(texts["docs/timings.md"]) == []
     assert missing(texts["README.md"], in_readme) == []
-    # the check can fail: a text whose total disagrees with the record is caught, and so is a record
+    # beside the earlier checks: a later epoch against record b's and the first check's projection
+    import statistics
+
+    later = statistics.median(e["epoch_s"] for e in rec["paper_run"]["epochs"][1:])
+    frames = statistics.median(e["train_frames_per_s"] for e in rec["paper_run"]["epochs"][1:])
+    old = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-27_b.json").read_text())["paper_run"]["epochs"]
+    first_check = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-26.json").read_text())["paper_run"]
+    compared = [f"{statistics.median(e['epoch_s'] for e in old[1:]) / later:.2f}x faster",
+                f"{first_check['prediction']['later_epoch_s'] / later:.1f}x", f"{frames:.1f} training frames/s"]
+    assert [c for c in compared if c not in texts["docs/timings.md"]] == []
+    # the check can fail: a text whose time disagrees with the record is caught, and so is a record
     # whose model scores differently from what the text states
-    assert missing(texts["README.md"].replace("3.8 min", "3.7 min"), in_readme) == ["total"]
+    assert missing(texts["README.md"].replace("3.53 min", "3.35 min"), in_readme) == ["run"]
     rec["paper_test"]["model"]["abs_rel"] = rec["paper_test"]["shading_prior"]["abs_rel"] * 0.9
-    assert "model" in missing(texts["README.md"].replace(figures["model"], "?"), in_readme)
     figures = _stated_figures(rec)
     assert missing(texts["README.md"], in_readme) == ["model"]
+
+
+def test_the_stated_throughput_and_first_epoch_figures_come_from_their_records():
+    """docs/timings.md's table of runs together and its first-epoch figures, recomputed from the records."""
+    import statistics
+
+    text = _normalised("docs/timings.md")
+    many = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-27_throughput.json").read_text())
+    rows = [f"| {lv['k']} | {lv['wall_s']:.2f} | {lv['time_vs_one']:.2f} | {lv['steps_per_s_wall']:.2f} | "
+            f"{lv['speedup_wall']:.2f} |" for lv in many["levels"]]
+    assert [lv["completed"] for lv in many["levels"]] == [1, 2, 4, 8]
+    assert [r for r in rows if r not in text] == []
+    one = many["levels"][0]
+    outside = one["wall_s"] - one["runs"][0]["epochs"][0]["epoch_s"]
+    assert f"about {outside:.0f} s of the {one['wall_s']:.1f} s at K = 1" in text
+    fe = json.loads((ROOT / "benchmarks" / "gpu" / "h200_2026-11-27_first_epoch.json").read_text())
+    steps = fe["steps"]
+    n = fe["epochs"][0]["steps"]
+    stated = [f"{steps[0]['s']:.2f} s", f"{steps[0]['searches_s'][0]:.2f} s",
+              f"{1e3 * statistics.median(x['s'] for x in steps[1:n]):.1f} ms",
+              f"{1e3 * statistics.median(x['s'] for x in steps[n:]):.1f} ms",
+              f"{1e3 * statistics.median(x['searches_s'][1] for x in steps[1:n]):.1f} ms"]
+    assert [f for f in stated if f not in text] == []
+    k8 = many["levels"][-1]
+    said = f"{k8['time_vs_one']:.2f}x one run's time, {k8['speedup_wall']:.2f}x the steps per second"
+    assert said in _normalised("docs/training_and_evaluation.md")
+    # a row planted with another wall time is caught
+    assert rows[1].replace(f"{many['levels'][1]['wall_s']:.2f}", "99.99") not in text
 
 
 def test_a_paper_run_cut_off_by_its_time_limit_is_recorded(tmp_path, monkeypatch):
