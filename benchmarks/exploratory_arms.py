@@ -61,7 +61,8 @@ def floor(out: Path) -> int:
     for arm, case, seed, settings in exploratory.arm_runs(lam):
         if arm != "E2":
             continue
-        model, _ = checkpoint.load_model(run_cache.checkpoint_dir("teach", case, seed, **settings) / "checkpoint.pt")
+        folder = run_cache.checkpoint_dir("teach", case, seed, **settings)
+        model, _ = checkpoint.load_model(folder / checkpoint.CHECKPOINT_NAME)
         with torch.no_grad():
             pred = model(batch["image"]).float()
         scaled = pred[valid] * (gt[valid].median() / pred[valid].median())

@@ -128,8 +128,13 @@ def read_arms(folder: str | Path | None = None) -> dict:
     return study2.read_tables(Path(folder) if folder else committed_dir())
 
 
-def _values(tables: dict, cell, metric: str, set_name: str) -> dict[int, float]:
-    return {r["seed"]: r[metric] for r in tables["runs"] if (r["depth_term"], r["case"], r["set"]) == (*cell, set_name)}
+def paired_change(ref_tables: dict, ref_cell, tables: dict, cell, metric: str, set_name: str):
+    """(seeds, 100 (m / m_ref - 1) per seed): the runs of ``cell`` in ``tables`` against those of
+    ``ref_cell`` in ``ref_tables`` at the seeds both hold, on ``set_name``."""
+    ref = study2.run_values(ref_tables, ref_cell, metric, set_name)
+    mine = study2.run_values(tables, cell, metric, set_name)
+    seeds = sorted(set(ref) & set(mine))
+    return seeds, 100 * (np.array([mine[s] for s in seeds]) / np.array([ref[s] for s in seeds]) - 1)
 
 
 def arm_comparisons(first: dict, arms: dict, set_name: str = PRIMARY, level: float = LEVEL,
@@ -142,11 +147,9 @@ def arm_comparisons(first: dict, arms: dict, set_name: str = PRIMARY, level: flo
     out = []
     for arm, (term, case) in ARM_CELLS.items():
         for metric in ablation.PAIRED_METRICS[::-1]:
-            ref, mine = _values(first, (term, 1), metric, set_name), _values(arms, (term, case), metric, set_name)
-            seeds = sorted(set(ref) & set(mine))
+            seeds, v = paired_change(first, (term, 1), arms, (term, case), metric, set_name)
             if not seeds:
                 raise KeyError(f"{arm} {metric} on the {set_name}: no seed with both runs")
-            v = 100 * (np.array([mine[s] for s in seeds]) / np.array([ref[s] for s in seeds]) - 1)
             mean, low, high = ablation.t_interval(v, level)
             p = study.paired_t_p(v)
             paper = ablation.PAPER_REDUCTION[case][metric]
@@ -172,9 +175,7 @@ def beside(first: dict, second: dict, arms: dict, set_name: str = PRIMARY) -> li
     out = []
     for what, tables, cell, term in rows:
         for metric in ablation.PAIRED_METRICS[::-1]:
-            ref, mine = _values(first, (term, 1), metric, set_name), _values(tables, cell, metric, set_name)
-            seeds = sorted(set(ref) & set(mine))
-            v = 100 * (np.array([mine[s] for s in seeds]) / np.array([ref[s] for s in seeds]) - 1)
+            seeds, v = paired_change(first, (term, 1), tables, cell, metric, set_name)
             out.append({"what": what, "metric": metric, "mean": float(v.mean()) if seeds else math.nan,
                         "seeds": seeds})
     return out

@@ -534,7 +534,7 @@ def full_check(dev, work: Path, args: argparse.Namespace, report: dict, save) ->
     left = args.full_timeout - run["data_s"]
     run = _step(report, "paper_run", lambda: paper_run(work / "full", common + sizes, left, run, save), save)
     print(f"gpu-check: paper profile run {run['status']}, {len(run.get('epochs', []))} epochs", flush=True)
-    ckpt = work / "full" / "case4_seed0" / "checkpoint.pt"
+    ckpt = work / "full" / "case4_seed0" / checkpoint.CHECKPOINT_NAME
     _step(report, "paper_test", lambda: test_split_scores(ckpt, root, dev), save)
     _step(report, "sdf_share", lambda: sdf_step_share(dev, root, size, 2 if tiny else 20, 6 if tiny else 32,
                                                       1 if tiny else args.repeats, "--channels-last" in common), save)

@@ -223,7 +223,8 @@ def label(t: dict) -> str:
     return f"{t['arm']}{t['case']}: Case {t['case']} {what} vs Case 1"
 
 
-def _run_values(tables: dict, cell, metric: str, set_name: str) -> dict[int, float]:
+def run_values(tables: dict, cell, metric: str, set_name: str) -> dict[int, float]:
+    """{seed: the metric} of the runs of ``cell`` = (depth term, case) on ``set_name`` in a study's tables."""
     term, case = cell
     return {r["seed"]: r[metric] for r in tables["runs"]
             if (r["depth_term"], r["case"], r["set"]) == (term, case, set_name)}
@@ -256,8 +257,8 @@ def family(tables1: dict, tables2: dict, set_name: str = PRIMARY, seeds=None, al
     out = []
     for arm, case in TESTS:
         for metric in ablation.PAIRED_METRICS[::-1]:
-            ref = _run_values(tables1, REFERENCE, metric, set_name)
-            mine = _run_values(tables2, ("silog", case), metric, set_name)
+            ref = run_values(tables1, REFERENCE, metric, set_name)
+            mine = run_values(tables2, ("silog", case), metric, set_name)
             use = sorted(set(ref) & set(mine) if seeds is None else set(seeds))
             missing = [s for s in use if s not in ref or s not in mine]
             if missing or not use:
@@ -329,9 +330,9 @@ def exploratory_vs_first(tables1: dict, tables2: dict, case: int = 4, metric: st
     silog ``case``, paired by seed. d_s = r_s(second study) - r_s(first study), each r_s in percent of the
     first study's silog Case 1 at seed s (points). Returns "values", "mean", "p" (paired t-test),
     "low"/"high" (the Student-t interval at ``level``, no multiplicity correction) and "seeds"."""
-    ref = _run_values(tables1, REFERENCE, metric, set_name)
-    first = _run_values(tables1, ("silog", case), metric, set_name)
-    second = _run_values(tables2, ("silog", case), metric, set_name)
+    ref = run_values(tables1, REFERENCE, metric, set_name)
+    first = run_values(tables1, ("silog", case), metric, set_name)
+    second = run_values(tables2, ("silog", case), metric, set_name)
     seeds = sorted(set(ref) & set(first) & set(second))
     if not seeds:
         raise KeyError(f"Case {case} {metric} on the {set_name}: no seed with runs in both studies")
