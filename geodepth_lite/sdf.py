@@ -59,6 +59,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -506,7 +507,7 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     todo = _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling)
     out: list = [None] * B
     # every search of the batch at once: the predictions' fields, then the ground truths' not cached
-    pairs = [(t[1], t[3]) for t in todo] + [(t[2], t[3]) for t in todo if t[6] is None]
+    pairs = [(t.pred_pts, t.q) for t in todo] + [(t.gt_pts, t.q) for t in todo if t.hit is None]
     found = iter(nearest_indices_many(pairs, method))
     idx_pred = [next(found) for _ in todo]
     for (b, p_pts, g_pts, q, lower, upper, hit, key), ip in zip(todo, idx_pred):
@@ -524,9 +525,22 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     return out
 
 
-def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling) -> list:
-    """Per image of :func:`sdf_fields` with a valid pixel: (b, prediction's points, ground truth's points,
-    samples q, lower, upper, the cache's hit or None, the cache key or None)."""
+class _ImageInputs(NamedTuple):
+    """One image's inputs to :func:`sdf_fields`: its index in the batch, the prediction's and the ground
+    truth's valid points, the samples q and their box, the cache's hit (or None) and key (or None)."""
+
+    b: int
+    pred_pts: torch.Tensor
+    gt_pts: torch.Tensor
+    q: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor
+    hit: tuple | None
+    key: object
+
+
+def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling) -> list[_ImageInputs]:
+    """Per image of :func:`sdf_fields` with a valid pixel, its :class:`_ImageInputs`."""
     todo = []
     if cache is not None and cache.max_bytes > 0 and gt.device.type != "cpu":
         # one copy of the batch to the host for the keys, not three per image (each a device sync)
@@ -544,7 +558,7 @@ def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, 
         hit = cache.get(key) if key is not None else None
         g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
         q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
-        todo.append((b, S_pred[b] if sel is None else S_pred[b, sel], g_pts, q, lower, upper, hit, key))
+        todo.append(_ImageInputs(b, S_pred[b] if sel is None else S_pred[b, sel], g_pts, q, lower, upper, hit, key))
     return todo
 
 
