@@ -552,11 +552,28 @@ def chain_seconds(jobs: list[Job], own: dict[str, float]) -> dict[str, float]:
     return {j.name: chain(j.name) for j in jobs}
 
 
-def seconds_left(jobs: list[Job], done: set[str], elapsed: dict[str, float], slots: int) -> float:
+def pace(jobs: list[Job], took: dict[str, float]) -> dict[str, float]:
+    """Per kind of job ("train", "notebook"), how much longer than expected the finished ones took on
+    this machine (``took``: their seconds): their seconds over their expected seconds. A kind none of
+    whose jobs has finished takes the pace of all finished jobs; 1.0 before any finished."""
+    def ratio(kind: str | None) -> float | None:
+        ended = [j for j in jobs if j.name in took and j.seconds > 0 and kind in (None, j.kind)]
+        expected = sum(j.seconds for j in ended)
+        return sum(took[j.name] for j in ended) / expected if expected > 0 else None
+
+    overall = ratio(None) or 1.0
+    return {kind: ratio(kind) or overall for kind in {j.kind for j in jobs}}
+
+
+def seconds_left(jobs: list[Job], done: set[str], elapsed: dict[str, float], slots: int,
+                 took: dict[str, float] | None = None) -> float:
     """About how long the jobs not done yet still take on ``slots`` workers: their expected seconds
-    (a running job's less its ``elapsed``, at least 0) over the workers, or the longest chain of
-    them where that is longer."""
-    own = {j.name: 0.0 if j.name in done else max(j.seconds - elapsed.get(j.name, 0.0), 0.0) for j in jobs}
+    at this machine's :func:`pace` (from ``took``, the finished jobs' seconds; none: as expected), a
+    running job's less its ``elapsed`` (at least 0), over the workers, or the longest chain of them
+    where that is longer."""
+    rate = pace(jobs, took or {})
+    own = {j.name: 0.0 if j.name in done else max(j.seconds * rate[j.kind] - elapsed.get(j.name, 0.0), 0.0)
+           for j in jobs}
     chains = chain_seconds(jobs, own)
     return max(sum(own.values()) / max(slots, 1), max(chains.values(), default=0.0))
 
@@ -589,6 +606,7 @@ def run_jobs(jobs: list[Job], slots: int, *, start: Callable[[Job], Any] = Proce
     waiting = list(jobs)
     running: dict[str, tuple[Job, Any, float]] = {}
     done: set[str] = set()
+    took: dict[str, float] = {}
     failed: list[str] = []
     try:
         while waiting or running:
@@ -610,10 +628,11 @@ def run_jobs(jobs: list[Job], slots: int, *, start: Callable[[Job], Any] = Proce
                     show.event(f"FAILED {name} after {time.monotonic() - t0:.0f} s")
                 else:
                     done.add(name)
-                    show.event(f"{name} done in {time.monotonic() - t0:.0f} s")
+                    took[name] = time.monotonic() - t0
+                    show.event(f"{name} done in {took[name]:.0f} s")
             now = time.monotonic()
             show.update(list(running), len(done), seconds_left(
-                jobs, done, {n: now - t0 for n, (_, _, t0) in running.items()}, slots), changed=bool(ended))
+                jobs, done, {n: now - t0 for n, (_, _, t0) in running.items()}, slots, took), changed=bool(ended))
             if not ended:
                 time.sleep(JOB_POLL_S if poll_s is None else poll_s)
     except BaseException:

@@ -319,6 +319,21 @@ def test_the_time_left_counts_the_longest_chain_and_the_workers():
     assert reproduce.seconds_left([J("A", None, (), 100), J("B", None, (), 100)], set(), {}, 2) == 100
 
 
+def test_the_time_left_follows_this_machines_pace():
+    """Hand-computed: A and B train (100 s expected each), C is a notebook (50 s) after A. A took 200 s
+    here, so B is expected at 200 s and, no notebook having finished, C at 2 x 50 s: with B 50 s in on
+    one worker, 150 + 100 = 250 s left (the expected times alone say 50 + 50 = 100 s)."""
+    J = reproduce.Job
+    jobs = [J("A", None, (), 100), J("B", None, (), 100), J("C", None, ("A",), 50, "notebook")]
+    assert reproduce.pace(jobs, {}) == {"train": 1.0, "notebook": 1.0}
+    assert reproduce.pace(jobs, {"A": 200.0}) == {"train": 2.0, "notebook": 2.0}
+    assert reproduce.seconds_left(jobs, {"A"}, {"B": 50}, 1, {"A": 200.0}) == 250
+    assert reproduce.seconds_left(jobs, {"A"}, {"B": 50}, 1) == 100  # the estimate that undercounts
+    # a kind's own finished jobs set its pace: the notebook ran at half its expected time
+    assert reproduce.pace(jobs, {"A": 200.0, "C": 25.0}) == {"train": 2.0, "notebook": 0.5}
+    assert reproduce.seconds_left(jobs, {"A", "C"}, {"B": 50}, 1, {"A": 200.0, "C": 25.0}) == 150
+
+
 def test_the_progress_line_in_place_on_a_terminal_and_as_lines_elsewhere():
     import io
 
