@@ -36,6 +36,7 @@ from .errors import UserError
 from .images import read_rgb
 from .integrity import file_sha256
 from .predict import list_inputs, predict_frames
+from .viz import readable_pt
 
 FAR_SHARE = 0.2  # the farthest fifth of the field of view is the network's "far region"
 BLOB_LIMIT = 0.5  # a far region more than half bright in the image is a far blob the image does not have
@@ -157,18 +158,19 @@ def gallery_figure(rows: list[dict], per_row: int = 2):
     import matplotlib.pyplot as plt  # plotting only
 
     n_rows = (len(rows) + per_row - 1) // per_row
-    fig, axes = plt.subplots(n_rows, 3 * per_row, figsize=(2.1 * 3 * per_row, 2.2 * n_rows), squeeze=False)
+    fig, axes = plt.subplots(n_rows, 3 * per_row, figsize=(2.1 * 3 * per_row, 2.5 * n_rows), squeeze=False)
+    pt = max(8.0, readable_pt(fig.get_figwidth()))  # every title readable where the book shows the figure
     for ax in axes.ravel():
         ax.axis("off")
     for i, row in enumerate(rows):
         a = axes.ravel()[3 * i:3 * i + 3]
         a[0].imshow(row["image"])
-        a[0].set_title(f"{row['view']}: {row['file'][:18]}", fontsize=8)
-        for ax, key, title in ((a[1], "depth", f"prediction  r {row['r']:.2f}  far {row['far_share']:.2f}"),
+        a[0].set_title(f"{row['view']}\n{row['file'][:18]}", fontsize=pt)
+        for ax, key, title in ((a[1], "depth", f"prediction\nr {row['r']:.2f}, far {row['far_share']:.2f}"),
                                (a[2], "prior", "shading prior")):
             log = np.log(row[key])
             lo, hi = np.nanquantile(log, [0.02, 0.98])
             ax.imshow(log, cmap="magma_r", vmin=lo, vmax=max(hi, lo + 1e-6))
-            ax.set_title(title, fontsize=8)
+            ax.set_title(title, fontsize=pt)
     fig.tight_layout()
     return fig

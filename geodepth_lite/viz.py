@@ -17,6 +17,35 @@ DEPTH_CMAP = "magma_r"  # the workbook's one depth convention: near = bright, fa
 ERROR_CMAP = "inferno"  # error maps: 0 = black, large = bright
 CBAR = dict(fraction=0.046, pad=0.02)  # colour bars as tall as their panel
 
+# Readable figure text: the notebooks draw inline figures at FIGURE_DPI pixels per inch, and the web book
+# shows a figure at most BOOK_COLUMN_PX wide (its text column at a 1366 px screen), scaled down when
+# wider; every text of a figure should then be at least MIN_TEXT_PX pixels tall (readable_pt).
+FIGURE_DPI = 100
+BOOK_COLUMN_PX = 800
+MIN_TEXT_PX = 8.0
+
+
+def shown_scale(fig_width_in: float) -> float:
+    """How much the book scales a figure ``fig_width_in`` inches wide (1 when it fits its column)."""
+    return min(1.0, BOOK_COLUMN_PX / (fig_width_in * FIGURE_DPI))
+
+
+def readable_pt(fig_width_in: float, px: float = MIN_TEXT_PX) -> float:
+    """The least font size (points, in half points) whose text is ``px`` pixels tall as the book shows a
+    figure ``fig_width_in`` inches wide."""
+    return math.ceil(2 * px * 72 / (FIGURE_DPI * shown_scale(fig_width_in))) / 2
+
+
+def text_heights_px(fig) -> list[tuple[str, float]]:
+    """(text, pixels tall as the book shows the figure) of every visible, non-empty text of ``fig``
+    (titles, labels, tick labels, colour bars' captions and ticks), least first."""
+    fig.draw_without_rendering()  # tick labels exist once drawn
+    scale = shown_scale(fig.get_figwidth())
+    texts = fig.findobj(lambda a: hasattr(a, "get_text") and hasattr(a, "get_fontsize"))
+    out = [(t.get_text(), t.get_fontsize() * FIGURE_DPI / 72 * scale) for t in texts
+           if t.get_visible() and t.get_text().strip()]
+    return sorted(out, key=lambda x: x[1])
+
 
 def colorize_depth(depth, vmin=None, vmax=None, cmap: str = "magma") -> np.ndarray:
     """H x W depth -> H x W x 3 uint8 through a matplotlib colormap, reversed so that near = bright
@@ -72,8 +101,9 @@ def show_depth(ax, depth, vmin=None, vmax=None, *, label: str = "z-depth", color
     if colorbar:
         cb = ax.figure.colorbar(im, ax=ax, extend="both", **CBAR)
         clip = "2nd-98th percentile" if auto else f"{vmin:.3g}-{vmax:.3g}"
-        cb.set_label(f"{label}, near = bright\n(clipped to {clip})", fontsize=7)
-        cb.ax.tick_params(labelsize=7)
+        pt = max(7.0, readable_pt(ax.figure.get_figwidth()))
+        cb.set_label(f"{label}, near = bright\n(clipped to {clip})", fontsize=pt)
+        cb.ax.tick_params(labelsize=pt)
     return im
 
 
@@ -86,8 +116,9 @@ def show_error(ax, err, vmax: float, *, label: str = "Abs Rel error"):
     im = ax.imshow(np.ma.masked_invalid(np.asarray(err, dtype=np.float64)), cmap=cmap, vmin=0, vmax=vmax)
     ax.set_xticks([]), ax.set_yticks([])
     cb = ax.figure.colorbar(im, ax=ax, extend="max", **CBAR)
-    cb.set_label(f"{label}\n(clipped at {vmax:g})", fontsize=7)
-    cb.ax.tick_params(labelsize=7)
+    pt = max(7.0, readable_pt(ax.figure.get_figwidth()))
+    cb.set_label(f"{label}\n(clipped at {vmax:g})", fontsize=pt)
+    cb.ax.tick_params(labelsize=pt)
     return im
 
 
@@ -100,8 +131,9 @@ def relative_depth_colorbar(fig, axes, label: str = RELATIVE_LABEL):
 
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, 1), cmap=DEPTH_CMAP)
     cb = fig.colorbar(sm, ax=axes, extend="both", fraction=0.03, pad=0.02, ticks=[0, 1])
-    cb.ax.set_yticklabels(["near", "far"], fontsize=7)
-    cb.set_label(label, fontsize=7)
+    pt = max(7.0, readable_pt(fig.get_figwidth()))
+    cb.ax.set_yticklabels(["near", "far"], fontsize=pt)
+    cb.set_label(label, fontsize=pt)
     return cb
 
 
@@ -194,14 +226,15 @@ def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: lis
     n_rows, n_cols = len(cells), len(cells[0])
     fig, axes = plt.subplots(2 * n_rows, n_cols, figsize=(cell_inches * n_cols, 2 * cell_inches * n_rows),
                              squeeze=False)
+    pt = max(8.0, readable_pt(fig.get_figwidth()))
     for r, row in enumerate(cells):
         for c, (rgb, depth) in enumerate(row):
             axes[2 * r, c].imshow(rgb)
             axes[2 * r + 1, c].imshow(colorize_depth(depth, cmap=cmap))
             if r == 0:
-                axes[0, c].set_title(col_labels[c], fontsize=8)
-        axes[2 * r, 0].set_ylabel(f"{row_labels[r]}\nRGB", fontsize=8)
-        axes[2 * r + 1, 0].set_ylabel("depth", fontsize=8)
+                axes[0, c].set_title(col_labels[c], fontsize=pt)
+        axes[2 * r, 0].set_ylabel(f"{row_labels[r]}\nRGB", fontsize=pt)
+        axes[2 * r + 1, 0].set_ylabel("depth", fontsize=pt)
     for ax in axes.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
@@ -226,7 +259,7 @@ def depth_histogram(depths: dict, bins: int = 50, ax=None, log: bool = True):
         ax.set_xscale("log")
     ax.set_xlabel("z-depth (scene units)")
     ax.set_ylabel("density")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=max(8.0, readable_pt(ax.figure.get_figwidth())))
     return ax
 
 
@@ -366,9 +399,9 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
             else:  # depth panels share the ground truth's range; the last one carries the colour bar
                 show_depth(ax, img, vmin, vmax, colorbar=j == len(preds) + 1)
             if i == 0:
-                ax.set_title(title, fontsize=9)
+                ax.set_title(title, fontsize=max(9.0, readable_pt(fig.get_figwidth())))
         if row_labels:
-            axes[i, 0].set_ylabel(row_labels[i], fontsize=8)
+            axes[i, 0].set_ylabel(row_labels[i], fontsize=max(8.0, readable_pt(fig.get_figwidth())))
     fig.tight_layout()
     return fig
 
@@ -382,11 +415,12 @@ def border_map_figure(maps: dict, title: str = ""):
     lim = float(np.nanmax(np.abs(maps["signed"]))) or 1.0
     im = axes[0].imshow(maps["signed"], cmap="RdBu_r", vmin=-lim, vmax=lim)
     axes[0].set_title("mean signed log error\n(red: too far, blue: too near)")
-    fig.colorbar(im, ax=axes[0], fraction=0.046).set_label("log(pred / gt), mean over frames", fontsize=8)
+    pt = max(8.0, readable_pt(fig.get_figwidth()))
+    fig.colorbar(im, ax=axes[0], fraction=0.046).set_label("log(pred / gt), mean over frames", fontsize=pt)
     im = axes[1].imshow(maps["abs"], cmap=ERROR_CMAP, vmin=0)
     ratios = ", ".join(f"{k} {v:.2f}" for k, v in maps["ratios"].items())
-    axes[1].set_title(f"mean |log error|\nborder / centre: {ratios}", fontsize=9)
-    fig.colorbar(im, ax=axes[1], fraction=0.046).set_label("|log(pred / gt)|, mean over frames", fontsize=8)
+    axes[1].set_title(f"mean |log error|\nborder / centre: {ratios}", fontsize=pt + 1)
+    fig.colorbar(im, ax=axes[1], fraction=0.046).set_label("|log(pred / gt)|, mean over frames", fontsize=pt)
     for ax in axes:
         ax.axis("off")
     if title:
@@ -403,6 +437,7 @@ def depth_colorbar(fig, axes, vmin: float, vmax: float, *, label: str = "z-depth
 
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(vmin, vmax), cmap=DEPTH_CMAP)
     cb = fig.colorbar(sm, ax=axes, extend="both", fraction=0.046, pad=0.02)
-    cb.set_label(f"{label}, near = bright\n(clipped to {vmin:.3g}-{vmax:.3g})", fontsize=7)
-    cb.ax.tick_params(labelsize=7)
+    pt = max(7.0, readable_pt(fig.get_figwidth()))
+    cb.set_label(f"{label}, near = bright\n(clipped to {vmin:.3g}-{vmax:.3g})", fontsize=pt)
+    cb.ax.tick_params(labelsize=pt)
     return cb

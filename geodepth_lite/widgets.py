@@ -25,7 +25,7 @@ from scipy.ndimage import gaussian_filter
 from . import losses
 from .datasets import SyntheticDepthDataset
 from .synth import ensure_dataset
-from .viz import DEPTH_CMAP
+from .viz import DEPTH_CMAP, readable_pt
 
 # slider name -> (min, max, step, neutral value, what it imitates)
 PERTURBATIONS = {
@@ -220,27 +220,28 @@ class ExplorerFigure:
         self.extent = (lo[0], hi[0], lo[2], hi[2])  # x horizontal, z (depth) vertical
         self.artists, self.colorbars, self.contours = [], {}, {}
         self._background = None  # the canvas without the changing artists, once png() has run
+        self.pt = pt = max(7.0, readable_pt(fig.get_figwidth()))  # every text readable as the book shows the figure
         for i, (ax, (a, title, cmap, vlo, vhi, label)) in enumerate(zip(fig.subplots(2, 5).flat,
                                                                          _panels(gt, image, pred, rep))):
             if i in self.SDF_PANELS:
                 im = ax.imshow(a.T, origin="lower", extent=self.extent, aspect="auto", cmap=cmap, vmin=vlo, vmax=vhi)
-                ax.set_xlabel("x", fontsize=8), ax.set_ylabel("z (depth)", fontsize=8)
-                ax.tick_params(labelsize=7)
+                ax.set_xlabel("x", fontsize=pt), ax.set_ylabel("z (depth)", fontsize=pt)
+                ax.tick_params(labelsize=pt)
             else:
                 im = ax.imshow(a, cmap=cmap, vmin=vlo, vmax=vhi)
                 ax.set_xticks([]), ax.set_yticks([])
-            ax.set_title(title, fontsize=9)
+            ax.set_title(title, fontsize=pt + 1)
             if cmap is not None:  # arrows at both ends where values beyond the range are clipped
                 extend = "both" if i in self.CLIPPED else "neither"
                 cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, extend=extend)
                 if label:
-                    cb.set_label(label, fontsize=7)
-                cb.ax.tick_params(labelsize=7)
+                    cb.set_label(label, fontsize=pt)
+                cb.ax.tick_params(labelsize=pt)
                 self.colorbars[i] = cb
             if cmap == "RdBu":
                 self._contour(i, ax, a)
             self.artists.append(im)
-        self.title = fig.suptitle(describe(settings), fontsize=11)
+        self.title = fig.suptitle(describe(settings), fontsize=pt + 3)
         fig.tight_layout()
 
     def _contour(self, i: int, ax, a: np.ndarray) -> None:
@@ -260,7 +261,7 @@ class ExplorerFigure:
             im = self.artists[i]
             im.set_data(a.T if i in self.SDF_PANELS else a)
             im.set_clim(vlo, vhi)
-            im.axes.set_title(title, fontsize=9)
+            im.axes.set_title(title, fontsize=self.pt + 1)
             if cmap == "RdBu":
                 self._contour(i, im.axes, a)
         self.title.set_text(describe(settings))
@@ -544,6 +545,7 @@ def plot_loss_maps(gt, image, K, cases: dict[str, dict], loss: str, grid: int = 
     if loss not in MAP_TERMS:
         raise ValueError(f"loss must be one of {', '.join(MAP_TERMS)}, got {loss!r}")
     fig, axs = plt.subplots(2, len(cases), figsize=(3.2 * len(cases), 6.0), squeeze=False)
+    pt = max(7.0, readable_pt(fig.get_figwidth()))  # every text readable as the book shows the figure
     vmin, vmax = float(np.min(gt)), float(np.max(gt))
     values = {}
     for col, (name, s) in enumerate(cases.items()):
@@ -551,9 +553,10 @@ def plot_loss_maps(gt, image, K, cases: dict[str, dict], loss: str, grid: int = 
         rep = loss_report(pred, gt, image, K, grid)
         values[name] = rep[loss]
         shown = axs[0, col].imshow(pred, cmap=DEPTH_CMAP, vmin=vmin, vmax=vmax)
-        fig.colorbar(shown, ax=axs[0, col], fraction=0.046, pad=0.02, extend="both").set_label(
-            f"depth, near = bright (clipped to the ground truth's {vmin:.2g}-{vmax:.2g})", fontsize=7)
-        axs[0, col].set_title(name, fontsize=9)
+        cb = fig.colorbar(shown, ax=axs[0, col], fraction=0.046, pad=0.02, extend="both")
+        cb.set_label("depth, near = bright", fontsize=pt)
+        cb.ax.tick_params(labelsize=pt)
+        axs[0, col].set_title(name, fontsize=pt + 1)
         if loss == "sdf":
             j = rep["sdf_gt"].shape[1] // 2
             lo, hi = rep["lower"], rep["upper"]
@@ -564,9 +567,11 @@ def plot_loss_maps(gt, image, K, cases: dict[str, dict], loss: str, grid: int = 
             m = rep["maps"][loss]
             m = m if loss == "depth" else m[:-1, :-1]
             im = axs[1, col].imshow(m, cmap="viridis", vmin=0.0, vmax=_vmax(m))
-        axs[1, col].set_title(f"{loss} loss {rep[loss]:.4f}", fontsize=9)
-        fig.colorbar(im, ax=axs[1, col], fraction=0.046, pad=0.02)
+        axs[1, col].set_title(f"{loss} loss {rep[loss]:.4f}", fontsize=pt + 1)
+        fig.colorbar(im, ax=axs[1, col], fraction=0.046, pad=0.02).ax.tick_params(labelsize=pt)
         for ax in axs[:, col]:
             ax.set_xticks([]), ax.set_yticks([])
+    fig.suptitle(f"top: the predictions, clipped to the ground truth's depths {vmin:.2g}-{vmax:.2g} (arrows: "
+                 f"beyond it); bottom: the per-pixel {loss} term", fontsize=pt + 1)
     fig.tight_layout()
     return fig, values

@@ -628,7 +628,10 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
     assert not any(p == root or p in (root / "notebooks").parents or p.name in ("notebooks", "tests", ".git")
                    for p in readable)
     assert root / "notebooks" / "study" in readable  # the committed tables notebook 05 reads
-    of_checkout = [p for p in readable if root in p.parents]
+    # the Python environment is readable wherever it lives, inside the checkout too (the README's .venv): its
+    # packages' own notebooks (nbgrader's test files) are not the checkout's; every other readable path is
+    env = {Path(sys.prefix).resolve(), Path(sys.base_prefix).resolve(), Path(sys.executable).resolve().parent.parent}
+    of_checkout = [p for p in readable if root in p.parents and p not in env]
     assert not [nb for p in of_checkout for nb in ([p] if p.is_file() else p.rglob("*")) if nb.suffix == ".ipynb"]
     inside = root / "data_manifests" / "course"  # a course folder under a folder the kernel reads: hidden
     cmd = sandbox.bwrap_command(["python"], tmp_path, [inside, tmp_path / "course"])

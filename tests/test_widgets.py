@@ -273,3 +273,87 @@ def _colourbars(fig):
     panels = fig.axes[:10]
     return {panels.index(im.colorbar.mappable.axes): im.colorbar for ax in panels for im in ax.images
             if im.colorbar is not None}
+
+
+def test_readable_pt_is_the_size_that_the_book_shows_at_the_least_height():
+    """Hand-computed at 100 px per inch and an 800 px column: a figure 8 in wide is shown as it is, so
+    8 px is 8 x 72 / 100 = 5.76 pt (6 in half points); one 16 in wide is shown at half its size, 11.52 pt
+    (12); and text of that size measures at least 8 px as shown."""
+    from matplotlib.figure import Figure
+
+    from geodepth_lite import viz
+
+    assert (viz.FIGURE_DPI, viz.BOOK_COLUMN_PX, viz.MIN_TEXT_PX) == (100, 800, 8.0)
+    assert viz.readable_pt(8) == 6.0 and viz.readable_pt(16) == 12.0 and viz.shown_scale(16) == 0.5
+    fig = Figure(figsize=(16, 4))
+    fig.subplots().set_title("a title", fontsize=viz.readable_pt(16))
+    assert [t for t, px in viz.text_heights_px(fig) if px < viz.MIN_TEXT_PX] == ["0.0", "0.2", "0.4", "0.6", "0.8",
+                                                                                 "1.0"] * 2  # default ticks: 10 pt
+    assert dict(viz.text_heights_px(fig))["a title"] == pytest.approx(12 * 100 / 72 / 2)
+
+
+@pytest.mark.parametrize("which", ["static", "live", "loss maps"])
+def test_every_text_of_the_explorer_and_the_loss_maps_is_readable(which):
+    """The explorer's labels and the loss maps' colour-bar captions, as the book shows them: at least
+    viz.MIN_TEXT_PX tall. The same figure with the former 7 pt captions fails the check."""
+    from matplotlib.figure import Figure
+
+    from geodepth_lite import viz
+
+    gt, image, K = explorer_inputs()
+    if which == "static":
+        fig, _ = widgets.draw(gt, image, K, {"scale": 1.2}, grid=4)
+    elif which == "live":
+        fig = Figure(figsize=widgets.LIVE_FIGSIZE, dpi=widgets.LIVE_DPI)
+        pred = widgets.perturb(gt, scale=1.2)
+        widgets.ExplorerFigure(fig, gt, image, pred, widgets.loss_report(pred, gt, image, K, 4), {"scale": 1.2})
+    else:
+        cases = {"offset": {"offset": 0.2}, "scale": {"scale": 1.1}, "blur": {"blur": 1.0}, "ripple": {"ripple": 0.03}}
+        fig, _ = widgets.plot_loss_maps(gt, image, K, cases, "depth", grid=4)  # as notebook 03 draws them
+    heights = viz.text_heights_px(fig)
+    assert len(heights) > 10 and heights[0][1] >= viz.MIN_TEXT_PX, heights[:3]
+    fig.axes[-1].set_ylabel("a caption at 7 pt", fontsize=7)  # as the colour bars' captions were
+    assert viz.text_heights_px(fig)[0][0] == "a caption at 7 pt"
+    assert viz.text_heights_px(fig)[0][1] < viz.MIN_TEXT_PX
+
+
+@pytest.mark.parametrize("width", [6.0, 10.0, 15.0])
+def test_the_lessons_figure_helpers_write_readable_text_at_any_width(width):
+    """viz's colour bars (show_depth, show_error, relative_depth_colorbar, depth_colorbar) and the
+    error-map and border-map figures, on figures as wide as the lessons draw them: every text at least
+    viz.MIN_TEXT_PX tall as the book shows it (the colour bars' former 7 pt captions fail at 15 in)."""
+    import matplotlib.pyplot as plt
+
+    from geodepth_lite import viz
+
+    explorer_inputs()  # the Agg backend
+    rng = np.random.default_rng(0)
+    depth = 1.0 + rng.random((16, 16))
+    fig, axes = plt.subplots(1, 4, figsize=(width, width / 4))
+    viz.show_depth(axes[0], depth)
+    viz.show_error(axes[1], rng.random((16, 16)), 0.5)
+    viz.relative_depth_colorbar(fig, axes[2])
+    viz.depth_colorbar(fig, axes[3], 1.0, 2.0)
+    for ax in axes:
+        ax.set_xticks([]), ax.set_yticks([])
+    figs = [fig]
+    ex = {"image": rng.random((16, 16, 3)), "gt": depth, "pred": depth * 1.1}
+    figs.append(viz.error_map_figure([ex, ex], row_labels=["a", "b"]))
+    figs.append(viz.border_map_figure({"signed": rng.random((16, 16)) - 0.5, "abs": rng.random((16, 16)),
+                                       "ratios": {"test": 1.2}}))
+    from geodepth_lite import gallery
+
+    row = {"image": rng.random((16, 16, 3)), "depth": depth, "prior": depth, "view": "close-up",
+           "file": "a_long_file_name_of_a_frame.png", "r": 0.63, "far_share": 0.04}
+    figs.append(gallery.gallery_figure([row] * 4))  # notebook 07's gallery: 12.6 in wide
+    try:
+        for f in figs:
+            least = viz.text_heights_px(f)[0]
+            assert least[1] >= viz.MIN_TEXT_PX, (f.get_size_inches(), least)
+        if width == 15.0:  # the former captions, planted back, are caught
+            cb = axes[0].images[0].colorbar
+            cb.set_label("z-depth, near = bright", fontsize=7)
+            assert viz.text_heights_px(fig)[0] == ("z-depth, near = bright", pytest.approx(7 * 100 / 72 * 800 / 1500))
+    finally:
+        for f in figs:
+            plt.close(f)
