@@ -357,3 +357,43 @@ def test_the_lessons_figure_helpers_write_readable_text_at_any_width(width):
     finally:
         for f in figs:
             plt.close(f)
+
+
+def figure_text_problems(record: dict, names: list[str]) -> list[str]:
+    """What breaks the book's rule in benchmarks/figure_text.json for the lessons ``names``: a figure
+    with text under the record's min_text_px, a failed measurement, a lesson not measured."""
+    out = []
+    for name in names:
+        r = record["notebooks"].get(name)
+        if r is None:
+            out.append(f"{name}: not measured")
+            continue
+        out += [f"{name}: figure {i} has {f['below']} text(s) under {record['min_text_px']} px"
+                for i, f in enumerate(r["figures"]) if f.get("below")]
+        out += [f"{name}: figure {i} not measured ({f['error']})" for i, f in enumerate(r["figures"]) if "error" in f]
+    return out
+
+
+def test_the_lessons_that_docs_name_draw_readable_text_by_their_record():
+    """docs/book.md says which lessons draw no text under 8 px and the least height: both from the
+    record benchmarks/figure_text.py wrote; a planted small text in the record is caught."""
+    import json
+    import re
+    from pathlib import Path
+
+    from geodepth_lite import viz
+
+    root = Path(__file__).resolve().parents[1]
+    record = json.loads((root / "benchmarks" / "figure_text.json").read_text())
+    text = " ".join((root / "docs" / "book.md").read_text().split())
+    said = r"notebooks ((?:\d\d, )*\d\d) and (\d\d) draw no text under (\d+) px \(the least, ([\d.]+) px\)"
+    m = re.search(said, text)
+    assert m, "docs/book.md states no measured lessons"
+    nums = [*m.group(1).split(", "), m.group(2)]
+    names = [n for n in record["notebooks"] if n[:2] in nums]
+    assert len(names) == len(nums) and float(m.group(3)) == record["min_text_px"] == viz.MIN_TEXT_PX
+    assert figure_text_problems(record, names) == []
+    assert float(m.group(4)) == min(record["notebooks"][n]["least_px"] for n in names)
+    planted = json.loads(json.dumps(record))
+    planted["notebooks"][names[0]]["figures"][0]["below"] = 3
+    assert figure_text_problems(planted, names) == [f"{names[0]}: figure 0 has 3 text(s) under 8.0 px"]
