@@ -21,7 +21,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from geodepth_lite import viz  # noqa: E402
+from geodepth_lite import utils, viz  # noqa: E402
 
 HOOK = '''
 import json, os
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
             r = record["notebooks"][name]
             print(f"{name}: {len(r['figures'])} figures drawn, least text {r['least_px']} px, "
                   f"{r['figures_below']} with text under {viz.MIN_TEXT_PX} px", flush=True)
-    Path(args.out).write_text(json.dumps(record, indent=1) + "\n")
+    utils.write_json_atomic(args.out, record)  # whole or not at all
     return 0
 
 

@@ -159,7 +159,7 @@ def gallery_figure(rows: list[dict], per_row: int = 2):
 
     n_rows = (len(rows) + per_row - 1) // per_row
     fig, axes = plt.subplots(n_rows, 3 * per_row, figsize=(2.1 * 3 * per_row, 2.5 * n_rows), squeeze=False)
-    pt = max(8.0, readable_pt(fig.get_figwidth()))  # every title readable where the book shows the figure
+    pt = readable_pt(fig.get_figwidth(), least=8.0)  # every title readable where the book shows the figure
     for ax in axes.ravel():
         ax.axis("off")
     for i, row in enumerate(rows):

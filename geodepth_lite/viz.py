@@ -30,10 +30,10 @@ def shown_scale(fig_width_in: float) -> float:
     return min(1.0, BOOK_COLUMN_PX / (fig_width_in * FIGURE_DPI))
 
 
-def readable_pt(fig_width_in: float, px: float = MIN_TEXT_PX) -> float:
+def readable_pt(fig_width_in: float, px: float = MIN_TEXT_PX, least: float = 0.0) -> float:
     """The least font size (points, in half points) whose text is ``px`` pixels tall as the book shows a
-    figure ``fig_width_in`` inches wide."""
-    return math.ceil(2 * px * 72 / (FIGURE_DPI * shown_scale(fig_width_in))) / 2
+    figure ``fig_width_in`` inches wide, and at least ``least`` points (a narrow figure keeps its size)."""
+    return max(least, math.ceil(2 * px * 72 / (FIGURE_DPI * shown_scale(fig_width_in))) / 2)
 
 
 def text_heights_px(fig) -> list[tuple[str, float]]:
@@ -101,7 +101,7 @@ def show_depth(ax, depth, vmin=None, vmax=None, *, label: str = "z-depth", color
     if colorbar:
         cb = ax.figure.colorbar(im, ax=ax, extend="both", **CBAR)
         clip = "2nd-98th percentile" if auto else f"{vmin:.3g}-{vmax:.3g}"
-        pt = max(7.0, readable_pt(ax.figure.get_figwidth()))
+        pt = readable_pt(ax.figure.get_figwidth(), least=7.0)
         cb.set_label(f"{label}, near = bright\n(clipped to {clip})", fontsize=pt)
         cb.ax.tick_params(labelsize=pt)
     return im
@@ -116,7 +116,7 @@ def show_error(ax, err, vmax: float, *, label: str = "Abs Rel error"):
     im = ax.imshow(np.ma.masked_invalid(np.asarray(err, dtype=np.float64)), cmap=cmap, vmin=0, vmax=vmax)
     ax.set_xticks([]), ax.set_yticks([])
     cb = ax.figure.colorbar(im, ax=ax, extend="max", **CBAR)
-    pt = max(7.0, readable_pt(ax.figure.get_figwidth()))
+    pt = readable_pt(ax.figure.get_figwidth(), least=7.0)
     cb.set_label(f"{label}\n(clipped at {vmax:g})", fontsize=pt)
     cb.ax.tick_params(labelsize=pt)
     return im
@@ -131,7 +131,7 @@ def relative_depth_colorbar(fig, axes, label: str = RELATIVE_LABEL):
 
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, 1), cmap=DEPTH_CMAP)
     cb = fig.colorbar(sm, ax=axes, extend="both", fraction=0.03, pad=0.02, ticks=[0, 1])
-    pt = max(7.0, readable_pt(fig.get_figwidth()))
+    pt = readable_pt(fig.get_figwidth(), least=7.0)
     cb.ax.set_yticklabels(["near", "far"], fontsize=pt)
     cb.set_label(label, fontsize=pt)
     return cb
@@ -226,7 +226,7 @@ def sample_grid(cells: list[list[tuple]], row_labels: list[str], col_labels: lis
     n_rows, n_cols = len(cells), len(cells[0])
     fig, axes = plt.subplots(2 * n_rows, n_cols, figsize=(cell_inches * n_cols, 2 * cell_inches * n_rows),
                              squeeze=False)
-    pt = max(8.0, readable_pt(fig.get_figwidth()))
+    pt = readable_pt(fig.get_figwidth(), least=8.0)
     for r, row in enumerate(cells):
         for c, (rgb, depth) in enumerate(row):
             axes[2 * r, c].imshow(rgb)
@@ -259,7 +259,7 @@ def depth_histogram(depths: dict, bins: int = 50, ax=None, log: bool = True):
         ax.set_xscale("log")
     ax.set_xlabel("z-depth (scene units)")
     ax.set_ylabel("density")
-    ax.legend(fontsize=max(8.0, readable_pt(ax.figure.get_figwidth())))
+    ax.legend(fontsize=readable_pt(ax.figure.get_figwidth(), least=8.0))
     return ax
 
 
@@ -399,9 +399,9 @@ def error_map_figure(examples: list[dict], columns: tuple[str, ...] = ("input", 
             else:  # depth panels share the ground truth's range; the last one carries the colour bar
                 show_depth(ax, img, vmin, vmax, colorbar=j == len(preds) + 1)
             if i == 0:
-                ax.set_title(title, fontsize=max(9.0, readable_pt(fig.get_figwidth())))
+                ax.set_title(title, fontsize=readable_pt(fig.get_figwidth(), least=9.0))
         if row_labels:
-            axes[i, 0].set_ylabel(row_labels[i], fontsize=max(8.0, readable_pt(fig.get_figwidth())))
+            axes[i, 0].set_ylabel(row_labels[i], fontsize=readable_pt(fig.get_figwidth(), least=8.0))
     fig.tight_layout()
     return fig
 
@@ -415,7 +415,7 @@ def border_map_figure(maps: dict, title: str = ""):
     lim = float(np.nanmax(np.abs(maps["signed"]))) or 1.0
     im = axes[0].imshow(maps["signed"], cmap="RdBu_r", vmin=-lim, vmax=lim)
     axes[0].set_title("mean signed log error\n(red: too far, blue: too near)")
-    pt = max(8.0, readable_pt(fig.get_figwidth()))
+    pt = readable_pt(fig.get_figwidth(), least=8.0)
     fig.colorbar(im, ax=axes[0], fraction=0.046).set_label("log(pred / gt), mean over frames", fontsize=pt)
     im = axes[1].imshow(maps["abs"], cmap=ERROR_CMAP, vmin=0)
     ratios = ", ".join(f"{k} {v:.2f}" for k, v in maps["ratios"].items())
@@ -437,7 +437,7 @@ def depth_colorbar(fig, axes, vmin: float, vmax: float, *, label: str = "z-depth
 
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(vmin, vmax), cmap=DEPTH_CMAP)
     cb = fig.colorbar(sm, ax=axes, extend="both", fraction=0.046, pad=0.02)
-    pt = max(7.0, readable_pt(fig.get_figwidth()))
+    pt = readable_pt(fig.get_figwidth(), least=7.0)
     cb.set_label(f"{label}, near = bright\n(clipped to {vmin:.3g}-{vmax:.3g})", fontsize=pt)
     cb.ax.tick_params(labelsize=pt)
     return cb

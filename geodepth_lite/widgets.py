@@ -220,7 +220,7 @@ class ExplorerFigure:
         self.extent = (lo[0], hi[0], lo[2], hi[2])  # x horizontal, z (depth) vertical
         self.artists, self.colorbars, self.contours = [], {}, {}
         self._background = None  # the canvas without the changing artists, once png() has run
-        self.pt = pt = max(7.0, readable_pt(fig.get_figwidth()))  # every text readable as the book shows the figure
+        self.pt = pt = readable_pt(fig.get_figwidth(), least=7.0)  # every text readable as the book shows the figure
         for i, (ax, (a, title, cmap, vlo, vhi, label)) in enumerate(zip(fig.subplots(2, 5).flat,
                                                                          _panels(gt, image, pred, rep))):
             if i in self.SDF_PANELS:
@@ -545,7 +545,7 @@ def plot_loss_maps(gt, image, K, cases: dict[str, dict], loss: str, grid: int = 
     if loss not in MAP_TERMS:
         raise ValueError(f"loss must be one of {', '.join(MAP_TERMS)}, got {loss!r}")
     fig, axs = plt.subplots(2, len(cases), figsize=(3.2 * len(cases), 6.0), squeeze=False)
-    pt = max(7.0, readable_pt(fig.get_figwidth()))  # every text readable as the book shows the figure
+    pt = readable_pt(fig.get_figwidth(), least=7.0)  # every text readable as the book shows the figure
     vmin, vmax = float(np.min(gt)), float(np.max(gt))
     values = {}
     for col, (name, s) in enumerate(cases.items()):

@@ -16,7 +16,6 @@ prediction's nearest point (the search prunes less the farther the prediction li
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -103,7 +102,7 @@ def main(argv=None) -> int:
            "torch": torch.__version__, "train_frames": counts["train"], "size": size, "data_s": round(data_s, 1),
            "fit_s": round(fit_s, 1), "channels_last": args.channels_last, "epochs": summary, "steps": steps}
     rec["dataset"] = str(root) if args.data_dir else None
-    (out / "first_epoch.json").write_text(json.dumps(rec, indent=1) + "\n")
+    utils.write_json_atomic(out / "first_epoch.json", rec)
     for s in summary:
         print(s)
     for i in (0, 1, 2, 3, 5, 10, 20, per_epoch - 1, per_epoch, per_epoch + 1, len(steps) - 1):
