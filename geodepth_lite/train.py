@@ -214,10 +214,9 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
         # repeatable on any machine with the same CPU instruction set.
         torch.set_num_threads(cfg["threads"])
     try:
-        trainer = Trainer(cfg, Path(run_dir), device=device, progress=progress, network=network)
-        trainer.options = {"device_data": device_data, "keep_best": bool(keep_best),
-                           "channels_last": bool(channels_last)}
-        return trainer.train(resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
+        options = {"device_data": device_data, "keep_best": bool(keep_best), "channels_last": bool(channels_last)}
+        return Trainer(cfg, Path(run_dir), device=device, progress=progress, network=network, options=options).train(
+            resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
     finally:
         torch.set_num_threads(threads_before)
 
@@ -245,7 +244,8 @@ class TrainingDiverged(UserError):
 class Trainer:
     """One training run: ``train`` -> ``run_epoch`` -> ``process_batch`` -> ``compute_losses``."""
 
-    def __init__(self, cfg: dict, run_dir: Path, *, device=None, progress: bool = True, network=None):
+    def __init__(self, cfg: dict, run_dir: Path, *, device=None, progress: bool = True, network=None,
+                 options: dict | None = None):
         self.cfg, self.run_dir, self.network = cfg, run_dir, network
         self.device = inference.pick_device(device)
         self.distributed = distributed.init_distributed(self.device)
@@ -253,7 +253,8 @@ class Trainer:
         self.is_main = self.rank == 0
         self.progress = progress and self.is_main
         self.ckpt_path = run_dir / ckpt_io.CHECKPOINT_NAME
-        self.options = {"device_data": None, "keep_best": False, "channels_last": False}
+        # fit's run options: data on the device (None: where it fits), best.pt, channels_last
+        self.options = {"device_data": None, "keep_best": False, "channels_last": False, **(options or {})}
         if self.device.type == "cuda":  # fixed image sizes: cuDNN picks each convolution's fastest algorithm once
             torch.backends.cudnn.benchmark = True
 
