@@ -13,18 +13,26 @@ scoring code gives another key, and the run is scored again. The file is data fr
 read only up to :data:`MAX_SCORES_BYTES`, must be plain JSON of the shape :func:`scores` writes,
 and one that is not (cut short, oversized, edited into another shape) is named in a warning and
 scored again.
+
+A model's predictions on a set are kept the same way (:func:`kept_predictor`): one ``.npy`` array of
+depth maps in the run folder's ``predictions/``, keyed as the scores are (with the test-time flips),
+beside the digest of each frame's image, so a notebook that evaluates the same model on the same
+frames again (a second execution, nbval after ``reproduce``) predicts nothing again.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
 import warnings
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint, evaluate, inference, integrity, metrics, model, utils
 
@@ -34,6 +42,9 @@ SCORES_FORMAT = 1
 MAX_SCORES_BYTES = 8 * 2**20  # a run's scores with one set's frame rows: about 150 KB for 480 frames
 FRAME_FIELDS = ("index", "organ", "group", *metrics.METRIC_NAMES, "ratio")
 SCORING_MODULES = (checkpoint, evaluate, inference, metrics, model)  # their sources are part of the key
+PREDICTIONS_DIR = "predictions"
+DIGEST_BYTES = 20  # blake2b digest of one frame's image tensor (float32 bytes, shape and dtype)
+NPY_HEADER_MAX = 16 * 2**10  # bytes a kept array's file may hold beyond its numbers
 
 
 class ScoresFileError(ValueError):
@@ -183,3 +194,126 @@ def scores(path: str | Path, sets: dict[str, Any], frames_of: str | None = None)
     utils.write_bytes_atomic(scores_path(path), (json.dumps({"format": SCORES_FORMAT, "key": key, **fresh},
                                                             allow_nan=False) + "\n").encode())
     return fresh
+
+
+# --------------------------------------------------------------------------- kept predictions
+
+
+def image_digest(image: torch.Tensor) -> bytes:
+    """The blake2b digest of one image tensor (its float32 bytes, shape and dtype)."""
+    a = image.detach().cpu().contiguous().numpy()
+    return hashlib.blake2b(a.tobytes() + repr((a.shape, a.dtype.str)).encode(), digest_size=DIGEST_BYTES).digest()
+
+
+def prediction_key(path: str | Path, dataset, flips: str) -> str | None:
+    """The key of checkpoint ``path``'s predictions (test-time ``flips``) on ``dataset``; None
+    when the set's content cannot be fingerprinted (:func:`set_fingerprint`)."""
+    fingerprint = set_fingerprint(dataset)
+    if fingerprint is None:
+        return None
+    payload = {"kind": "predictions", "checkpoint": integrity.file_sha256(Path(path)), "set": fingerprint,
+               "flips": flips, "code": code_fingerprint()}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def predictions_paths(path: str | Path, key: str) -> tuple[Path, Path]:
+    """(depth maps, frame digests): the two files that keep checkpoint ``path``'s predictions under ``key``."""
+    folder = Path(path).parent / PREDICTIONS_DIR
+    return folder / f"{key}.npy", folder / f"{key}.frames.npy"
+
+
+def _read_bounded(file: Path, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """The array in ``file`` when it is exactly ``shape`` of ``dtype``; ScoresFileError naming it otherwise
+    (its size is checked before a byte of the array is read)."""
+    need = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    try:
+        size = file.stat().st_size
+    except OSError as exc:
+        raise ScoresFileError(f"{file}: cannot be read ({utils.os_reason(exc)})") from None
+    if size > need + NPY_HEADER_MAX:
+        raise ScoresFileError(f"{file}: {size} bytes, more than {shape} {np.dtype(dtype)} take")
+    try:
+        a = utils.read_npy(file)
+    except utils.FileProblem as exc:
+        raise ScoresFileError(str(exc)) from None
+    if a.shape != shape or a.dtype != np.dtype(dtype):
+        raise ScoresFileError(f"{file}: holds {a.dtype} {a.shape}, not {np.dtype(dtype)} {shape}")
+    return a
+
+
+def read_kept_predictions(path: str | Path, key: str, n: int, size: tuple[int, int]
+                          ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(digests N x DIGEST_BYTES uint8, depth N x H x W float32) kept under ``key`` beside checkpoint
+    ``path`` for ``n`` frames of ``size``; None when none are kept; ScoresFileError naming a file
+    that is not what :func:`kept_predictor` writes (checked for size before it is read)."""
+    depth_file, digest_file = predictions_paths(path, key)
+    if not (depth_file.is_file() and digest_file.is_file()):
+        return None
+    digests = _read_bounded(digest_file, (n, DIGEST_BYTES), np.uint8)
+    depth = _read_bounded(depth_file, (n, *size), np.float32)
+    if not np.isfinite(depth).all():
+        raise ScoresFileError(f"{depth_file}: holds non-finite depth")
+    return digests, depth
+
+
+def predict_set(predict_fn, dataset, *, batch_size: int = 8, progress: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(digests, depth) of every frame of ``dataset`` by ``predict_fn``, in the batches evaluation uses."""
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=inference.collate)
+    digests, depth = [], []
+    for batch in tqdm(loader, desc="predict", disable=not progress, leave=False):
+        digests += [np.frombuffer(image_digest(im), dtype=np.uint8) for im in batch["image"]]
+        depth.append(evaluate.as_depth_batch(predict_fn(batch["image"])))
+    return np.stack(digests), np.concatenate(depth)
+
+
+def _write_kept(path: Path, a: np.ndarray) -> None:
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    utils.write_bytes_atomic(path, buf.getvalue())
+
+
+def kept_predictor(path: str | Path, dataset, flips: str = "none", *, loaded: tuple | None = None,
+                   batch_size: int = 8, progress: bool = False):
+    """A predictor (images B x 3 x H x W -> depth B x H x W, as ``evaluate.evaluate_predictor`` takes)
+    for the frames of ``dataset``: checkpoint ``path``'s network with test-time ``flips``
+    (``inference.predict_depth``), its predictions on every frame computed once, in evaluation's
+    batches, and kept in the run folder (:func:`prediction_key`). Each image asked for is found by
+    its digest; an image of no kept frame is predicted afresh (``misses`` counts those batches).
+
+    loaded: the (model, cfg) of ``checkpoint.load_model(path)`` when the caller holds them already.
+    A kept file that cannot be used is named in a warning and replaced; a set that cannot be
+    fingerprinted is predicted afresh (nothing kept).
+    """
+    inference.check_flips(flips)
+    net, cfg = loaded if loaded is not None else checkpoint.load_model(path)
+
+    def predict(images: torch.Tensor) -> torch.Tensor:
+        return inference.predict_depth(net, images, cfg["image_size"], flips)
+
+    key = prediction_key(path, dataset, flips)
+    kept = None
+    if key is not None and len(dataset):
+        size = tuple(dataset[0]["depth"].shape[-2:])
+        try:
+            kept = read_kept_predictions(path, key, len(dataset), size)
+        except ScoresFileError as exc:
+            warnings.warn(f"{exc}; predicting again", stacklevel=2)
+    if kept is None:
+        kept = predict_set(predict, dataset, batch_size=batch_size, progress=progress)
+        if key is not None:
+            depth_file, digest_file = predictions_paths(path, key)
+            _write_kept(digest_file, kept[0])
+            _write_kept(depth_file, kept[1])
+    digests, depth = kept
+    rows = {d.tobytes(): i for i, d in enumerate(digests)}
+
+    def served(images: torch.Tensor) -> np.ndarray:
+        found = [rows.get(image_digest(im)) for im in images]
+        if None not in found:
+            return depth[found].copy()
+        served.misses += 1
+        return evaluate.as_depth_batch(predict(images))
+
+    served.misses = 0
+    return served

@@ -230,3 +230,111 @@ def test_the_study_scores_its_runs_through_a_picklable_hook():
     assert not study.is_subset_run("teach", 4, 0, {"depth_term": "l1"})
     assert not study.is_subset_run("teach", 4, 0, run_cache.predict_settings("teach"))
     assert not study.is_subset_run("smoke", 4, 0, {}) and study.is_subset_run("smoke", 4, 0, {"depth_term": "silog"})
+
+
+# --------------------------------------------------------------------------- kept predictions
+
+
+@pytest.fixture
+def predicted(monkeypatch):
+    """Every network pass inference.predict_depth makes for run_scores, counted: calls["n"]."""
+    calls = {"n": 0}
+    real = run_scores.inference.predict_depth
+
+    def counting(*args, **kwargs):
+        calls["n"] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(run_scores.inference, "predict_depth", counting)
+    return calls
+
+
+def test_kept_predictions_score_as_the_model_itself_and_are_made_once(run, sets, predicted):
+    ds = sets["other"]
+    net, cfg = run_scores.checkpoint.load_model(run)
+    direct = evaluate.evaluate_predictor(
+        lambda im: run_scores.inference.predict_depth(net, im, cfg["image_size"], "h"), ds)
+    predicted["n"] = 0
+    first = run_scores.kept_predictor(run, ds, "h")
+    batches = -(-len(ds) // 8)
+    assert predicted["n"] == batches
+    kept = evaluate.evaluate_predictor(first, ds)
+    assert predicted["n"] == batches and first.misses == 0, "evaluation predicted again"
+    assert kept["frames"] == direct["frames"], "kept predictions score differently from the model's own"
+    again = run_scores.kept_predictor(run, ds, "h")  # a second execution: read from the run folder
+    assert evaluate.evaluate_predictor(again, ds)["frames"] == direct["frames"]
+    assert predicted["n"] == batches, "the kept predictions were not reused"
+    depth_file, digest_file = run_scores.predictions_paths(run, run_scores.prediction_key(run, ds, "h"))
+    assert depth_file.parent == run.parent / "predictions" and depth_file.is_file() and digest_file.is_file()
+
+
+def test_other_flips_another_set_or_a_retrained_model_are_predicted_again(run, sets, predicted):
+    ds = sets["other"]
+    run_scores.kept_predictor(run, ds, "h")
+    n = predicted["n"]
+    run_scores.kept_predictor(run, ds, "none")
+    run_scores.kept_predictor(run, sets[PRIMARY], "h")
+    assert predicted["n"] == n + -(-len(ds) // 8) + -(-len(sets[PRIMARY]) // 8)
+    keys = {run_scores.prediction_key(run, ds, "h"), run_scores.prediction_key(run, ds, "none"),
+            run_scores.prediction_key(run, sets[PRIMARY], "h")}
+    assert len(keys) == 3
+    before = run_scores.prediction_key(run, ds, "h")
+    state = torch.load(run, weights_only=True)
+    key = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][key] = state["model"][key] + 0.01
+    torch.save(state, run)
+    assert run_scores.prediction_key(run, ds, "h") != before
+
+
+def test_an_image_of_no_kept_frame_is_predicted_afresh(run, sets, predicted):
+    ds = sets["other"]
+    served = run_scores.kept_predictor(run, ds, "none")
+    n = predicted["n"]
+    images = torch.stack([ds[0]["image"], ds[1]["image"]])
+    other = images.flip(-1)  # frames the set does not hold
+    net, cfg = run_scores.checkpoint.load_model(run)
+    want = run_scores.inference.predict_depth(net, other, cfg["image_size"], "none")[:, 0].numpy()
+    got = served(other)
+    assert served.misses == 1 and predicted["n"] == n + 2
+    assert (got == want).all()
+    same = run_scores.inference.predict_depth(net, images, cfg["image_size"], "none")[:, 0].numpy()
+    assert (served(images) == same).all()
+    assert served.misses == 1
+
+
+@pytest.mark.parametrize("damage, reason", [
+    (lambda p: p.write_bytes(p.read_bytes()[:-40]), "cut-short"),
+    (lambda p: p.write_bytes(b"\x93NUMPY" + b"\0" * 100), "damaged"),
+    (lambda p: p.write_bytes(pickle.dumps([1, 2, 3])), "not a .npy file"),
+    (lambda p: p.write_bytes(p.read_bytes() + b"\0" * (64 * 2**10)), "more than"),
+])
+def test_a_damaged_predictions_file_is_named_and_predicted_again(run, sets, predicted, damage, reason):
+    ds = sets["other"]
+    run_scores.kept_predictor(run, ds, "none")
+    depth_file, _ = run_scores.predictions_paths(run, run_scores.prediction_key(run, ds, "none"))
+    damage(depth_file)
+    n = predicted["n"]
+    with pytest.warns(UserWarning) as caught:
+        served = run_scores.kept_predictor(run, ds, "none")
+    message = str(caught[0].message)
+    assert str(depth_file) in message and reason in message and "predicting again" in message
+    assert predicted["n"] > n
+    assert evaluate.evaluate_predictor(served, ds)["n"] > 0 and served.misses == 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # replaced: read back without a word
+        run_scores.kept_predictor(run, ds, "none")
+
+
+def test_kept_predictions_of_another_shape_or_with_nan_are_not_trusted(run, sets, predicted):
+    ds = sets["other"]
+    run_scores.kept_predictor(run, ds, "none")
+    key = run_scores.prediction_key(run, ds, "none")
+    depth_file, digest_file = run_scores.predictions_paths(run, key)
+    depth = run_scores.utils.read_npy(depth_file)
+    run_scores._write_kept(depth_file, depth[:-1])  # one frame short
+    with pytest.warns(UserWarning, match="not float32"):
+        run_scores.kept_predictor(run, ds, "none")
+    depth[0, 0, 0] = float("nan")
+    run_scores._write_kept(depth_file, depth)
+    with pytest.warns(UserWarning, match="non-finite"):
+        run_scores.kept_predictor(run, ds, "none")
