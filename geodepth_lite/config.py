@@ -12,6 +12,7 @@ import hashlib
 import json
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -155,12 +156,14 @@ IDENTITY_KEYS = (
     "dataset", "dataset_overrides", "image_size", "epochs", "batch_size", "lr",
     "weight_decay", "betas", "sdf_grid", "lambdas", "seed", "train_frames", "val_frames", "encoder_weights",
     "threads", "lr_schedule", "optimizer", "depth_term", "augment", "padding", "border_weight",
-    "input_pad", "sdf_sampling", "sdf_sign", "head_range", "depth_unit",
+    "input_pad", "sdf_sampling", "sdf_sign", "head_range", "depth_unit", "init_from",
 )
 # Keys added after checkpoints existed: part of a configuration's identity only when they differ from
 # this default, so checkpoints trained before the key was added keep their names and stay valid.
 LATER_KEY_DEFAULTS = {"border_weight": 0.0, "input_pad": 0, "sdf_sampling": "bbox", "sdf_sign": "view",
-                      "head_range": None, "depth_unit": 1.0}
+                      "head_range": None, "depth_unit": 1.0, "init_from": None}
+# init_from: the run folder, beside this run's, whose finished weights a fine-tuning run starts from
+INIT_FROM = re.compile(r"case[1-4]_seed\d{1,6}-[0-9a-f]{8}")
 SDF_SIGNS = ("view", "masked")  # sign rules of a training run (sdf.SIGN_RULES; "nearest" is for comparison only)
 LR_SCHEDULES = ("constant", "cosine")
 OPTIMIZERS = ("adam", "adamw")  # adam: L2 coupled into the gradient (the paper, torch.optim.Adam); adamw: decoupled
@@ -199,6 +202,7 @@ def make_config(profile: str = "teach", case: int = 4, seed: int = 0, **override
         "sdf_sign": p.get("sdf_sign", "view"),  # SDF sign: view (the paper's) | masked (out-of-view points left out)
         "head_range": p.get("head_range"),      # (smallest, largest) depth of the head; None = model.MIN/MAX_DEPTH
         "depth_unit": p.get("depth_unit", 1.0),  # the losses see depth / depth_unit (1 = scene units)
+        "init_from": None,                      # a finished run beside this one to fine-tune (its folder name)
         "seed": int(seed),
         "train_frames": p.get("train_frames"),  # N evenly spaced training frames (None = all)
         "val_frames": p.get("val_frames"),      # N evenly spaced validation frames (None = all)
@@ -219,7 +223,7 @@ CONFIG_DEFAULTS = {"dataset_overrides": None, "train_frames": None, "val_frames"
                    "threads": None, "betas": [0.9, 0.999], "lr_schedule": "constant", "optimizer": "adam",
                    "depth_term": "l1", "augment": "none", "padding": "zeros", "border_weight": 0.0, "input_pad": 0,
                    "sdf_sampling": "bbox", "sdf_sign": "view", "val_sdf": True, "head_range": None,
-                   "depth_unit": 1.0}
+                   "depth_unit": 1.0, "init_from": None}
 
 
 def validate_config(cfg: dict) -> dict:
@@ -301,7 +305,10 @@ def _check_optimizer(cfg: dict) -> None:
 
 
 def _check_data(cfg: dict) -> None:
-    """Seed, dataset, its overrides and the encoder's weights file (in place)."""
+    """Seed, dataset, its overrides, the encoder's weights file and the run to fine-tune (in place)."""
+    if cfg["init_from"] is not None and not (isinstance(cfg["init_from"], str)
+                                             and INIT_FROM.fullmatch(cfg["init_from"])):
+        raise UserError(f"init_from must name a run folder such as case4_seed0-1a2b3c4d, got {cfg['init_from']!r}")
     if isinstance(cfg["seed"], bool) or not isinstance(cfg["seed"], (int, np.integer)) or cfg["seed"] < 0:
         raise UserError(f"seed must be a non-negative integer, got {cfg['seed']!r}")
     cfg["seed"] = int(cfg["seed"])

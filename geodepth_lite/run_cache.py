@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 from typing import Any, Callable
 
@@ -93,14 +93,22 @@ def real_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: boo
     """The checkpoint of the model for real endoscope frames (notebook 07's zero-shot sections and
     gallery, ``predict`` on your frames): the ``predict`` model with the profile's ``real_overrides``
     (teach: random crops in training, which take away the lumen-in-the-middle prior that real
-    close-ups expose; docs/teach_recipe.md). Where those are empty it is the ``predict`` model."""
-    return ensure_checkpoint(profile, case, seed, progress=progress, **real_settings(profile))
+    close-ups expose; docs/teach_recipe.md). Where those are empty it is the ``predict`` model.
+    Where they fine-tune the ``predict`` model (``init_from``), that model is trained first."""
+    settings = real_settings(profile, case, seed)
+    if settings.get("init_from"):
+        predict_checkpoint(profile, case, seed, progress=progress)
+    return ensure_checkpoint(profile, case, seed, progress=progress, **settings)
 
 
-def real_settings(profile: str) -> dict:
-    """The training settings of ``profile``'s model for real frames: ``predict_settings`` and the
-    profile's ``real_overrides``."""
-    return {**predict_settings(profile), **config.get_profile(profile).get("real_overrides", {})}
+def real_settings(profile: str, case: int = 4, seed: int = 0) -> dict:
+    """The training settings of ``profile``'s model for real frames (``case``, ``seed``):
+    ``predict_settings`` and the profile's ``real_overrides``, where ``init_from: "predict"``
+    becomes the run folder of the ``predict`` model of the same case and seed (fine-tuned from it)."""
+    real = dict(config.get_profile(profile).get("real_overrides", {}))
+    if real.get("init_from") == "predict":
+        real["init_from"] = checkpoint_dir(profile, case, seed, **predict_settings(profile)).name
+    return {**predict_settings(profile), **real}
 
 
 def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: int | None = None,
@@ -129,11 +137,12 @@ def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int
     Returns the checkpoint paths in the order of ``runs``.
     """
     runs = [(int(c), int(s), dict(o or {})) for c, s, o in runs]
-    todo, folders = [], set()
+    todo, folders, training = [], set(), set()
     for c, s, o in runs:  # one job per run folder: two runs of one configuration are the same run
         folder = checkpoint_dir(profile, c, s, **o)
         if folder not in folders and not is_complete(profile, c, s, **o):
             todo.append((c, s, o))
+            training.add(folder.name)
         folders.add(folder)
     if todo:
         cfgs = [config.make_config(profile, c, s, **o) for c, s, o in todo]
@@ -146,17 +155,38 @@ def ensure_runs(profile: str, runs: list[tuple[int, int, dict]], *, workers: int
         minutes = sorted((estimated_minutes(cfg) for cfg in cfgs), reverse=True)
         _announce(f"{len(todo)} of {len(runs)} runs ({profile}), {workers} side by side",
                   max(minutes[0], sum(minutes) / workers))
-        order = sorted(range(len(todo)), key=lambda i: -cfgs[i]["image_size"])
+        # a fine-tuning run waits for the run it starts from when that one trains here too
+        source = [cfg["init_from"] if cfg["init_from"] in training else None for cfg in cfgs]
+        order = sorted(range(len(todo)), key=lambda i: (source[i] is not None, -cfgs[i]["image_size"]))
         if workers == 1:
             for i in order:
                 train_run(profile, *todo[i], after=after, progress=progress)
         else:
-            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                futures = [pool.submit(train_run, profile, *todo[i], after=after) for i in order]
-                for f in tqdm(as_completed(futures), total=len(futures), disable=not progress,
-                              desc=f"training {len(futures)} runs, {workers} side by side"):
-                    f.result()
+            _train_side_by_side(profile, [todo[i] for i in order], [source[i] for i in order], workers, after,
+                                progress)
     return [checkpoint_dir(profile, c, s, **o) / checkpoint.CHECKPOINT_NAME for c, s, o in runs]
+
+
+def _train_side_by_side(profile: str, todo: list[tuple[int, int, dict]], source: list[str | None], workers: int,
+                        after: Callable[[Path], Any] | None, progress: bool) -> None:
+    """``train_run`` of each run in ``todo`` in ``workers`` processes; a run whose ``source`` (the run
+    folder it fine-tunes) trains here too is started when that one is done."""
+    names = [checkpoint_dir(profile, c, s, **o).name for c, s, o in todo]
+    waiting = [i for i in range(len(todo)) if source[i] is not None]
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(train_run, profile, *todo[i], after=after): i
+                   for i in range(len(todo)) if source[i] is None}
+        desc = f"training {len(todo)} runs, {workers} side by side"
+        with tqdm(total=len(todo), disable=not progress, desc=desc) as bar:
+            while futures:
+                done, _ = wait(futures, return_when=FIRST_COMPLETED)
+                for f in done:
+                    finished = names[futures.pop(f)]
+                    f.result()
+                    bar.update()
+                    for i in [i for i in waiting if source[i] == finished]:
+                        waiting.remove(i)
+                        futures[pool.submit(train_run, profile, *todo[i], after=after)] = i
 
 
 def train_run(profile: str, case: int, seed: int, overrides: dict, *, after: Callable[[Path], Any] | None = None,

@@ -38,7 +38,7 @@ import torch
 from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint as ckpt_io
-from geodepth_lite import config, distributed, inference, losses, provenance, utils
+from geodepth_lite import config, distributed, inference, integrity, losses, provenance, utils
 from geodepth_lite.augment import augment_batch
 from geodepth_lite.datasets import DeviceBatches, DeviceSplit, MemoryDataset, load_split, read_frames, resolve_dataset
 from geodepth_lite.errors import UserError
@@ -289,9 +289,7 @@ class Trainer:
         self.load_data(cache, num_workers)
         # 3. model, optimizer, learning-rate schedule, in the order that fixes the random draws
         utils.seed_everything(cfg["seed"])
-        self.model = build_network(cfg, self.network).to(self.device)
-        if self.options["channels_last"]:
-            self.model = self.model.to(memory_format=torch.channels_last)
+        self.model = self.make_model(fresh=state is None)
         opt_cls = torch.optim.AdamW if cfg["optimizer"] == "adamw" else torch.optim.Adam
         self.opt = opt_cls(self.model.parameters(), lr=cfg["lr"], betas=tuple(cfg["betas"]),
                            weight_decay=cfg["weight_decay"])
@@ -310,7 +308,8 @@ class Trainer:
         earlier = provenance.earlier_sessions(ckpt_io.read_log_file(self.run_dir)) if state is not None else []
         self.sessions = [*earlier, {**provenance.session(cfg, self.device, start),
                                     "device_data": self.device_data, "load_data_s": round(self.load_s, 2),
-                                    "channels_last": self.options["channels_last"]}]
+                                    "channels_last": self.options["channels_last"],
+                                    **({"init_from_sha256": self.init_sha256} if self.init_sha256 else {})}]
         self.net = torch.nn.parallel.DistributedDataParallel(self.model) if self.distributed else self.model
         # 5. the epochs, a checkpoint after each
         for done, epoch in enumerate(range(start, cfg["epochs"]), start=1):
@@ -324,6 +323,29 @@ class Trainer:
             if stop_after is not None and done >= stop_after:
                 break
         return self.ckpt_path
+
+    def make_model(self, fresh: bool) -> torch.nn.Module:
+        """The network on the device (in its memory format); a fresh run with ``init_from`` starts
+        from that run's weights (``start_from``; its checkpoint's SHA-256 kept in ``init_sha256``)."""
+        self.model = build_network(self.cfg, self.network).to(self.device)
+        self.init_sha256 = self.start_from(self.cfg["init_from"]) if fresh and self.cfg["init_from"] else None
+        if self.options["channels_last"]:
+            self.model = self.model.to(memory_format=torch.channels_last)
+        return self.model
+
+    def start_from(self, name: str) -> str:
+        """Fine-tuning: load the weights of the finished run folder ``name`` beside this run's (the
+        configuration's ``init_from``); returns that checkpoint's SHA-256 for the provenance."""
+        source = self.run_dir.parent / name / ckpt_io.CHECKPOINT_NAME
+        if not source.is_file():
+            raise UserError(f"init_from: no run {name} beside {self.run_dir}: train the run to fine-tune first")
+        ckpt = ckpt_io.read_checkpoint(source, limits=None if self.network is None else ckpt_io.ANY_NETWORK)
+        if not ckpt.get("complete"):
+            raise UserError(f"init_from: {source} is not finished (epoch {ckpt.get('epoch')}): finish it first")
+        if config.config_hash(config.validate_config(ckpt["cfg"])) != name.rsplit("-", 1)[1]:
+            raise UserError(f"init_from: {source} holds a configuration other than the one its folder is named for")
+        ckpt_io.load_weights(self.model, ckpt["model"], source)
+        return integrity.file_sha256(source)
 
     def restore(self, state: dict) -> int:
         """Every state as it was after the checkpoint's last epoch; returns that epoch."""

@@ -18,6 +18,7 @@ PINNED = {
     "docs/study_plan_2.md": "3eea30b4182cceb2d31028339e72de811bd3c1a92fc54186b698470a4fa0adb5",
     "docs/exploratory_plan.md": "0c94ab662cc20c361de8662389714e1315213f1b9892409995e3e6d80c44bfde",  # fbb7ca4
     "docs/gpu_check_plan.md": "818243fed58903cb9ba17074d755633dc7a61441883c8cab641c6dfe324d0fac",
+    "docs/real_finetune_plan.md": "18b4249319cf0240303aab9f50707d96b505b08b0818faa37098d4edbd1191d7",
 }
 
 

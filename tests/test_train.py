@@ -357,7 +357,7 @@ def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides(
     assert run_cache.real_settings("paper") == run_cache.predict_settings("paper")
     for name in config.PROFILES:
         config.make_config(name, 4, 0, **run_cache.real_settings(name))
-    assert reproduce.SETTINGS["real"]("teach") == real
+    assert reproduce.SETTINGS["real"]("teach", 4, 0) == real
     args = cli.build_parser().parse_args(["train", "--image-size", "96", "--input-pad", "16", "--border-weight",
                                           "2", "--augment", "crop"])
     cfg = config.make_config("teach", 4, 0, image_size=args.image_size, input_pad=args.input_pad,
@@ -494,3 +494,63 @@ def test_a_term_whose_weight_is_zero_is_never_evaluated(monkeypatch, smoke_root,
     logged = sorted(k[len("gradnorm_"):] for k in row if k.startswith("gradnorm_"))
     assert logged == sorted(losses.term_names() if evaluated else ("depth", "smooth"))
     assert row["train_sdf"] == 0.0 if not evaluated else row["train_sdf"] > 0
+
+
+def test_a_fine_tuning_run_starts_from_the_finished_run_beside_it(smoke_root, tmp_path):
+    """init_from: the weights of the named run folder beside this one; with a learning rate of 1e-12
+    they stay those weights (Adam moves each by about the learning rate a step), while a run without
+    init_from stays at its own initialisation; the provenance names the source checkpoint by its SHA-256."""
+    from geodepth_lite import integrity
+
+    runs = tmp_path / "checkpoints"
+    source_cfg = _cfg(smoke_root, epochs=1)
+    source = train.fit(source_cfg, runs / f"case4_seed0-{config.config_hash(source_cfg)}", progress=False)
+    tuned_cfg = _cfg(smoke_root, epochs=1, lr=1e-12, init_from=source.parent.name)
+    tuned = train.fit(tuned_cfg, runs / "tuned", progress=False)
+    fresh = train.fit(_cfg(smoke_root, epochs=1, lr=1e-12), runs / "fresh", progress=False)
+    src, got, own = (torch.load(p, weights_only=False)["model"] for p in (source, tuned, fresh))
+    params = [k for k in src if k.endswith(".weight") and src[k].dim() == 4]  # the convolutions
+    assert params and all(torch.allclose(src[k], got[k], rtol=0, atol=1e-9) for k in params)
+    assert not any(torch.allclose(src[k], own[k], rtol=0, atol=1e-9) for k in params)
+    log = checkpoint.read_log_file(tuned.parent)
+    assert log["provenance"][-1]["init_from_sha256"] == integrity.file_sha256(source)
+    assert config.config_hash(tuned_cfg) != config.config_hash(_cfg(smoke_root, epochs=1, lr=1e-12))
+
+
+def test_a_fine_tuning_run_refuses_a_missing_unfinished_or_misnamed_source(smoke_root, tmp_path):
+    from geodepth_lite.errors import UserError
+
+    runs = tmp_path / "checkpoints"
+    cfg = _cfg(smoke_root, epochs=2)
+    name = f"case4_seed0-{config.config_hash(cfg)}"
+    with pytest.raises(UserError, match=f"no run {name} beside"):
+        train.fit(_cfg(smoke_root, epochs=1, init_from=name), runs / "a", progress=False)
+    assert not (runs / "a").exists()  # a refused run leaves nothing behind
+    train.fit(cfg, runs / name, progress=False, stop_after=1)  # one of two epochs: not finished
+    with pytest.raises(UserError, match="is not finished"):
+        train.fit(_cfg(smoke_root, epochs=1, init_from=name), runs / "b", progress=False)
+    other = _cfg(smoke_root, epochs=1)
+    wrong = runs / f"case4_seed0-{'0' * 8}"
+    train.fit(other, wrong, progress=False)  # finished, but its configuration is not the one named
+    with pytest.raises(UserError, match="other than the one its folder is named for"):
+        train.fit(_cfg(smoke_root, epochs=1, init_from=wrong.name), runs / "c", progress=False)
+    for bad in ("../case4_seed0-00000000", "case4_seed0-XYZ", 7):
+        with pytest.raises(UserError, match="init_from must name a run folder"):
+            _cfg(smoke_root, init_from=bad)
+
+
+def test_ensure_runs_starts_a_fine_tuning_run_after_its_source(monkeypatch, smoke_root):
+    """One worker: the run that fine-tunes another waits until that one is trained, whatever the
+    order asked; a source already finished is not waited for."""
+    from geodepth_lite import config
+
+    monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
+    calls = []
+    monkeypatch.setattr(run_cache, "ensure_checkpoint",
+                        lambda profile, case, seed, progress=False, **o: calls.append((case, seed, o.get("init_from"))))
+    monkeypatch.setattr(run_cache, "resolve_dataset", lambda cfg, progress=False: smoke_root)
+    monkeypatch.setattr(run_cache, "is_complete", lambda profile, c, s, **o: False)
+    source = run_cache.checkpoint_dir("smoke", 4, 0, image_size=96).name
+    runs = [(4, 0, {"image_size": 64, "init_from": source}), (1, 0, {}), (4, 0, {"image_size": 96})]
+    run_cache.ensure_runs("smoke", runs, workers=1)
+    assert calls == [(4, 0, None), (1, 0, None), (4, 0, source)]
