@@ -328,3 +328,33 @@ def test_bench_step_precision_times_the_variants_side_by_side(tmp_path, capsys):
     assert s.batch["image"].is_contiguous(memory_format=torch.channels_last)
     assert all(p.is_contiguous(memory_format=torch.channels_last) for p in s.net.parameters() if p.dim() == 4)
     assert not all(p.is_contiguous(memory_format=torch.channels_last) for p in net.parameters() if p.dim() == 4)
+
+
+def finetune_table_problems(text: str, record: dict) -> list[str]:
+    """Each row of docs/teach_recipe.md's fine-tuning table against benchmarks/real_finetune.json."""
+    problems = []
+    rows = [("trained from scratch (kept)", None, record["reference"])] + [
+        (f"fine-tuned, candidate {n}", c["epochs"], c) for n, c in record["candidates"].items()]
+    for label, epochs, r in rows:
+        want = (f"| {label} | {epochs or 8}, {r['train_s']} | {r['val_abs_rel']:.4f} | {r['close_blobs']} of "
+                f"{r['close_frames']}, {r['close_median_s']:.3f}, {r['close_median_r']:.3f} | {r['all_blobs']} | "
+                f"{r['run']} |")
+        if want not in text:
+            problems.append(want)
+    kept = record["decision"] == "reference (trained from scratch)"
+    if not kept or any(c["qualifies"] for c in record["candidates"].values()):
+        problems.append(f"the record decides {record['decision']!r}; the page keeps the model trained from scratch")
+    return problems
+
+
+def test_the_fine_tuning_table_states_its_record():
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "teach_recipe.md").read_text()
+    record = json.loads((BENCHMARKS / "real_finetune.json").read_text())
+    assert finetune_table_problems(text, record) == []
+    planted = json.loads(json.dumps(record))
+    planted["candidates"]["B"]["val_abs_rel"] = 0.1094  # a candidate within the plan's bound
+    assert finetune_table_problems(text, planted) == ["| fine-tuned, candidate B | 3, 470.3 | 0.1094 | 0 of 7, "
+                                                      "0.001, 0.852 | 0 | case4_seed0-0cc3c494 |"]
+    planted["decision"] = "B"
+    assert len(finetune_table_problems(text, planted)) == 2

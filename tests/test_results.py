@@ -22,7 +22,7 @@ The standing against the baselines is a strict nbval output in the notebooks.
 
 Notebook 05 analyses the ablation study's committed tables (``notebooks/study/``), so its
 verdicts are the same on every computer (nbval compares them). Its last part retrains the study's
-default subset (seeds 0-2 of the silog cells) and records each run's metrics and each test's mean
+default subset (seeds 0 and 1 of the silog cells) and records each run's metrics and each test's mean
 and sd of the per-seed changes ("paired | <set> | <metric> | <term> case<k> | mean %" / "sd %").
 Another kernel set is in effect another draw of the seeds: retraining the twelve runs of the
 exploratory ablation under the AVX2 cap, or on another computer, kept each comparison's mean

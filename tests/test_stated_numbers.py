@@ -201,8 +201,8 @@ def test_reading_counts_at_the_timed_commit_are_the_ones_recorded(tmp_path):
 
 
 def test_model_count_is_what_reproduce_trains():
-    assert stated.model_count() == 14  # 12 ablation runs, the predict model, the model for real frames
-    assert stated.ablation_run_count() == 12
+    assert stated.model_count() == 10  # 8 ablation runs, the predict model, the model for real frames
+    assert stated.ablation_run_count() == 8
 
 
 # ------------------------------------------------------------------ the checks can fail
@@ -220,9 +220,9 @@ def test_the_checks_reject_wrong_figures():
     assert training_problems(f"about 11 min (8 epochs x {epoch_s + 1:.1f} s recorded)")
     assert tuning_problems("2.9 min recorded, run r3_c1_e8 of benchmarks/tuning_log.jsonl") == []
     assert tuning_problems("3.9 min recorded, run r3_c1_e8 of benchmarks/tuning_log.jsonl")
-    assert count_problems("packs the fourteen trained models; the 14 models") == []
-    assert count_problems("the thirteen models without optimizer state")
-    assert count_problems("the default subset of eleven runs")
+    assert count_problems("packs the ten trained models; the 10 models") == []
+    assert count_problems("the fourteen models without optimizer state")
+    assert count_problems("the default subset of twelve runs")
     assert count_problems("the trained models are reused") == []  # not a count
 
 

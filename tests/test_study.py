@@ -116,8 +116,8 @@ def test_the_paired_record_of_the_study_and_of_its_silog_subset():
     silog_only = {"runs": [r_ for r_ in tables["runs"] if r_["depth_term"] == "silog"],
                   "baselines": tables["baselines"]}
     sub = study.paired_record(silog_only, seeds=study.DEFAULT_SEEDS)
-    assert sub["paired | seeds"] == 3 and set(sub) < set(full)  # the subset's keys are the study's
-    assert sub["paired | confirmation set | rmse | silog case4 | mean %"] == round(r[:3].mean(), 2)
+    assert sub["paired | seeds"] == 2 and set(sub) < set(full)  # the subset's keys are the study's
+    assert sub["paired | confirmation set | rmse | silog case4 | mean %"] == round(r[:2].mean(), 2)
     runs = study.run_record(tables, seeds=[0])
     assert len(runs) == len(study.CELLS) * len(METRICS)
     assert runs[f"l1 case4 seed0 | {study.PRIMARY} | rmse"] == round(0.10 * (1 - 0.30 + eps[0]), 4)
@@ -247,13 +247,13 @@ def test_the_smallest_change_the_cross_machine_check_catches(committed):
     of it rarely. A shift that puts the fresh mean's centre on the range's end is caught half the
     time (known answer of the analytic rate)."""
     rec = study.paired_record(committed)
-    shifts = {s["test"]: s for s in study.detectable_shifts(rec)}
+    shifts = {s["test"]: s for s in study.detectable_shifts(rec, n_fresh=3)}
     assert len(shifts) == 6 and all(s["shift"] > 0 for s in shifts.values())
     stem = f"paired | {study.PRIMARY} | rmse | silog case3"
     c3 = shifts[stem.removeprefix("paired | ")]
     assert c3["range"] == pytest.approx((-8.14, 1.84), abs=0.01)  # the audit's "-8.1% to +1.8%"
-    assert study.check_flag_rate(rec, stem, c3["shift"]) == pytest.approx(0.8, abs=1e-6)
-    assert study.check_flag_rate(rec, stem, c3["range"][1] - c3["mean"]) == pytest.approx(0.5, abs=0.01)
+    assert study.check_flag_rate(rec, stem, c3["shift"], n_fresh=3) == pytest.approx(0.8, abs=1e-6)
+    assert study.check_flag_rate(rec, stem, c3["range"][1] - c3["mean"], n_fresh=3) == pytest.approx(0.5, abs=0.01)
     assert c3["flag_if_zero"] < 0.05  # "the SDF loss has no effect" is not told from the committed -3%
     stems = study.checked_stems(rec)
     rng = np.random.default_rng(1)
@@ -271,3 +271,21 @@ def test_the_smallest_change_the_cross_machine_check_catches(committed):
     assert 0.75 <= flagged(c3["shift"], 800) <= 0.85
     assert flagged(-c3["shift"], 200) >= 0.7  # the range is symmetric: either way
     assert flagged(c3["shift"] / 4, 200) <= 0.05
+
+
+def test_the_docs_state_what_the_check_can_see_from_the_committed_tables(committed):
+    """docs/training_and_evaluation.md holds study.detectable_markdown of the committed tables for
+    the default 2 seeds and for 3, and the rates its prose names; a table for 4 seeds is not there."""
+    from geodepth_lite import utils
+
+    text = (utils.project_root() / "docs" / "training_and_evaluation.md").read_text()
+    rec = study.paired_record(committed)
+    assert study.detectable_markdown(rec) in text and study.detectable_markdown(rec, n_fresh=3) in text
+    assert study.detectable_markdown(rec, n_fresh=4) not in text
+    stem = f"paired | {study.PRIMARY} | rmse | silog case3"
+    mean = rec[f"{stem} | mean %"]
+    for n, harm, zero, gain in ((2, "64%", "0.3%", "85%"), (3, "94%", "0.8%", "57%")):
+        assert f"{100 * study.check_flag_rate(rec, stem, 3 - mean, n_fresh=n):.0f}%" == harm
+        assert f"{100 * study.check_flag_rate(rec, stem, -mean, n_fresh=n):.1f}%" == zero
+        assert f"{100 * (1 - study.check_flag_rate(rec, stem, -8 - mean, n_fresh=n)):.0f}%" == gain
+        assert all(x in text for x in (harm, zero, gain))
