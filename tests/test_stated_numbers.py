@@ -328,3 +328,33 @@ def test_the_cold_run_check_can_fail():
     problems = cold_run_problems(longer, TIMINGS.read_text(encoding="utf-8"), README.read_text(encoding="utf-8"))
     assert f"docs/timings.md does not state '{longer['pytest_s'] / 60:.1f} min'" in problems
     assert f"the README does not state '{longer['pytest_s'] / 60:.1f} min cold'" in problems
+
+
+def reproduce_run_problems(rec: dict, timings: str, readme: str) -> list[str]:
+    """The fresh-clone ``reproduce`` timing in docs/timings.md and the README against its record
+    (``benchmarks/reproduce_run.json``): minutes and seconds, the install, the count of models."""
+    minutes = rec["reproduce_s"] / 60
+    figures = [f"**{minutes:.1f} min** ({rec['reproduce_s']:.0f} s)", f"{rec['install_s']:.0f} s",
+               f"{rec['models']} models", f"jobs add to about {sum(rec['jobs_s'].values()) / 60:.0f} min"]
+    big = [v for k, v in rec["jobs_s"].items() if "96 px" in k]
+    small = [v for k, v in rec["jobs_s"].items() if "64 px" in k]
+    figures += [f"took {min(big)} and {max(big)} s", f"run {min(small)}-{max(small)} s"]
+    problems = [f"docs/timings.md does not state {f!r}" for f in figures if f not in flat(timings)]
+    for f in (f"**{minutes:.1f} min** after the install", f"trains {rec['models']} models (~{minutes:.0f} min"):
+        if f not in flat(readme):
+            problems.append(f"the README does not state {f!r}")
+    if rec["models"] != stated.model_count():
+        problems.append(f"the record trained {rec['models']} models; reproduce trains {stated.model_count()}")
+    return problems
+
+
+def test_the_reproduce_run_is_stated_from_its_record():
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / "reproduce_run.json").read_text())
+    assert reproduce_run_problems(rec, TIMINGS.read_text(encoding="utf-8"), README.read_text(encoding="utf-8")) == []
+    slower = dict(rec, reproduce_s=rec["reproduce_s"] + 180)  # three minutes more than the pages say
+    problems = reproduce_run_problems(slower, TIMINGS.read_text(encoding="utf-8"), README.read_text(encoding="utf-8"))
+    assert len(problems) >= 3, problems
+    assert reproduce_run_problems(dict(rec, models=14), TIMINGS.read_text(encoding="utf-8"),
+                                  README.read_text(encoding="utf-8"))
