@@ -358,3 +358,35 @@ def test_the_reproduce_run_is_stated_from_its_record():
     assert len(problems) >= 3, problems
     assert reproduce_run_problems(dict(rec, models=14), TIMINGS.read_text(encoding="utf-8"),
                                   README.read_text(encoding="utf-8"))
+
+
+def test_the_kept_predictions_lever_is_stated_from_its_record():
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / "nb06_kept_predictions.json").read_text())
+    text = flat(TIMINGS.read_text(encoding="utf-8"))
+
+    def figures(r: dict) -> list[str]:
+        return [f"| {r['B_wall_s']:.1f} s | {r['cell3_B_s']:.1f} s |",
+                f"| {r['A_wall_s']:.1f} s | {r['cell3_A_s']:.1f} s |", f"| {r['A_wall_s'] / r['B_wall_s']:.3f} |",
+                f"cell {r['first_keeping_execution_cell3_s']:.1f} s"]
+
+    assert [f for f in figures(rec) if f not in text] == []
+    assert len([f for f in figures(dict(rec, A_wall_s=rec["A_wall_s"] + 30)) if f not in text]) == 2
+
+
+def test_the_test_run_after_reproduce_is_stated_from_its_record():
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / "after_reproduce_pytest.json").read_text())
+    text = flat(TIMINGS.read_text(encoding="utf-8"))
+
+    def missing(r: dict) -> list[str]:
+        figures = [f"{r['pytest_s'] / 60:.1f} min ({r['pytest_s']:.0f} s)",
+                   f"{r['passed']} passed, {r['failed']} failed",
+                   f"median {r['load_1min_median']:.2f} ({r['load_1min_min']:.2f}-{r['load_1min_max']:.2f})",
+                   f"evaluation, {r['slowest_notebook_cell']['s']:.1f} s"]
+        return [f for f in figures if f not in text]
+
+    assert missing(rec) == []
+    assert missing(dict(rec, slowest_notebook_cell={"test": "x", "s": 61.0})) == ["evaluation, 61.0 s"]
