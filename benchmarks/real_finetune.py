@@ -29,7 +29,7 @@ CLOSE = ("close-up", "wall")
 
 def settings(epochs: int | None) -> dict:
     """The reference's settings (epochs None) or a candidate's: fine-tuned from the predict model."""
-    real = run_cache.real_settings(PROFILE, CASE, SEED)
+    real = run_cache.real_settings(PROFILE)
     if epochs is None:
         return {k: v for k, v in real.items() if k != "init_from"} | {"augment": "crop"}
     source = run_cache.checkpoint_dir(PROFILE, CASE, SEED, **run_cache.predict_settings(PROFILE)).name

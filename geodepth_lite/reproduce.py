@@ -192,8 +192,7 @@ def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
 
 MODELS_KEY = "geodepth_lite"  # notebook metadata: {"models": [spec, ...]}, the models the notebook loads
 # a spec's "settings": the training settings beyond (case, seed) of each kind of model
-SETTINGS = {"predict": lambda profile, case, seed: run_cache.predict_settings(profile), "real": run_cache.real_settings,
-            "ablation": lambda profile, case, seed: {}}  # (profile, case, seed) -> overrides
+SETTINGS = {"predict": run_cache.predict_settings, "real": run_cache.real_settings, "ablation": lambda profile: {}}
 
 
 def notebook_models(nb: Path) -> list[dict]:
@@ -225,7 +224,8 @@ def notebook_runs(profile: str, nb: Path, given: dict) -> tuple[list[tuple[int, 
         value = lambda key: p[spec[key]] if isinstance(spec.get(key), str) else spec[key]  # noqa: E731
         cases = value("cases") if "cases" in spec else [value("case")]
         seeds = value("seeds") if "seeds" in spec else [value("seed")]
-        runs += [(int(c), int(s), SETTINGS[spec["settings"]](profile, int(c), int(s))) for c in cases for s in seeds]
+        overrides = SETTINGS[spec["settings"]](profile)
+        runs += [(int(c), int(s), dict(overrides)) for c in cases for s in seeds]
         if "workers" in spec:
             workers = int(value("workers")) or None
     return runs, workers
@@ -316,8 +316,7 @@ def recorded_seconds(nb: Path, default: float = 60.0) -> float:
 def run_label(profile: str, case: int, seed: int, overrides: dict) -> str:
     """A training job's name: "case 4 seed 0 (predict model, 96 px)", "case 1 seed 2 (64 px)"."""
     size = config.make_config(profile, case, seed, **overrides)["image_size"]
-    kind = next((k for k, f in SETTINGS.items()
-                 if k != "ablation" and overrides and f(profile, case, seed) == overrides), "")
+    kind = next((k for k, f in SETTINGS.items() if k != "ablation" and overrides and f(profile) == overrides), "")
     return f"case {case} seed {seed} ({kind + ' model, ' if kind else ''}{size} px)"
 
 
@@ -340,9 +339,7 @@ def plan_jobs(profile: str, plan: list[tuple[Path, dict, bool]], out: Path, *, i
     scoring = any(spec["settings"] == "ablation" for nb, _ in todo for spec in notebook_models(nb))
     after = prepare_training(profile, [(c, s, o) for c, s, o, _ in train], progress=progress, sets=scoring)
     logs = out / MARKER_DIR / "logs"
-    names = {f.name: label for f, label in folders.items()}  # a run that fine-tunes another waits for it (init_from)
-    jobs = [Job(folders[folder], functools.partial(run_cache.train_run, profile, c, s, o, after=after),
-                tuple(names[k] for k in [o.get("init_from")] if k in names),
+    jobs = [Job(folders[folder], functools.partial(run_cache.train_run, profile, c, s, o, after=after), (),
                 60 * run_cache.estimated_minutes(config.make_config(profile, c, s, **o)), "train",
                 logs / f"{folder.name}.txt") for c, s, o, folder in train]
     for nb, p in todo:

@@ -93,22 +93,14 @@ def real_checkpoint(profile: str, case: int = 4, seed: int = 0, *, progress: boo
     """The checkpoint of the model for real endoscope frames (notebook 07's zero-shot sections and
     gallery, ``predict`` on your frames): the ``predict`` model with the profile's ``real_overrides``
     (teach: random crops in training, which take away the lumen-in-the-middle prior that real
-    close-ups expose; docs/teach_recipe.md). Where those are empty it is the ``predict`` model.
-    Where they fine-tune the ``predict`` model (``init_from``), that model is trained first."""
-    settings = real_settings(profile, case, seed)
-    if settings.get("init_from"):
-        predict_checkpoint(profile, case, seed, progress=progress)
-    return ensure_checkpoint(profile, case, seed, progress=progress, **settings)
+    close-ups expose; docs/teach_recipe.md). Where those are empty it is the ``predict`` model."""
+    return ensure_checkpoint(profile, case, seed, progress=progress, **real_settings(profile))
 
 
-def real_settings(profile: str, case: int = 4, seed: int = 0) -> dict:
-    """The training settings of ``profile``'s model for real frames (``case``, ``seed``):
-    ``predict_settings`` and the profile's ``real_overrides``, where ``init_from: "predict"``
-    becomes the run folder of the ``predict`` model of the same case and seed (fine-tuned from it)."""
-    real = dict(config.get_profile(profile).get("real_overrides", {}))
-    if real.get("init_from") == "predict":
-        real["init_from"] = checkpoint_dir(profile, case, seed, **predict_settings(profile)).name
-    return {**predict_settings(profile), **real}
+def real_settings(profile: str) -> dict:
+    """The training settings of ``profile``'s model for real frames: ``predict_settings`` and the
+    profile's ``real_overrides``."""
+    return {**predict_settings(profile), **config.get_profile(profile).get("real_overrides", {})}
 
 
 def ensure_checkpoints(profile: str, runs: list[tuple[int, int]], *, workers: int | None = None,

@@ -357,7 +357,7 @@ def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides(
     assert run_cache.real_settings("paper") == run_cache.predict_settings("paper")
     for name in config.PROFILES:
         config.make_config(name, 4, 0, **run_cache.real_settings(name))
-    assert reproduce.SETTINGS["real"]("teach", 4, 0) == real
+    assert reproduce.SETTINGS["real"]("teach") == real
     args = cli.build_parser().parse_args(["train", "--image-size", "96", "--input-pad", "16", "--border-weight",
                                           "2", "--augment", "crop"])
     cfg = config.make_config("teach", 4, 0, image_size=args.image_size, input_pad=args.input_pad,
