@@ -28,6 +28,8 @@ The loop reads top to bottom as ``fit`` -> ``run_epoch`` -> ``process_batch`` ->
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import math
 import os
 import time
@@ -259,10 +261,12 @@ class Trainer:
             torch.backends.cudnn.benchmark = True
 
     def train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
-        """Rank 0 holds the run folder's lock for the whole run (``checkpoint.run_folder``)."""
-        if not self.is_main:
-            return self._train(resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
-        with ckpt_io.run_folder(self.run_dir):
+        """Rank 0 holds the run folder's lock for the whole run (``checkpoint.run_folder``); the data
+        loader's workers keep their temporary files in a folder removed when the run ends, however it
+        ends (``utils.worker_temp_dir``, entered on ``self.stack`` by ``make_loader``)."""
+        with contextlib.ExitStack() as self.stack:
+            if self.is_main:
+                self.stack.enter_context(ckpt_io.run_folder(self.run_dir))
             return self._train(resume=resume, num_workers=num_workers, cache=cache, stop_after=stop_after)
 
     def _train(self, *, resume: bool, num_workers: int | None, cache, stop_after: int | None) -> Path:
@@ -415,9 +419,11 @@ class Trainer:
         if self.device_data:
             self.loader = DeviceBatches(self.train_ds, self.sampler, cfg["batch_size"], self.loader_gen)
             return
+        temp_dir = self.stack.enter_context(utils.worker_temp_dir(self.num_workers))
         self.loader = torch.utils.data.DataLoader(
             self.train_ds, batch_size=cfg["batch_size"], sampler=self.sampler, num_workers=self.num_workers,
-            collate_fn=inference.collate, worker_init_fn=utils.worker_init, generator=self.loader_gen,
+            collate_fn=inference.collate, worker_init_fn=functools.partial(utils.worker_init, temp_dir=temp_dir),
+            generator=self.loader_gen,
             pin_memory=self.device.type == "cuda", persistent_workers=False)
 
     def run_epoch(self, epoch: int) -> dict[str, Any]:

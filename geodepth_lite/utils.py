@@ -48,17 +48,39 @@ def parse_device(device: str | torch.device, flag: str = "--device") -> torch.de
     return parsed
 
 
-def worker_init(worker_id: int) -> None:
-    """DataLoader ``worker_init_fn``: derive numpy/python seeds from torch's per-worker seed."""
+def worker_init(worker_id: int, temp_dir: str | None = None) -> None:
+    """DataLoader ``worker_init_fn``: derive numpy/python seeds from torch's per-worker seed.
+
+    With ``temp_dir`` (a folder the main process owns, ``worker_temp_dir``) the worker's temporary
+    files, its multiprocessing socket folder among them, go there: a worker that the loader has to
+    kill (one slow to stop after an error) cannot remove its own, and the main process removes them.
+    """
     seed = torch.initial_seed() % 2**32
     random.seed(seed)
     np.random.seed(seed)
+    if temp_dir is not None:
+        tempfile.tempdir = temp_dir
+
+
+@contextlib.contextmanager
+def worker_temp_dir(num_workers: int) -> Iterator[str | None]:
+    """A folder of this process for the temporary files of its DataLoader workers (``worker_init``),
+    removed with everything in it on leaving, however the block ends; None without workers."""
+    if num_workers <= 0:
+        yield None
+        return
+    folder = tempfile.mkdtemp(prefix="gd-")
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 # A DataLoader worker hands tensors to the main process over a Unix socket that multiprocessing
-# makes at <temp folder>/pymp-XXXXXXXX/listener-XXXXXXXX; Linux allows 107 bytes for its path.
+# makes at <temp folder>/gd-XXXXXXXX/pymp-XXXXXXXX/listener-XXXXXXXX (the middle folder:
+# worker_temp_dir); Linux allows 107 bytes for its path.
 SOCKET_PATH_MAX = 107
-SOCKET_NAME_BYTES = len("/pymp-12345678/listener-12345678")
+SOCKET_NAME_BYTES = len("/gd-12345678/pymp-12345678/listener-12345678")
 
 
 def workers_fit_temp_dir(num_workers: int) -> int:

@@ -6,7 +6,9 @@ config number, a data folder holding another dataset, and the smaller gaps each 
 line naming what is wrong (exit 2), losing nothing already written.
 """
 
+import functools
 import json
+import multiprocessing.util
 import os
 import pickle
 import shutil
@@ -345,6 +347,38 @@ def test_a_failing_multi_worker_run_leaves_no_multiprocessing_temp_folder(smoke_
     shutil.rmtree(tmp)
     assert not left, left
     assert not run.exists()
+
+
+class _SlowToStop(torch.utils.data.Dataset):
+    """Frame 0 at once; every other frame takes 60 s, so the worker holding one is still busy when
+    the loader stops, and the loader kills it (after its 5 s wait) before it can tidy up."""
+
+    def __len__(self):
+        return 4
+
+    def __getitem__(self, index):
+        multiprocessing.util.get_temp_dir()  # the worker's socket folder, as sending a tensor makes it
+        if index > 0:
+            time.sleep(60)
+        return torch.zeros(1)
+
+
+def test_the_temp_folder_of_a_killed_worker_is_removed_with_the_runs_worker_folder(monkeypatch):
+    base = Path(tempfile.mkdtemp(prefix="gd-", dir="/tmp"))  # short: the workers' sockets live in it
+    monkeypatch.setattr(tempfile, "tempdir", str(base))
+    try:
+        with utils.worker_temp_dir(2) as folder:
+            loader = torch.utils.data.DataLoader(_SlowToStop(), batch_size=1, num_workers=2,
+                                                 worker_init_fn=functools.partial(utils.worker_init, temp_dir=folder))
+            for _ in train.worker_batches(loader):
+                break  # as an error in the training step would
+            killed = list(Path(folder).glob("pymp-*"))
+            assert killed and Path(folder).parent == base  # the killed workers' folders, in the run's folder
+        assert not Path(folder).exists() and not list(base.iterdir())
+    finally:
+        shutil.rmtree(base)
+    with utils.worker_temp_dir(0) as none:
+        assert none is None
 
 
 def test_a_temp_folder_too_long_for_worker_sockets_loads_in_the_main_process(smoke_root, tmp_path):
