@@ -51,7 +51,7 @@ def _timed(fn, dev: torch.device, steps: int, repeats: int) -> float:
 
 
 def _models(k: int, dev: torch.device) -> list[torch.nn.Module]:
-    from geodepth_lite.model import DepthNet
+    from geodepth_lite.core.model import DepthNet
 
     out = []
     for seed in range(k):

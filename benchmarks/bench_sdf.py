@@ -13,13 +13,13 @@ of repeats, it times:
    (1 and 3 each without and with the cache of ground-truth fields, i.e. first and later epochs);
 4. inference frames/s of DepthNet at 320x320;
 5. the nearest-point search alone (``--search``), on the same tensors' device: the batched exact
-   search of the device path (:mod:`geodepth_lite.nnsearch`), scipy's cKDTree (one worker unless
+   search of the device path (:mod:`geodepth_lite.core.nnsearch`), scipy's cKDTree (one worker unless
    ``--threads``) and the matrix-product brute force, side by side, with the device search's
    agreement with cKDTree on every query. Its points are depth maps back-projected, its queries
    each map's 32^3 bounding-box grid, as in the SDF loss.
 
 6. ``--compare``: the whole SDF loss (forward and backward) of a batch, today's batched form
-   (:func:`geodepth_lite.losses.sdf_loss`, fields as B x M tensors, ground-truth fields keyed by frame
+   (:func:`geodepth_lite.core.losses.sdf_loss`, fields as B x M tensors, ground-truth fields keyed by frame
    id) beside the former image-by-image one (``losses.sdf_loss_reference``, content keys), on the same
    tensors: without the cache, with it warm, and with the nearest points given (all but the search),
    medians of interleaved repeats and their ratio.
@@ -40,8 +40,9 @@ import time
 
 import torch
 
-from geodepth_lite import losses, sdf, utils
-from geodepth_lite.model import DepthNet
+from geodepth_lite import utils
+from geodepth_lite.core import losses, sdf
+from geodepth_lite.core.model import DepthNet
 
 
 def _sync(device):
@@ -73,7 +74,7 @@ def analytic_batch(batch: int, size: int, device) -> dict:
 
 def search_inputs(depth: torch.Tensor, K: torch.Tensor, grid: int) -> list:
     """Per image (points N x 3, queries grid^3 x 3): the depth map back-projected and its bounding-box grid."""
-    from geodepth_lite import camera
+    from geodepth_lite.core import camera
 
     pts = camera.backproject(depth, K)  # (B, H*W, 3)
     return [(p, sdf.grid_points(p.min(0).values, p.max(0).values, grid)) for p in pts]
@@ -212,7 +213,7 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
 
     The SDF loss and the training step are timed twice: without the ground-truth field cache
     (every field searched: the first epoch) and with it warm (later epochs: only the
-    prediction's field is searched; :class:`geodepth_lite.sdf.GTFieldCache`).
+    prediction's field is searched; :class:`geodepth_lite.core.sdf.GTFieldCache`).
     """
     dev = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
     utils.seed_everything(seed)

@@ -30,9 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geodepth_lite import analytic, baselines, checkpoint, config, losses, train, utils
+from geodepth_lite import analytic, baselines, checkpoint, config, train, utils
+from geodepth_lite.core import losses
+from geodepth_lite.core.metrics import compute_depth_metrics
 from geodepth_lite.datasets import load_split, resolve_dataset
-from geodepth_lite.metrics import compute_depth_metrics
 
 LOG = Path(__file__).with_name("paper_recipe_log.jsonl")
 ROOT = Path(__file__).resolve().parents[1]

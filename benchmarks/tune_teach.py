@@ -62,7 +62,7 @@ import torch
 from geodepth_lite import checkpoint, config, datasets, evaluate, inference, synth, train, utils
 from geodepth_lite import manifest as mf
 from geodepth_lite.border import border_error_map
-from geodepth_lite.metrics import compute_depth_metrics
+from geodepth_lite.core.metrics import compute_depth_metrics
 
 LOG = Path(__file__).with_name("tuning_log.jsonl")
 COMMANDS = ("train", "closeups", "flips")

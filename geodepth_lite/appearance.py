@@ -27,7 +27,7 @@ import math
 import numpy as np
 from PIL import Image
 
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 APPEARANCE_DEFAULTS: dict = {
     "exposure_stops": [0.0, 0.0],   # gain 2**stops, then sensor clipping at 1 (over-exposure saturates)

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from geodepth_lite import appearance, fov
-from geodepth_lite.camera import scale_intrinsics
+from geodepth_lite.core.camera import scale_intrinsics
 
 AUGMENTS = ("none", "flip", "flip_color", "camera", "crop", "fov")  # see augment_batch
 # augment="camera": the appearance effects that are cheaper to add to a training image than to

@@ -35,7 +35,7 @@ import tempfile
 from pathlib import Path
 
 from geodepth_lite import exercises, review, sandbox, utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 FAILURES = "could_not_run.json"  # (student, assignment) -> why the submission could not run
 FLAGGED = "flagged.json"  # (student, assignment) -> exercises the static review sent to manual grading

@@ -61,7 +61,7 @@ from pygments.token import STANDARD_TYPES, Name, Operator, Text
 from pygments.util import ClassNotFound
 
 from geodepth_lite import book_reader, course, exercises, recon, utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.exercises import HIDDEN_MARKERS, NOTEBOOK_DIR, SOLUTION_MARKERS, git_tracked
 
 ROOT = utils.package_parent()
@@ -948,7 +948,9 @@ class PageRenderer:
         chain = m.group(1).split(".")
         if text.startswith(("geodepth_lite.", "geodepth_lite/")):
             chain = ["geodepth_lite", *chain]
-        names = Names({**{k: k for k in self.site.modules if "." not in k}, **self.names.modules}, self.names.symbols)
+        bare = {k: k for k in self.site.modules if "." not in k}
+        bare.update({k.rpartition(".")[2]: k for k in self.site.modules if k.startswith("core.")})  # the method
+        names = Names({**bare, **self.names.modules}, self.names.symbols)
         found = resolve(chain, names, self.site.modules)
         if found is None:
             return None

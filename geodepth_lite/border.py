@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from geodepth_lite.core.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask, median_scale
 from geodepth_lite.evaluate import as_depth_batch
 from geodepth_lite.inference import collate
-from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask, median_scale
 
 BORDER_BANDS = ("top", "bottom", "left", "right")
 

@@ -34,7 +34,7 @@ import torch
 
 from geodepth_lite import checkpoint, config, utils
 from geodepth_lite import manifest as mf
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 BUNDLE_FORMAT = 1
 INDEX = "bundle.json"

@@ -32,13 +32,13 @@ import numpy as np
 import torch
 
 from geodepth_lite import utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 try:
     import resource  # POSIX only: bounds the memory of the process that reads a first-format checkpoint
 except ImportError:  # Windows
     resource = None
-from geodepth_lite.model import PADDINGS, DepthNet
+from geodepth_lite.core.model import PADDINGS, DepthNet
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_CSV = "log.csv"

@@ -22,7 +22,7 @@ import os
 import sys
 import traceback
 
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.utils import FileProblem, os_reason
 
 # name -> (module, one-line help)

@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from geodepth_lite.augment import AUGMENTS
-from geodepth_lite.errors import UserError
-from geodepth_lite.losses import DEPTH_TERMS, group_weights
-from geodepth_lite.model import PADDINGS, check_depth_range
-from geodepth_lite.sdf import SDF_SAMPLINGS
+from geodepth_lite.core.errors import UserError
+from geodepth_lite.core.losses import DEPTH_TERMS, group_weights
+from geodepth_lite.core.model import PADDINGS, check_depth_range
+from geodepth_lite.core.sdf import SDF_SAMPLINGS
 
 PROFILES: dict[str, dict] = {
     "smoke": {

@@ -35,7 +35,7 @@ from pathlib import Path
 
 from geodepth_lite import autograde as grading_run
 from geodepth_lite import exercises, utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 COURSE_ID = "geodepth"
 TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the machine that executed notebooks/

@@ -34,13 +34,13 @@ from tqdm.auto import tqdm
 
 from geodepth_lite import baselines, datasets, synth
 from geodepth_lite import checkpoint as checkpoints  # evaluate_checkpoint's argument is named checkpoint
+from geodepth_lite.core.errors import UserError
+from geodepth_lite.core.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES, compute_depth_metrics, eval_mask
 from geodepth_lite.datasets import SyntheticDepthDataset, resolve_dataset
-from geodepth_lite.errors import UserError
 from geodepth_lite.inference import check_flips, collate, pick_device, predict_depth
-from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES, compute_depth_metrics, eval_mask
 from geodepth_lite.tables import write_results
 
-METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.2.1, named once in metrics.py
+METRIC_KEYS = METRIC_NAMES  # the seven metrics of Section 4.2.1, named once in core/metrics.py
 
 
 # --------------------------------------------------------------------------- datasets

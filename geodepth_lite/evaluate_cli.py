@@ -13,7 +13,7 @@ import argparse
 from pathlib import Path
 
 from geodepth_lite import datasets, evaluate, integrity, synth, tables, utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.inference import FLIPS
 
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from geodepth_lite import utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 NOTEBOOK_DIR = utils.package_parent() / "notebooks"
 EXERCISE_NOTEBOOKS = ("01", "02", "03", "04", "05", "06", "07")  # notebooks with a graded section

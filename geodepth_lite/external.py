@@ -22,9 +22,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import camera, evaluate, inference, metrics, tables, utils
+from . import evaluate, inference, tables, utils
+from .core import camera, metrics
+from .core.errors import UserError
 from .datasets import MemoryDataset, SimCol3DDataset
-from .errors import UserError
 from .images import read_rgb
 from .integrity import file_sha256
 

@@ -27,7 +27,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
-from .errors import UserError
+from .core.errors import UserError
 from .utils import FileProblem, check_pixels, os_reason
 
 # --------------------------------------------------------------------------- detection thresholds

@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 
 from . import fov, utils
 from .baselines import shading_prior
-from .errors import UserError
+from .core.errors import UserError
 from .images import read_rgb
 from .integrity import file_sha256
 from .predict import list_inputs, predict_frames

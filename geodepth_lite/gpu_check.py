@@ -57,23 +57,20 @@ import torch
 
 from geodepth_lite import (
     analytic,
-    camera,
     checkpoint,
     config,
     datasets,
     evaluate,
     inference,
-    losses,
     manifest,
-    nnsearch_triton,
-    sdf,
     synth,
     train,
     train_many,
     utils,
 )
-from geodepth_lite.errors import UserError
-from geodepth_lite.model import DepthNet
+from geodepth_lite.core import camera, losses, nnsearch_triton, sdf
+from geodepth_lite.core.errors import UserError
+from geodepth_lite.core.model import DepthNet
 
 MARKER = ".gpu-check"
 EPOCH_KEYS = ("epoch", "epoch_s", "train_frames_per_s", "data_wait_share", "train_total", "val_rmse", "val_abs_rel")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import UserError
+from .core.errors import UserError
 from .utils import (
     MAX_DATASET_FILE_BYTES,
     MAX_MANIFEST_BYTES,

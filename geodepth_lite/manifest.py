@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from . import appearance as ap
-from . import camera as cam
 from . import render as rd
 from . import tube as tb
-from .errors import UserError
+from .core import camera as cam
+from .core.errors import UserError
 from .utils import MAX_MANIFEST_BYTES, MAX_PIXELS, FileProblem, manifests_dir, os_reason
 
 GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files (synth.py)

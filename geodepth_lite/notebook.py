@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from geodepth_lite import config, reproduce, utils
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.tables import markdown_table
 
 

@@ -68,9 +68,10 @@ import yaml
 from PIL import Image
 from tqdm.auto import tqdm
 
-from . import baselines, camera, checkpoint, fov, recon, utils, viz
+from . import baselines, checkpoint, fov, recon, utils, viz
+from .core import camera
+from .core.errors import UserError
 from .datasets import resize_image
-from .errors import UserError
 from .images import read_rgb
 from .inference import FLIPS, pick_device, predict_depth
 from .utils import FileProblem, os_reason

@@ -28,11 +28,12 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from . import camera, render, utils, viz
 from . import manifest as mf
+from . import render, utils, viz
 from . import tube as tube_mod
-from .errors import UserError
-from .metrics import median_scale
+from .core import camera
+from .core.errors import UserError
+from .core.metrics import median_scale
 
 # A triangle between neighbouring pixels is kept only if a smooth surface could produce its
 # depth spread: a surface seen at grazing angle a changes depth between pixels one ray step

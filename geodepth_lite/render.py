@@ -5,7 +5,7 @@ additional point lights ... follow[s] the desired path", with texture, colour an
 intensity varied per sample. Here VTK (off-screen, EGL/OSMesa, CPU) draws the
 procedural tube of ``tube.py``:
 
-- camera: pinhole ``K`` honoured exactly under ``camera.py``'s convention (pixel
+- camera: pinhole ``K`` honoured exactly under ``core/camera.py``'s convention (pixel
   centres at integer coordinates) through an explicit OpenGL projection matrix;
 - depth: the z-buffer linearized with the near/far planes, i.e. z-depth along the
   optical axis in scene units; pixels outside [near, far] are 0 (invalid);
@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import camera as cam
+from .core import camera as cam
 
-NEAR, FAR = cam.DEPTH_RANGE  # valid rendered depth range (scene units): camera.py's, the paper's set
+NEAR, FAR = cam.DEPTH_RANGE  # valid rendered depth range (scene units): core/camera.py's, the paper's set
 MATERIAL_KEYS = ("ambient", "diffuse", "specular", "specular_power")  # Phong material, part of a lighting family
 
 # ----------------------------------------------------------------------------- fixed coefficients
@@ -386,7 +386,7 @@ def sequence_poses(tube, n_frames: int, s_start: float, step: float, offset=(0.0
 
 
 def projection_matrix(K, width: int, height: int, near: float = NEAR, far: float = FAR) -> np.ndarray:
-    """OpenGL projection for pinhole K with pixel centres at integer (u, v) (camera.py's convention).
+    """OpenGL projection for pinhole K with pixel centres at integer (u, v) (core/camera.py's convention).
 
     Eye coordinates are VTK's (x right, y up, looking down -z). Column u of the image
     covers NDC x in [2u/W - 1, 2(u+1)/W - 1]; OpenGL rows count from the bottom, so

@@ -4,7 +4,7 @@ A z-buffer rasteriser of ``tube.py``'s triangle mesh with the VTK renderer's cam
 and material (its OpenGL fragment shader, term for term), so that a dataset can be made where
 the GPU is (no VTK, no display). Per frame:
 
-- camera: ``camera.py``'s convention (OpenCV frame, K in pixels, pixel centres at integer
+- camera: ``core/camera.py``'s convention (OpenCV frame, K in pixels, pixel centres at integer
   coordinates); a pixel is covered when the ray through its centre meets a triangle, and its
   depth is the z-depth of that meeting point in [near, far] (0 elsewhere), so depth is the
   mesh's, as the VTK z-buffer's (triangles cut by the near plane are handled exactly: the
@@ -30,7 +30,7 @@ import math
 import numpy as np
 import torch
 
-from . import camera as cam
+from .core import camera as cam
 from .render import DEFAULT_MATERIAL, DEFAULT_MUCOSA_COLOR, Light
 
 NEAR, FAR = cam.DEPTH_RANGE

@@ -53,8 +53,8 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from geodepth_lite import config, run_cache, study, study2, utils
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.datasets import resolve_dataset
-from geodepth_lite.errors import UserError
 from geodepth_lite.tables import markdown_table
 
 MARKER_DIR = ".reproduce"

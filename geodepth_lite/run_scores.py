@@ -34,7 +34,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from geodepth_lite import checkpoint, evaluate, inference, integrity, metrics, model, utils
+from geodepth_lite import checkpoint, evaluate, inference, integrity, utils
+from geodepth_lite.core import metrics, model
 
 SCORES_NAME = "scores.json"
 CHECKSUMS_NAME = "checksums.sha256"  # a synthetic dataset's list of its files' SHA-256 (synth.py)

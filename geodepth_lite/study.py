@@ -33,19 +33,9 @@ import numpy as np
 from scipy import optimize, stats
 from tqdm.auto import tqdm
 
-from geodepth_lite import (
-    ablation,
-    checkpoint,
-    config,
-    evaluate,
-    metrics,
-    provenance,
-    run_cache,
-    run_scores,
-    synth,
-    utils,
-)
+from geodepth_lite import ablation, checkpoint, config, evaluate, provenance, run_cache, run_scores, synth, utils
 from geodepth_lite import tables as tbl
+from geodepth_lite.core import metrics
 
 SEEDS = tuple(range(8))          # the plan's paired seeds
 DEFAULT_SEEDS = (0, 1)           # the default reproduce's ablation seeds: a subset a test run retrains

@@ -52,7 +52,7 @@ from . import manifest as mf
 from . import render as rd
 from . import render_torch as rt
 from . import tube as tb
-from .errors import UserError
+from .core.errors import UserError
 from .utils import (
     FileProblem,
     data_dir,

@@ -24,7 +24,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from geodepth_lite import utils
-from geodepth_lite.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
+from geodepth_lite.core.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, METRIC_NAMES
 from geodepth_lite.viz import error_map_figure
 
 # the seven metrics of Section 4.2.1 (``metrics.METRIC_NAMES``) as the tables head them

@@ -40,12 +40,13 @@ import torch
 from tqdm.auto import tqdm
 
 from geodepth_lite import checkpoint as ckpt_io
-from geodepth_lite import config, distributed, inference, integrity, losses, provenance, utils
+from geodepth_lite import config, distributed, inference, integrity, provenance, utils
 from geodepth_lite.augment import augment_batch
+from geodepth_lite.core import losses
+from geodepth_lite.core.errors import UserError
+from geodepth_lite.core.metrics import METRIC_NAMES, frame_metrics_torch
+from geodepth_lite.core.model import DepthNet
 from geodepth_lite.datasets import DeviceBatches, DeviceSplit, MemoryDataset, load_split, read_frames, resolve_dataset
-from geodepth_lite.errors import UserError
-from geodepth_lite.metrics import METRIC_NAMES, frame_metrics_torch
-from geodepth_lite.model import DepthNet
 
 
 def log_keys() -> tuple[str, ...]:

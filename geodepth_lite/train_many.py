@@ -36,8 +36,8 @@ from pathlib import Path
 import torch
 
 from geodepth_lite import checkpoint, config, integrity, utils
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.datasets import resolve_dataset
-from geodepth_lite.errors import UserError
 from geodepth_lite.train_cli import SETTING_FLAGS, add_setting_arguments, setting_overrides
 
 MARKER = ".train-many"

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 
 def seed_everything(seed: int) -> None:

@@ -10,8 +10,8 @@ import math
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from . import camera as cam
-from .metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask
+from .core import camera as cam
+from .core.metrics import EVAL_MAX_DEPTH, EVAL_MIN_DEPTH, eval_mask
 
 DEPTH_CMAP = "magma_r"  # the workbook's one depth convention: near = bright, far = dark (as the paper's figures)
 ERROR_CMAP = "inferno"  # error maps: 0 = black, large = bright

@@ -2,7 +2,7 @@
 
 A "prediction" is made from a ground-truth depth map by six perturbations, each a kind of
 error a depth network makes (:func:`perturb`). :func:`loss_report` computes the five losses of
-Sec. 3.C with :mod:`geodepth_lite.losses` (the same code that trains the network) and their
+Sec. 3.C with :mod:`geodepth_lite.core.losses` (the same code that trains the network) and their
 per-pixel maps; :func:`draw` draws them with the SDF grid slices (:class:`ExplorerFigure`);
 :func:`explorer` wires sliders to one reused figure in a live Jupyter frontend
 (:class:`LiveExplorer`) and falls back to a static figure where there is none (papermill,
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
-from . import losses
+from .core import losses
 from .datasets import SyntheticDepthDataset
 from .synth import ensure_dataset
 from .viz import DEPTH_CMAP, readable_pt
@@ -120,7 +120,7 @@ def loss_report(pred: np.ndarray, gt: np.ndarray, image: np.ndarray, K, grid: in
     ("sdf_gt", "sdf_pred", shape r x r x r, axes x, y, z) and the grid bounds. The ground
     truth's field comes from ``losses.GT_FIELD_CACHE`` after the first call for a frame, so a
     call searches the prediction's field only, once (the SDF loss is the mean of the fields'
-    difference, as :func:`geodepth_lite.losses.sdf_loss` computes it).
+    difference, as :func:`geodepth_lite.core.losses.sdf_loss` computes it).
     """
     image = np.asarray(image, dtype=np.float64)
     if image.shape[-1] == 3 and image.shape[0] != 3:

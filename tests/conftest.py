@@ -53,7 +53,7 @@ def save_untrained_checkpoint(path: Path, cfg: dict | None = None) -> Path:
     run end to end without training (network input 32 unless ``cfg`` says otherwise)."""
     import torch
 
-    from geodepth_lite.model import DepthNet
+    from geodepth_lite.core.model import DepthNet
 
     torch.manual_seed(0)
     torch.save({"model": DepthNet().state_dict(), "cfg": cfg or {"image_size": 32}, "epoch": 0}, path)

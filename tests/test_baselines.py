@@ -9,7 +9,7 @@ import torch
 from conftest import save_untrained_checkpoint
 
 from geodepth_lite import baselines, evaluate
-from geodepth_lite.metrics import compute_depth_metrics
+from geodepth_lite.core.metrics import compute_depth_metrics
 
 
 def _frames(depths, images=None, organ="colon", group="pink-warm_single"):

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import checkpoint, config, evaluate, model, notebook, sdf, train, utils
+from geodepth_lite import checkpoint, config, evaluate, notebook, train, utils
+from geodepth_lite.core import model, sdf
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -101,9 +102,9 @@ def test_tune_teach_parses_its_commands_with_train_the_default(tmp_path):
     with pytest.raises(SystemExit):
         g["parse_args"](["flips", "a", "--flips", "sideways"])
     assert g["load_network"]("") is None
-    assert g["load_network"]("geodepth_lite.model:DepthNet") is model.DepthNet
+    assert g["load_network"]("geodepth_lite.core.model:DepthNet") is model.DepthNet
     variant = tmp_path / "variant.py"
-    variant.write_text("from geodepth_lite import model\n\n\nclass Wide(model.DepthNet):\n"
+    variant.write_text("from geodepth_lite.core import model\n\n\nclass Wide(model.DepthNet):\n"
                        "    \"\"\"DepthNet, renamed.\"\"\"\n")
     wide = g["load_network"](f"{variant}:Wide")
     assert issubclass(wide, model.DepthNet)
@@ -179,7 +180,7 @@ def test_tune_teach_trains_a_network_variant_and_scores_it_again(smoke_root, tmp
     loads into that variant only (DepthNet refuses its weights)."""
     g = load("tune_teach.py")
     variant = tmp_path / "variant.py"
-    variant.write_text("import torch\n\nfrom geodepth_lite import model\n\n\nclass Marked(model.DepthNet):\n"
+    variant.write_text("import torch\n\nfrom geodepth_lite.core import model\n\n\nclass Marked(model.DepthNet):\n"
                        "    \"\"\"DepthNet with a marker parameter.\"\"\"\n\n"
                        "    def __init__(self, **kwargs):\n        super().__init__(**kwargs)\n"
                        "        self.marker = torch.nn.Parameter(torch.zeros(1))\n")

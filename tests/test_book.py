@@ -43,9 +43,10 @@ def test_split_folds_known_ranges():
 
 def test_highlight_keeps_lines_and_links_package_names():
     modules = book.index_package()
-    imports = "from geodepth_lite import losses as L\nfrom geodepth_lite.sdf import signed_distance"
+    imports = "from geodepth_lite.core import losses as L\nfrom geodepth_lite.core.sdf import signed_distance"
     names = book.notebook_names([imports], modules)
-    assert names.modules == {"L": "losses"} and names.symbols == {"signed_distance": ("sdf", "signed_distance")}
+    assert names.modules == {"L": "core.losses"}
+    assert names.symbols == {"signed_distance": ("core.sdf", "signed_distance")}
 
     def link(chain):
         found = book.resolve(chain, names, modules)
@@ -54,13 +55,13 @@ def test_highlight_keeps_lines_and_links_package_names():
     code = 'x = L.sdf_loss(a)\ns = """two\nlines"""\ny = signed_distance(p, q)\nz = L.nothing_here\nw = np.sum(x)'
     lines = book.highlight_lines(code, "python", link)
     assert len(lines) == len(code.split("\n"))
-    assert 'href="losses#sdf_loss"' in lines[0]
-    assert 'href="sdf#signed_distance"' in lines[3]
-    assert 'href="losses#"' in lines[4]  # an unknown name of a known module: the module's page
+    assert 'href="core.losses#sdf_loss"' in lines[0]
+    assert 'href="core.sdf#signed_distance"' in lines[3]
+    assert 'href="core.losses#"' in lines[4]  # an unknown name of a known module: the module's page
     assert "href" not in lines[5]  # numpy is not the package
     assert re.sub(r"<[^>]+>", "", lines[1]) == 's = """two'  # the string spans two lines, each whole
     assert book.resolve(["L", "sdf_loss"], names, modules)[2] == "sdf_loss"
-    assert modules["losses"].symbols["sdf_loss"] > 1
+    assert modules["core.losses"].symbols["sdf_loss"] > 1
 
 
 def test_tag_solutions_marks_only_solution_cells():
@@ -85,7 +86,7 @@ def _code_block(code, tags=(), outputs=()):
 
 
 def test_solution_folds_with_its_output(tmp_path):
-    r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names({"losses": "losses"}))
+    r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names({"losses": "core.losses"}))
     block = _code_block("answer = None\n### BEGIN SOLUTION\nanswer = losses.depth_loss(a, b)\n### END SOLUTION",
                         [book.SOLUTION_TAG], [{"output_type": "stream", "name": "stdout", "text": "0.4242\n"}])
     out = r.node(block)
@@ -95,15 +96,15 @@ def test_solution_folds_with_its_output(tmp_path):
     outside = re.sub(r'<details class="solution">.*?</details>', "", out, flags=re.S)
     assert "depth_loss" not in outside and "0.4242" not in outside and "answer" in outside
     assert "BEGIN SOLUTION" not in out
-    assert ("losses", "depth_loss") in r.used
+    assert ("core.losses", "depth_loss") in r.used
 
 
 def test_inline_code_links_to_the_source_line(tmp_path):
     r = book.PageRenderer(_fake_site(tmp_path), "lesson", book.Names())
-    line = book.index_package()["losses"].symbols["sdf_loss"]
-    for text in ("losses.sdf_loss", "losses.sdf_loss(pred, gt)", "geodepth_lite.losses.sdf_loss"):
-        assert f'href="source/losses.html#L{line}"' in r.n_inlineCode({"value": text}), text
-    assert 'href="source/losses.html"' in r.n_inlineCode({"value": "geodepth_lite/losses.py"})
+    line = book.index_package()["core.losses"].symbols["sdf_loss"]
+    for text in ("losses.sdf_loss", "losses.sdf_loss(pred, gt)", "geodepth_lite.core.losses.sdf_loss"):
+        assert f'href="source/core.losses.html#L{line}"' in r.n_inlineCode({"value": text}), text
+    assert 'href="source/core.losses.html"' in r.n_inlineCode({"value": "geodepth_lite/core/losses.py"})
     for text in ("losses", "numpy.sum", "losses.no_such_name", "python -m geodepth_lite train"):
         assert "href" not in r.n_inlineCode({"value": text}), text
 
@@ -182,7 +183,7 @@ LESSON = {"type": "root", "children": [
         {"type": "paragraph", "children": [
             {"type": "text", "value": "See "},
             {"type": "inlineMath", "value": "x^2", "html": '<span class="katex">x2</span>'}]}]},
-    _code_block("from geodepth_lite import losses\nv = losses.depth_loss(a, b)",
+    _code_block("from geodepth_lite.core import losses\nv = losses.depth_loss(a, b)",
                 outputs=[{"output_type": "display_data", "data": {"image/png": {"path": "/fig.png"}}}])]}
 
 
@@ -190,14 +191,15 @@ def _lesson_nb(tmp_path):
     nb = tmp_path / "nbs" / "lesson.ipynb"
     nb.parent.mkdir()
     nb.write_text(json.dumps({"cells": [{"cell_type": "code", "metadata": {}, "outputs": [],
-                                         "source": "from geodepth_lite import losses\nv = losses.depth_loss(a, b)"}],
+                                         "source": "from geodepth_lite.core import losses\n"
+                                                   "v = losses.depth_loss(a, b)"}],
                               "metadata": {}, "nbformat": 4, "nbformat_minor": 5}))
     return nb
 
 
 def _few_modules(monkeypatch):
     """Source pages for two modules only: the build tests stay fast."""
-    few = {k: v for k, v in book.index_package().items() if k in ("losses", "utils")}
+    few = {k: v for k, v in book.index_package().items() if k in ("core.losses", "utils")}
     monkeypatch.setattr(book, "index_package", lambda: few)
 
 
@@ -210,11 +212,11 @@ def test_build_renders_and_marks_complete(tmp_path, monkeypatch):
     assert summary["pages"] == ["index.html", "lesson.html"] and summary["figures"] == 1
     assert book.read_marker(out)["complete"] is True
     page = (out / "lesson.html").read_text()
-    line = book.index_package()["losses"].symbols["depth_loss"]
-    assert f'href="source/losses.html#L{line}"' in page
+    line = book.index_package()["core.losses"].symbols["depth_loss"]
+    assert f'href="source/core.losses.html#L{line}"' in page
     assert '<img src="_static/img/fig.png"' in page and (out / "_static/img/fig.png").is_file()
-    assert 'id="L1"' in (out / "source/losses.html").read_text()
-    assert "lesson.html" in (out / "source/losses.html").read_text()  # the source page names the lesson using it
+    assert 'id="L1"' in (out / "source/core.losses.html").read_text()
+    assert "lesson.html" in (out / "source/core.losses.html").read_text()  # the source page names the lesson using it
     assert not (out / book.NEW_DIR).exists() and not (out / ".lock").exists()
     # the lesson's notebook to download, beside its page, and the page in the search index
     assert 'href="notebooks/lesson.ipynb" download' in page and summary["downloads"] == {

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import camera
+from geodepth_lite.core import camera
 
 
 def test_default_intrinsics_match_the_authors_blender_set():

@@ -478,14 +478,14 @@ def test_autograde_without_a_release_is_one_line(tiny_course, capsys):
 
 # ----------------------------------------------------------------------------------------- what students get
 # Lines of the notebooks' solutions that the package (or a test) holds as its own code: the library the
-# lessons use implements what some exercises ask for (02-2 and 02-4 in model.py, 05-2's Holm rule in
+# lessons use implements what some exercises ask for (02-2 and 02-4 in core/model.py, 05-2's Holm rule in
 # ablation.py, 06-1's bands in border.py; 01-3/01-4's pixel grid in a test). Pinned by the SHA-256 of
 # the line (this file ships to students too, so it must not hold the lines themselves): any other
 # solution line in what students get fails the tests below.
 SHARED_WITH_THE_PROJECT = {
     "320c96563e2be11a": {"tests/test_render.py"},
-    "603da3fc218796a7": {"geodepth_lite/model.py"},
-    "03d402e8058d6f40": {"geodepth_lite/model.py"},
+    "603da3fc218796a7": {"geodepth_lite/core/model.py"},
+    "03d402e8058d6f40": {"geodepth_lite/core/model.py"},
     "ac6de9fa23fc3050": {"geodepth_lite/ablation.py"},
     "b332d63d46722f4b": {"geodepth_lite/border.py"},
     "693a347d777327f5": {"geodepth_lite/border.py"},

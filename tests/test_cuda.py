@@ -21,8 +21,9 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from geodepth_lite import analytic, camera, config, evaluate, inference, losses, sdf, train
-from geodepth_lite.model import DepthNet
+from geodepth_lite import analytic, config, evaluate, inference, train
+from geodepth_lite.core import camera, losses, sdf
+from geodepth_lite.core.model import DepthNet
 
 pytestmark = pytest.mark.cuda
 ROOT = Path(__file__).resolve().parents[1]
@@ -181,7 +182,7 @@ def test_the_batched_search_and_loss_on_cuda_match_the_cpu_reference():
     """The batched fields on CUDA tensors: the nearest points exactly those of the CPU path (cKDTree, the
     reference), the loss and gradient those of the per-image loss on the CPU up to float32 rounding (CUDA
     sums in another order)."""
-    from geodepth_lite.sdf import nearest_indices_grid
+    from geodepth_lite.core.sdf import nearest_indices_grid
 
     d = torch.stack([torch.from_numpy(analytic.depth_map(k, 48, seed=i))[None]
                      for i, k in enumerate(analytic.KINDS * 2)])  # (6, 1, 48, 48)
@@ -210,7 +211,7 @@ def test_the_triton_search_at_the_papers_size_equals_the_device_search_and_a_bru
     """The fused kernel (``auto`` on CUDA) on 320 px views and 32^3 grids, a batch of 6 with masked rows
     and an image without a valid point: the same indices as the exact device search on every query,
     and as a float64 brute force (least index among ties) on the first 2048 queries of each image."""
-    from geodepth_lite import nnsearch_triton
+    from geodepth_lite.core import nnsearch_triton
 
     if not nnsearch_triton.usable(torch.device("cuda")):
         pytest.skip("Triton is not installed")

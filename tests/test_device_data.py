@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from geodepth_lite import checkpoint, config, datasets, inference, train, train_many
-from geodepth_lite.model import DepthNet
+from geodepth_lite.core.model import DepthNet
 
 
 def _cfg(root, **kw):

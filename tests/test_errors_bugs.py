@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import cli, losses, metrics, predict, reproduce, sdf
-from geodepth_lite.errors import UserError
+from geodepth_lite import cli, predict, reproduce
+from geodepth_lite.core import losses, metrics, sdf
+from geodepth_lite.core.errors import UserError
 
 
 def _predict_argv(tmp_path, *extra: str) -> list[str]:

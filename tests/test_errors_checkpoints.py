@@ -274,7 +274,7 @@ def test_the_converted_bytes_are_received_only_up_to_the_bound(tmp_path, monkeyp
 def test_a_training_checkpoint_of_the_network_is_within_the_bounds(tmp_path):
     """The bounds are not tighter than a real checkpoint: DepthNet's weights, Adam's two moments after one
     step, every random state and a history, as train.fit saves them, loads (the control of the tests above)."""
-    from geodepth_lite.model import DepthNet
+    from geodepth_lite.core.model import DepthNet
 
     model = DepthNet()
     opt = torch.optim.Adam(model.parameters())

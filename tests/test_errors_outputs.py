@@ -27,7 +27,7 @@ from conftest import one_line_error
 from PIL import Image
 
 from geodepth_lite import bundle, cli, exercises, utils
-from geodepth_lite.model import DepthNet
+from geodepth_lite.core.model import DepthNet
 
 DEAD_PID = 2**22 + 1  # above Linux's largest pid_max: no process can have it
 RUN = "case1_seed0-0123abcd"

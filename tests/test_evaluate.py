@@ -9,7 +9,7 @@ import torch
 from conftest import save_untrained_checkpoint
 
 from geodepth_lite import border, checkpoint, config, evaluate, inference, tables
-from geodepth_lite.metrics import compute_depth_metrics
+from geodepth_lite.core.metrics import compute_depth_metrics
 
 
 @pytest.fixture(scope="module")

@@ -64,13 +64,13 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         return (half_b + np.sqrt(half_b * half_b + q * (radius * radius - a * a))) / q
         """,)],
     "02-1": [("""
-        from geodepth_lite import model as M
+        from geodepth_lite.core import model as M
         _shapes = M.feature_shapes(M.DepthNet().eval(), 64, 96)
         my_encoder, my_decoder = _shapes["encoder"], _shapes["decoder"]
         my_heights_250, my_failing_scale = [125, 63, 32, 16, 8], 2
         """,), ("""
         import torch
-        from geodepth_lite import model as M
+        from geodepth_lite.core import model as M
         my_encoder = [(64, 32, 48), (64, 16, 24), (128, 8, 12), (256, 4, 6), (512, 2, 3)]
         my_decoder = [(256, 4, 6), (128, 8, 12), (64, 16, 24), (32, 32, 48), (16, 64, 96)]
         _e = M.ResNet18Encoder().eval()
@@ -82,17 +82,17 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         my_heights_250, my_failing_scale = [f.shape[-2] for f in _f], 2
         """,)],
     "02-2": [("""
-        from geodepth_lite import model as M
+        from geodepth_lite.core import model as M
         return M.count_parameters(M.DepthDecoder(enc_ch, dec_ch))
         """, """
-        from geodepth_lite import model as M
+        from geodepth_lite.core import model as M
         my_sab_params = M.count_parameters(M.SpatialAttention())
         """), (None, """  # a module of torch's own is a module too
         import torch
         my_sab_params = sum(p.numel() for p in torch.nn.Conv2d(2, 1, 7, bias=False).parameters())
         """)],
     "02-3": [("""
-        from geodepth_lite import model as M
+        from geodepth_lite.core import model as M
         block = M.SpatialAttention(kernel_size=weight.shape[-1])
         with torch.no_grad():
             block.conv.weight.copy_(weight)
@@ -102,16 +102,16 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         offset_blind = {"grad", "normal"}
         """,)],
     "03-2": [("""
-        from geodepth_lite import losses
+        from geodepth_lite.core import losses
         return losses.smoothness_loss(pred, image)
         """,), ("""  # the function smoothness_loss delegates to
-        from geodepth_lite import losses
+        from geodepth_lite.core import losses
         sx, sy = losses.smoothness_maps(pred, image)
         return sx.mean() + sy.mean()
         """,)],
     "03-3": [("""
         import torch
-        from geodepth_lite import camera, sdf
+        from geodepth_lite.core import camera, sdf
         D = torch.full((H, W), float(d), dtype=torch.float64)
         points = camera.backproject(D, K).reshape(-1, 3)
         return sdf.signed_distance(points, torch.as_tensor(q), depth=D, K=K).numpy()
@@ -121,10 +121,10 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         ratio = float(metrics.compute_depth_metrics(pred, gt)["ratios"][0])
         """,)],
     "04-2": [("""
-        from geodepth_lite import metrics
+        from geodepth_lite.core import metrics
         return metrics.compute_depth_metrics(pred, gt)
         """,), ("""  # the solution's loop, with the package's per-frame metrics
-        from geodepth_lite import metrics
+        from geodepth_lite.core import metrics
         for p, g in zip(pred, gt):
             with np.errstate(invalid="ignore"):
                 keep = np.isfinite(g) & (g > 1e-3) & (g < 100.0)
@@ -167,7 +167,7 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         change_rmse = 100 * (_held["rmse"] / _colon["rmse"] - 1)
         """,)],
     "07-1": [("""
-        from geodepth_lite import camera
+        from geodepth_lite.core import camera
         depth = np.full((int(v) + 1, int(u) + 1), float(z))
         return camera.backproject(depth, np.asarray(K, dtype=float))[int(v), int(u)]
         """,)],
@@ -482,13 +482,13 @@ def test_forbid_catches_a_reference_taken_before_the_block():
 def test_forbid_a_class_stops_building_and_running_it_and_a_module_stops_all_its_functions():
     import torch
 
-    from geodepth_lite import losses
-    from geodepth_lite import model as M
+    from geodepth_lite.core import losses
+    from geodepth_lite.core import model as M
 
     built = M.SpatialAttention(3)
     x = torch.rand(1, 2, 4, 4)
     with grading.forbid(M.SpatialAttention, task="write the block yourself"):
-        with pytest.raises(grading.ForbiddenCall, match="building geodepth_lite.model.SpatialAttention"):
+        with pytest.raises(grading.ForbiddenCall, match="building geodepth_lite.core.model.SpatialAttention"):
             M.SpatialAttention(3)
         with pytest.raises(grading.ForbiddenCall, match="SpatialAttention.forward"):
             built(x)
@@ -583,7 +583,7 @@ def test_forbid_still_catches_a_kept_reference_to_a_decorated_function():
     function taken before the block still fails inside it, and an own decorated function runs."""
     import torch
 
-    from geodepth_lite import model as M
+    from geodepth_lite.core import model as M
 
     kept = M.feature_shapes
 
@@ -592,7 +592,7 @@ def test_forbid_still_catches_a_kept_reference_to_a_decorated_function():
         return x + 1
 
     with grading.forbid(M.feature_shapes, task="work out the shapes"):
-        with pytest.raises(grading.ForbiddenCall, match="calling geodepth_lite.model.feature_shapes"):
+        with pytest.raises(grading.ForbiddenCall, match="calling geodepth_lite.core.model.feature_shapes"):
             kept(None, 64, 96)
         assert float(own(torch.ones(1))) == 2.0
 
@@ -671,7 +671,7 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
         return list(sys._getframe(1).f_globals.get("_want", []))  # the hidden test's expected answer
         """,), "introspection"),
     ("edited history", "function"): ("02-2", (None, """
-        from geodepth_lite import model as M
+        from geodepth_lite.core import model as M
         my_sab_params = M.count_parameters(M.SpatialAttention())
         In[-1] = In[-1].replace("M.count_parameters(M.SpatialAttention())", str(my_sab_params))  # run again
         """), "kernel-history"),
@@ -745,13 +745,13 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
     ("out of the guard's sight", "set"): ("03-1", ("""
         import subprocess
         import sys
-        _code = "from geodepth_lite import losses; print(losses.term_names())"
+        _code = "from geodepth_lite.core import losses; print(losses.term_names())"
         _names = subprocess.run([sys.executable, "-c", _code], capture_output=True, text=True).stdout
         offset_blind = {"smooth", "grad", "normal"}
         """,), "concurrency"),
     ("package source", "set"): ("03-1", ("""
         from pathlib import Path
-        from geodepth_lite import losses
+        from geodepth_lite.core import losses
         _text = Path(losses.__file__).read_text()  # which terms read neighbouring differences only
         offset_blind = {name for name in ("smooth", "grad", "normal") if name in _text}
         """,), "package-source"),
@@ -801,7 +801,7 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
         """,), "concurrency"),
     ("package source", "open"): ("04-4", ("""
         from pathlib import Path
-        _metrics = Path("geodepth_lite/metrics.py").read_text()
+        _metrics = Path("geodepth_lite/core/metrics.py").read_text()
         pred = np.full((8, 8), 1.5)
         why = ""
         """,), "package-source"),
@@ -953,7 +953,7 @@ def test_the_solutions_and_ordinary_constructs_pass_the_review_clean():
         import torch
         import torch.nn.functional as F
         from scipy import signal, stats
-        from geodepth_lite import camera, losses
+        from geodepth_lite.core import camera, losses
 
 
         class Block(torch.nn.Module):

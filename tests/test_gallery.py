@@ -10,8 +10,8 @@ import torch
 from PIL import Image
 
 from geodepth_lite import gallery
+from geodepth_lite.core.model import DepthNet
 from geodepth_lite.integrity import file_sha256
-from geodepth_lite.model import DepthNet
 
 
 def _prior(h=32, w=32):

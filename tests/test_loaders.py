@@ -12,7 +12,8 @@ import pytest
 import tifffile
 import torch
 
-from geodepth_lite import camera, datasets, evaluate, evaluate_cli, utils
+from geodepth_lite import datasets, evaluate, evaluate_cli, utils
+from geodepth_lite.core import camera
 
 H, W = 6, 8
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import camera, sdf
-from geodepth_lite import losses as L
+from geodepth_lite.core import camera, sdf
+from geodepth_lite.core import losses as L
 
 K32 = camera.intrinsics(32)
 

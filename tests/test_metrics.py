@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import metrics
-from geodepth_lite.metrics import compute_depth_metrics
+from geodepth_lite.core import metrics
+from geodepth_lite.core.metrics import compute_depth_metrics
 
 GT = np.array([[1.0, 2.0], [4.0, 8.0]])
 PRED = np.array([[2.0, 2.0], [2.0, 2.0]])

@@ -4,7 +4,7 @@
 import pytest
 import torch
 
-from geodepth_lite import model as M
+from geodepth_lite.core import model as M
 
 
 def torchvision_resnet18_shapes() -> dict[str, tuple]:

@@ -20,7 +20,7 @@ SHARED = {
         "TESTS", "check_tables", "committed_dir", "family", "label", "read_tables", "score", "study_runs",
         "train", "write_tables")},
     "claims": "ablation, study, study2: each its own claims; notebook 05 calls all three",
-    "DEPTH_TERMS": "losses.DEPTH_TERMS and study.DEPTH_TERMS (losses.py and study.py are being changed)",
+    "DEPTH_TERMS": "losses.DEPTH_TERMS and study.DEPTH_TERMS (core/losses.py and study.py are being changed)",
     "MARKER": "book, gpu_check, train_many: each a different marker file (gpu_check.py, train_many.py "
               "are being changed)",
     "nearest_indices": "sdf and nnsearch, the nearest-point search in two modules (both being changed)",

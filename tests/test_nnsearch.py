@@ -1,4 +1,4 @@
-"""The exact batched nearest-point search of the device path (geodepth_lite.nnsearch), on CPU tensors,
+"""The exact batched nearest-point search of the device path (geodepth_lite.core.nnsearch), on CPU tensors,
 against scipy's cKDTree and a float64 brute force (ties: the least point index)."""
 
 import numpy as np
@@ -6,7 +6,8 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from geodepth_lite import analytic, camera, nnsearch, sdf
+from geodepth_lite import analytic
+from geodepth_lite.core import camera, nnsearch, sdf
 
 
 def _brute(points: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""The fused Triton search (geodepth_lite/nnsearch_triton.py) against a float64 brute force.
+"""The fused Triton search (geodepth_lite/core/nnsearch_triton.py) against a float64 brute force.
 
 On a CUDA machine tests/test_cuda.py runs it at the paper's size. Here, where Triton is installed (it
 ships with CUDA builds of torch, not with the CPU build), the kernel runs in Triton's interpreter on
@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import analytic, camera, nnsearch_triton, sdf
+from geodepth_lite import analytic
+from geodepth_lite.core import camera, nnsearch_triton, sdf
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,8 @@ import pytest
 from PIL import Image
 from test_fov import H, W, tissue
 
-from geodepth_lite import camera, cli, fov, predict, recon, viz
+from geodepth_lite import cli, fov, predict, recon, viz
+from geodepth_lite.core import camera
 
 
 def _cli(argv):

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from geodepth_lite import camera, recon
+from geodepth_lite import recon
+from geodepth_lite.core import camera
 
 
 def _step_scene(H=24, W=32):

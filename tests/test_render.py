@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from geodepth_lite import camera, render, tube
 from geodepth_lite import manifest as mf
+from geodepth_lite import render, tube
+from geodepth_lite.core import camera
 
 
 def _cylinder_check(K, width, height, poses_s=(3.0, 12.0)):

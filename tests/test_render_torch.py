@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import camera, cli, integrity, render, synth, tube
+from geodepth_lite import cli, integrity, render, synth, tube
 from geodepth_lite import manifest as mf
 from geodepth_lite import render_torch as rt
+from geodepth_lite.core import camera
 
 TINY = {"camera": {"width": 32, "height": 32}, "splits": {"train": 4, "test": 2}, "frames_per_scene": 2}
 ROOT = Path(__file__).resolve().parents[1]

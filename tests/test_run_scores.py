@@ -14,7 +14,8 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import evaluate, metrics, run_cache, run_scores, study
+from geodepth_lite import evaluate, run_cache, run_scores, study
+from geodepth_lite.core import metrics
 
 PRIMARY = study.PRIMARY
 

@@ -243,13 +243,33 @@ def test_the_import_graph_sees_the_subpackage():
     """The scans above read datasets/ too, its relative imports resolved both ways."""
     graph = _import_graph()
     assert {"datasets", "datasets.base", "datasets.synthetic", "datasets.subsets"} <= set(graph)
-    assert {"camera", "datasets.base"} <= graph["datasets.endoslam"]  # from .. import camera; from .base import
+    assert {"core.camera", "datasets.base"} <= graph["datasets.endoslam"]  # from ..core import camera; .base
     assert "datasets.synthetic" in graph["datasets"] and "datasets" in graph["evaluate"]
     outside = {"x": set(), "datasets.y": set(), "datasets": set()}
     from_top = _first_party_imports(ast.parse("from geodepth_lite.datasets.y import Z").body[0], [], set(outside))
     assert from_top == [("datasets.y", "Z", "Z")]
     inside = _first_party_imports(ast.parse("from .. import x").body[0], ["datasets"], set(outside))
     assert inside == [("x", None, "x")]
+
+
+def _outside_the_method(graph: dict[str, set[str]]) -> dict[str, list[str]]:
+    """{module of core/: the modules outside core/ it imports}, for those that import any."""
+    inside = {m for m in graph if m == "core" or m.startswith("core.")}
+    found = {m: sorted(graph[m] - inside) for m in sorted(inside)}
+    return {m: deps for m, deps in found.items() if deps}
+
+
+def test_the_methods_wing_imports_nothing_outside_itself():
+    """core/ (the paper's method: camera, network, losses, SDF, search, metrics) is the ground floor."""
+    graph = _import_graph()
+    assert {"core.camera", "core.model", "core.losses", "core.sdf", "core.nnsearch", "core.metrics"} <= set(graph)
+    assert _outside_the_method(graph) == {}
+
+
+def test_the_wing_check_finds_an_import_from_outside():
+    graph = _import_graph()
+    graph["core.losses"] = graph["core.losses"] | {"config"}
+    assert _outside_the_method(graph) == {"core.losses": ["config"]}
 
 
 def test_the_cycle_check_finds_a_cycle():

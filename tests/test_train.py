@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import augment, checkpoint, config, datasets, inference, metrics, run_cache, train, utils
+from geodepth_lite import augment, checkpoint, config, datasets, inference, run_cache, train, utils
+from geodepth_lite.core import metrics
 
 
 def _cfg(root, case=4, seed=0, **kw):
@@ -50,7 +51,7 @@ def test_resume_after_stop_ends_with_the_same_weights(smoke_root, tmp_path):
         assert [ra[k] for k in loss_cols] == [rb[k] for k in loss_cols]
     # and training did something: the weights moved away from the seeded initialisation
     torch.manual_seed(0)
-    from geodepth_lite.model import DepthNet
+    from geodepth_lite.core.model import DepthNet
 
     init = DepthNet().state_dict()
     assert any(not torch.equal(init[k], straight["model"][k]) for k in init if init[k].is_floating_point())
@@ -164,7 +165,7 @@ def test_a_later_key_at_its_default_keeps_old_checkpoint_names(key, other):
 def test_the_configured_border_weight_reaches_the_depth_term():
     """train.compute_losses passes cfg["border_weight"] on: an error only in the outermost ring of a
     16 x 16 frame weighs more with border_weight 2 than with 0, by the map's hand-computable factor."""
-    from geodepth_lite import camera, losses
+    from geodepth_lite.core import camera, losses
 
     gt = torch.full((1, 1, 16, 16), 2.0)
     ring = torch.zeros_like(gt, dtype=torch.bool)
@@ -201,7 +202,7 @@ def test_case_lambdas_switch_terms_on_with_the_profiles_weights():
 
 def test_flip_augmentation_mirrors_the_3d_scene():
     """A flipped frame with K's cx moved to W - 1 - cx back-projects to the mirror image (x -> -x)."""
-    from geodepth_lite import camera
+    from geodepth_lite.core import camera
 
     torch.manual_seed(0)
     B, H, W = 6, 8, 10
@@ -260,7 +261,7 @@ def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
 
 
 def test_predict_depth_resizes_to_the_network_and_back(smoke_root):
-    from geodepth_lite.model import DepthNet
+    from geodepth_lite.core.model import DepthNet
 
     torch.manual_seed(0)
     model = DepthNet().eval()
@@ -279,7 +280,7 @@ def test_test_time_flips_make_the_prediction_mirror_with_the_image():
     """flips="h" averages the prediction for the mirrored frame back in, so the result mirrors exactly
     with its input, which the bare network does not; "hv" does so along both axes; "none" is one pass
     (the network's own output); an unknown name is refused with the choices."""
-    from geodepth_lite.model import DepthNet
+    from geodepth_lite.core.model import DepthNet
 
     torch.manual_seed(0)
     model = DepthNet().eval()
@@ -370,7 +371,7 @@ def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides(
 def test_a_sixth_loss_term_is_one_table_entry(monkeypatch, smoke_root, tmp_path):
     """A dummy term (total variation of the prediction, in a new weight group) added to
     losses.LOSS_TERMS: total_loss weights it by name, and one smoke epoch trains and logs it."""
-    from geodepth_lite import losses
+    from geodepth_lite.core import losses
 
     def tv(pred, x):
         return (pred[..., :, 1:] - pred[..., :, :-1]).abs().mean()
@@ -484,7 +485,7 @@ def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smok
 def test_a_term_whose_weight_is_zero_is_never_evaluated(monkeypatch, smoke_root, tmp_path, case, evaluated):
     """Case 1 (SDF weight 0): no SDF field in training, validation or the gradient-norm log; Case 4
     (the control, so the counter can count) evaluates them, and logs every term's gradient norm."""
-    from geodepth_lite import losses
+    from geodepth_lite.core import losses
 
     calls = []
     fields = losses.sdf_fields_batched
@@ -518,7 +519,7 @@ def test_a_fine_tuning_run_starts_from_the_finished_run_beside_it(smoke_root, tm
 
 
 def test_a_fine_tuning_run_refuses_a_missing_unfinished_or_misnamed_source(smoke_root, tmp_path):
-    from geodepth_lite.errors import UserError
+    from geodepth_lite.core.errors import UserError
 
     runs = tmp_path / "checkpoints"
     cfg = _cfg(smoke_root, epochs=2)

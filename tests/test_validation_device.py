@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import config, losses, metrics, sdf, train
+from geodepth_lite import config, train
+from geodepth_lite.core import losses, metrics, sdf
 
 
 def frames(seed: int = 0):
@@ -67,8 +68,8 @@ def _smoke_cfg(root, **kw):
 @pytest.mark.parametrize("val_sdf", [True, False])
 def test_validation_evaluates_the_sdf_term_only_where_asked_and_leaves_the_rng_alone(monkeypatch, smoke_root,
                                                                                   val_sdf):
+    from geodepth_lite.core.model import DepthNet
     from geodepth_lite.datasets import load_split
-    from geodepth_lite.model import DepthNet
 
     cfg = _smoke_cfg(smoke_root, val_sdf=val_sdf)
     ds = load_split(smoke_root, "val", 32, limit=6)

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from geodepth_lite import camera, widgets
+from geodepth_lite import widgets
+from geodepth_lite.core import camera
 
 
 def tube_like(H=32, W=32):
@@ -211,7 +212,7 @@ def test_the_live_figure_fits_a_laptop_window_and_the_static_one_keeps_its_shape
 def test_loss_report_searches_the_ground_truth_field_once(monkeypatch):
     import torch
 
-    from geodepth_lite import losses, sdf
+    from geodepth_lite.core import losses, sdf
 
     gt, image, K = explorer_inputs()
     gt = gt + 0.123  # a frame no other test has cached

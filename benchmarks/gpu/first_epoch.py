@@ -26,7 +26,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from geodepth_lite import config, gpu_check, sdf, train, utils  # noqa: E402
+from geodepth_lite import config, gpu_check, train, utils  # noqa: E402
+from geodepth_lite.core import sdf
 
 
 def main(argv=None) -> int:

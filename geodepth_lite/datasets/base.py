@@ -18,7 +18,7 @@ from PIL import Image
 from torch.utils.data import Dataset
 
 from .. import utils
-from ..errors import UserError
+from ..core.errors import UserError
 from ..images import read_rgb
 from .synthetic import resize_frame
 

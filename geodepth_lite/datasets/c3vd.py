@@ -9,8 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import camera, utils
-from ..errors import UserError
+from .. import utils
+from ..core import camera
+from ..core.errors import UserError
 from .base import PublicDepthDataset, numbered, pair_images_with_depths
 
 # Bobrow et al. 2023: <sequence>/<n>_color.png, <sequence>/<nnnn>_depth.tiff (16-bit,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import camera
+from ..core import camera
 from .base import PublicDepthDataset, numbered, pair_images_with_depths, read_png_unit
 
 # Rau et al. 2019: T{t}_L{l}_{k}_resized/FrameBuffer_%04d.png + Depth_%04d.png, 256x256.

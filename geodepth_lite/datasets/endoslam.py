@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import camera
-from ..errors import UserError
+from ..core import camera
+from ..core.errors import UserError
 from .base import PublicDepthDataset, norm_name, numbered, pair_images_with_depths, read_png_unit
 
 # Ozyoruk et al. 2021: UnityCam/<Organ>/Frames/image_%04d.png,

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import camera
-from ..errors import UserError
+from ..core import camera
+from ..core.errors import UserError
 from .base import PublicDepthDataset, numbered, pair_images_with_depths, read_png_raw
 
 # Rau et al. 2023: SyntheticColon_X/Frames_<S|B|O><n>/FrameBuffer_%04d.png + Depth_%04d.png,

@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from .. import utils
-from ..errors import UserError
+from ..core.errors import UserError
 from .base import REGISTRY, PublicDepthDataset, as_set, dataset_class, open_dataset
 
 

@@ -26,9 +26,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .. import camera as cam
 from .. import synth
-from ..errors import UserError
+from ..core import camera as cam
+from ..core.errors import UserError
 from ..images import read_rgb
 from ..integrity import read_frames
 from ..utils import FileProblem, read_npy

@@ -3,7 +3,7 @@
 Shapes and units (all losses):
 - ``pred``, ``gt``: z-depth maps ``B x 1 x H x W`` (float tensors, scene units);
 - ``image``: ``B x 3 x H x W`` in [0, 1];
-- ``K``: ``3 x 3`` or ``B x 3 x 3`` intrinsics in pixels (see :mod:`geodepth_lite.camera`);
+- ``K``: ``3 x 3`` or ``B x 3 x 3`` intrinsics in pixels (see :mod:`geodepth_lite.core.camera`);
 - ``mask``: optional ``B x 1 x H x W`` bool, True where the ground truth may be used.
 
 Ground truth that is NaN, infinite, zero or negative is always treated as invalid (in
@@ -14,7 +14,7 @@ Image gradients are forward differences in depth units per pixel:
 ``grad_x D(v, u) = D(v, u+1) - D(v, u)`` and ``grad_y D(v, u) = D(v+1, u) - D(v, u)``;
 a difference is valid when both of its pixels are valid.
 
-The SDF term (:func:`sdf_loss`) is built on :mod:`geodepth_lite.sdf`: the exact nearest-point
+The SDF term (:func:`sdf_loss`) is built on :mod:`geodepth_lite.core.sdf`: the exact nearest-point
 search, the signed fields with their sign rule (the paper's view rule by default), where the
 samples lie (the paper's bounding-box grid by default) and the cache of ground-truth fields.
 """
@@ -28,7 +28,7 @@ from typing import Callable
 
 import torch
 
-from geodepth_lite.errors import UserError
+from geodepth_lite.core.errors import UserError
 
 from .sdf import (  # the SDF machinery; valid_mask and check_depths are shared with it
     DEFAULT_SDF_GRID,
@@ -227,22 +227,22 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
              sampling: str = "bbox", frame_ids=None) -> torch.Tensor:
     """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 10).
 
-    The fields come from :mod:`geodepth_lite.sdf`. Both depth maps are back-projected with K
+    The fields come from :mod:`geodepth_lite.core.sdf`. Both depth maps are back-projected with K
     (valid pixels only); the grid spans the ground truth's 3D bounding box [X_lb, X_ub]
-    (:func:`geodepth_lite.sdf.grid_points`); phi is the exact nearest distance, signed by the
+    (:func:`geodepth_lite.core.sdf.grid_points`); phi is the exact nearest distance, signed by the
     paper's view rule (``sign_rule="view"``): grid point q projected with K to its nearest
     pixel, +1 where q_z is less than that map's own depth there (the prediction's field uses
     ``pred``, the ground truth's ``gt``), -1 where greater, 0 on it; for q_z <= 0, q projecting
     outside the image or onto an invalid pixel, the fallback sign((X_n - q) . X_n) with X_n the
-    nearest surface point (:func:`geodepth_lite.sdf.sdf_fields`,
-    :func:`geodepth_lite.sdf.signed_distance`). ``sign_rule="nearest"`` uses that nearest-point
+    nearest surface point (:func:`geodepth_lite.core.sdf.sdf_fields`,
+    :func:`geodepth_lite.core.sdf.signed_distance`). ``sign_rule="nearest"`` uses that nearest-point
     sign everywhere (the former rule, for comparison). The loss is the mean over images with at
     least one valid pixel (0 if none). ``method``: exact nearest-neighbour search, "auto" =
-    cKDTree on the CPU, the batched torch search (:mod:`geodepth_lite.nnsearch`) on CUDA.
+    cKDTree on the CPU, the batched torch search (:mod:`geodepth_lite.core.nnsearch`) on CUDA.
     ``signed=False`` gives the unsigned variant (for comparison). ``cache``: ground-truth fields
-    are reused for frames seen before (:class:`geodepth_lite.sdf.GTFieldCache`; None to always search),
+    are reused for frames seen before (:class:`geodepth_lite.core.sdf.GTFieldCache`; None to always search),
     keyed by ``frame_ids`` (one hashable id per image) where given, by the frames' content otherwise.
-    The fields are built for the whole batch at once (:func:`geodepth_lite.sdf.sdf_fields_batched`),
+    The fields are built for the whole batch at once (:func:`geodepth_lite.core.sdf.sdf_fields_batched`),
     and the loss equals, bit for bit, its former image-by-image form (``sdf_loss_reference``).
 
     Two options, not the paper's (docs/network_and_losses.md, "Where the SDF samples lie"):
@@ -251,7 +251,7 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
     |phi_pred - phi_gt| over the remaining points, the batch's the mean over images that have
     some (0 if none). ``sampling="frustum"`` samples r_x x r_y pixels times r_z log-spaced depths
     between the ground truth's nearest and farthest valid depth instead of the bounding box
-    (:func:`geodepth_lite.sdf.frustum_points`).
+    (:func:`geodepth_lite.core.sdf.frustum_points`).
 
     Explained with its equation in notebook 03, section 5 (the grid, the sign rule, L_SDF).
     """
@@ -271,7 +271,7 @@ def _front_mean(x: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
 
 
 def sdf_loss_from_fields(f: dict, pred: torch.Tensor) -> torch.Tensor:
-    """L_sdf of the batched fields of :func:`geodepth_lite.sdf.sdf_fields_batched` (``pred``: only for a
+    """L_sdf of the batched fields of :func:`geodepth_lite.core.sdf.sdf_fields_batched` (``pred``: only for a
     zero connected to it): the mean over the images with a valid pixel ("masked": over the images with a
     known sample, each the mean over its known samples), with no host sync."""
     err = (f["pred"] - f["gt"]).abs()  # (B, M)
@@ -289,7 +289,7 @@ def sdf_loss_from_fields(f: dict, pred: torch.Tensor) -> torch.Tensor:
 def sdf_loss_reference(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
                         cache: GTFieldCache | None = None, sign_rule: str = "view",
                         sampling: str = "bbox") -> torch.Tensor:
-    """:func:`sdf_loss` image by image from :func:`geodepth_lite.sdf.sdf_fields` (the former code, kept as the
+    """:func:`sdf_loss` image by image from :func:`geodepth_lite.core.sdf.sdf_fields` (the former code, kept as the
     reference the batched loss must equal bit for bit, and as the benchmark's baseline)."""
     fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule, sampling)
               if f is not None]

@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from .camera import DEPTH_RANGE
 from .errors import UserError
 
-# smallest and largest depth the head can output: the scene's depth range, camera.py's (scene units; Sec. 3.A)
+# smallest and largest depth the head can output: the scene's depth range, core/camera.py's (scene units; Sec. 3.A)
 MIN_DEPTH, MAX_DEPTH = DEPTH_RANGE
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # RGB mean of ImageNet, for images in [0, 1]
 IMAGENET_STD = (0.229, 0.224, 0.225)  # RGB standard deviation of ImageNet

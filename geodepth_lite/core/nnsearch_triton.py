@@ -1,12 +1,12 @@
 """Exact nearest-point search as one fused Triton kernel (the CUDA path of the SDF loss).
 
-The same answer as :func:`geodepth_lite.sdf.nearest_indices_grid` with the other exact methods: for
+The same answer as :func:`geodepth_lite.core.sdf.nearest_indices_grid` with the other exact methods: for
 each query of image b, the index (into the image's N pixels) of the nearest *valid* point of image
 b, at the least float64 Euclidean distance, the least pixel index among equal distances; 0 for an
 image without a valid point. Distances are ``(dx*dx + dy*dy) + dz*dz`` in float64 from the
 float64 values of the inputs.
 
-Unlike :mod:`geodepth_lite.nnsearch`, nothing is written per (query, point) pair: each program of
+Unlike :mod:`geodepth_lite.core.nnsearch`, nothing is written per (query, point) pair: each program of
 the kernel holds a tile of ``BQ`` queries in registers and walks the image's point blocks.
 
 1. **Order, in torch ops (fixed shapes, no host sync).** Each image's points are sorted along a
@@ -35,8 +35,8 @@ import warnings
 
 import torch
 
-from geodepth_lite import nnsearch
-from geodepth_lite.errors import UserError
+from geodepth_lite.core import nnsearch
+from geodepth_lite.core.errors import UserError
 
 try:
     import triton

@@ -7,16 +7,16 @@ shared/paper/):
 - Eq. 5: phi(q, S) = min_{X in S} ||X - q||_2, the distance from a point q to the surface S,
   signed: positive ahead of the surface from the camera viewpoint, negative behind it;
 - Eqs. 6-8: S = pi^-1(I, D), the depth map D back-projected through the camera, one point per
-  valid pixel (:func:`geodepth_lite.camera.backproject`);
+  valid pixel (:func:`geodepth_lite.core.camera.backproject`);
 - Eq. 9: the sample grid X_ijk, r_x x r_y x r_z points spanning the ground truth's bounding
   box [X_lb, X_ub] (:func:`grid_points`, with the + X_lb offset the paper's formula drops);
 - Eq. 10: L_sdf = mean over the grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)|, the loss term
-  itself, in :func:`geodepth_lite.losses.sdf_loss`.
+  itself, in :func:`geodepth_lite.core.losses.sdf_loss`.
 
 This module holds what that term is built from, in three layers:
 
 - search: the exact nearest neighbour of each grid point (:func:`nearest_indices`: scipy's
-  cKDTree for CPU tensors, the batched torch search of :mod:`geodepth_lite.nnsearch` on other
+  cKDTree for CPU tensors, the batched torch search of :mod:`geodepth_lite.core.nnsearch` on other
   devices, every image of a batch in one call; the paper uses PyTorch3D's KNN).
   Indices are searched without gradient; distances are then recomputed in torch from the
   nearest points, so gradients reach the prediction through them;
@@ -28,7 +28,7 @@ This module holds what that term is built from, in three layers:
   (:class:`GTFieldCache`, :data:`GT_FIELD_CACHE`).
 
 It also holds the depth-map input checks (:func:`check_depths`, :func:`valid_mask`) that
-:mod:`geodepth_lite.losses` shares: that module imports this one, not the other way round.
+:mod:`geodepth_lite.core.losses` shares: that module imports this one, not the other way round.
 
 Sign (no gradient; :data:`SIGN_RULES`). The "view" rule, the paper's and the default: a sample
 point q is projected with K, (u, v) = (fx q_x/q_z + cx, fy q_y/q_z + cy) rounded to the nearest
@@ -42,7 +42,7 @@ two rules differ behind occluding edges, e.g. a point behind a near step, neares
 wall. The "nearest" rule uses the nearest-point sign everywhere (the former rule, for
 comparison). The magnitude is always the exact Euclidean nearest distance. The "masked" rule
 (not the paper's) signs by the view rule and leaves the points where it does not apply, in either
-map's field, out of the loss (:func:`geodepth_lite.losses.sdf_loss`); its fields are the view
+map's field, out of the loss (:func:`geodepth_lite.core.losses.sdf_loss`); its fields are the view
 rule's, so cached ground-truth fields are shared.
 
 Sampling (:data:`SDF_SAMPLINGS`; the paper gives Eq. 9's box, but not where the box lies nor the
@@ -64,8 +64,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from geodepth_lite import camera, nnsearch, nnsearch_triton
-from geodepth_lite.errors import UserError
+from geodepth_lite.core import camera, nnsearch, nnsearch_triton
+from geodepth_lite.core.errors import UserError
 
 DEFAULT_SDF_GRID = (32, 32, 32)  # r_x, r_y, r_z of the paper's SDF sample grid
 CHUNK_ELEMENTS = 2**25  # query x point pairs per block of the on-device exact search
@@ -150,8 +150,8 @@ NN_METHODS = ("auto", "kdtree", "device", "triton", "chunked", "brute_mm")
 
 def resolve_method(method: str, device: torch.device) -> str:
     """The search a ``method`` runs for tensors on ``device``: "auto" is "kdtree" for CPU tensors (the
-    committed results' search), "triton" (:mod:`geodepth_lite.nnsearch_triton`) for CUDA tensors where
-    Triton is installed, and "device" (:mod:`geodepth_lite.nnsearch`) for any other device."""
+    committed results' search), "triton" (:mod:`geodepth_lite.core.nnsearch_triton`) for CUDA tensors where
+    Triton is installed, and "device" (:mod:`geodepth_lite.core.nnsearch`) for any other device."""
     if method not in NN_METHODS:
         raise UserError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
     kind = torch.device(device).type
@@ -167,7 +167,7 @@ def resolve_method(method: str, device: torch.device) -> str:
 
 def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "auto") -> torch.Tensor:
     """Nearest-neighbour indices: "kdtree" (exact, scipy's cKDTree on the CPU), "device" (exact, torch
-    ops on the tensors' device: :func:`geodepth_lite.nnsearch.nearest_indices`), "auto" (kdtree for
+    ops on the tensors' device: :func:`geodepth_lite.core.nnsearch.nearest_indices`), "auto" (kdtree for
     CPU tensors, device otherwise), "chunked" (exact brute force in blocks with ``torch.cdist``, the
     former CUDA path, kept for comparison) or "brute_mm" (matrix-product brute force, a speed baseline
     only). The exact methods agree on every query (ties: the least point index)."""
@@ -187,7 +187,7 @@ def nearest_indices(points: torch.Tensor, queries: torch.Tensor, method: str = "
 def nearest_indices_many(pairs: list, method: str = "auto") -> list:
     """Nearest-neighbour indices of several (points N_i x 3, queries M_i x 3) pairs, one list entry
     each: "device" searches them all in one batched call
-    (:func:`geodepth_lite.nnsearch.nearest_indices_batched`), the other methods one pair at a time."""
+    (:func:`geodepth_lite.core.nnsearch.nearest_indices_batched`), the other methods one pair at a time."""
     if not pairs:
         return []
     method = resolve_method(method, pairs[0][0].device)
@@ -238,7 +238,7 @@ def frustum_points(K: torch.Tensor, height: int, width: int, z_near: torch.Tenso
     """Samples that follow the pixels (``sampling="frustum"``; not the paper's, whose Eq. 9 is a box):
 
     q_ijk = z_k ((u_i - cx)/fx, (v_j - cy)/fy, 1) = z_k K^-1 [u_i, v_j, 1] (zero skew, as
-    :func:`geodepth_lite.camera.backproject`), u_i = i (W-1)/(r_x-1), v_j = j (H-1)/(r_y-1) (pixel
+    :func:`geodepth_lite.core.camera.backproject`), u_i = i (W-1)/(r_x-1), v_j = j (H-1)/(r_y-1) (pixel
     centres, edge to edge), z_k = z_near (z_far/z_near)^(k/(r_z-1)) (uniform in log depth). Every
     sample projects inside the image, and half of the depths lie below sqrt(z_near z_far).
     K: 3 x 3; z_near, z_far: 0 < z_near <= z_far, 0-dim tensors whose dtype and device the points
@@ -494,7 +494,7 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     or onto an unusable pixel: the nearest-point sign sign((X_n - q) . X_n). "nearest" uses the
     nearest-point sign everywhere (the former rule, for comparison). See :func:`signed_distance`.
     "masked": the fields of "view", and each dict also holds "known" (M bool): where the view
-    rule applies in both fields (what :func:`geodepth_lite.losses.sdf_loss` keeps).
+    rule applies in both fields (what :func:`geodepth_lite.core.losses.sdf_loss` keeps).
     """
     check_sdf_options(sign_rule, sampling)
     check_depths(pred, gt)
@@ -623,9 +623,9 @@ def nearest_indices_grid(points: torch.Tensor, valid: torch.Tensor, queries: tor
     Searched among each image's valid points, in pixel order, so ties go to the least pixel index, as
     the per-image search of :func:`sdf_fields` gives them. "kdtree" (the CPU default) builds one
     cKDTree per image on the host; "device" runs one batched search
-    (:func:`geodepth_lite.nnsearch.nearest_indices_batched`), which selects the valid points and so
+    (:func:`geodepth_lite.core.nnsearch.nearest_indices_batched`), which selects the valid points and so
     waits for the device once; "triton" (CUDA) runs one fused kernel over the whole batch
-    (:func:`geodepth_lite.nnsearch_triton.nearest_indices_grid`) without waiting; the others search
+    (:func:`geodepth_lite.core.nnsearch_triton.nearest_indices_grid`) without waiting; the others search
     image by image.
     """
     B, N, _ = points.shape
