@@ -146,7 +146,7 @@ def check_environment(dev) -> dict:
 
 
 def run_cuda_tests(timeout: int) -> dict:
-    tests = Path(__file__).resolve().parents[1] / "tests" / "test_cuda.py"
+    tests = utils.package_parent() / "tests" / "test_cuda.py"
     try:
         import pytest  # noqa: F401 (optional: a GPU image may not have it)
     except ImportError:
@@ -274,7 +274,7 @@ def time_training(dev, work: Path, frames: int, epochs: int | None, size: int, t
         cmd += ["--epochs", str(epochs)]
     if tiny:
         cmd += ["--image-size", str(size), "--batch-size", "4"]
-    pkg_root = str(Path(__file__).resolve().parents[1])
+    pkg_root = str(utils.package_parent())
     env = dict(os.environ, PYTHONPATH=pkg_root + os.pathsep + os.environ.get("PYTHONPATH", ""))
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=max(1.0, timeout - data_s), env=env)

@@ -183,7 +183,7 @@ def prepare_data(cfgs: list[dict], verify: bool, progress: bool) -> None:
 
 def child_env() -> dict:
     """The environment of a run's process: this package first on the import path."""
-    pkg_root = str(Path(__file__).resolve().parents[1])
+    pkg_root = str(utils.package_parent())
     return dict(os.environ, PYTHONPATH=pkg_root + os.pathsep + os.environ.get("PYTHONPATH", ""),
                 PYTHONUNBUFFERED="1")
 
