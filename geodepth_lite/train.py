@@ -226,8 +226,9 @@ def fit(cfg: dict, run_dir: str | os.PathLike, *, resume: bool = False, progress
 
 def worker_batches(loader):
     """The batches of ``loader``; when the loop stops early (an error), its worker processes are shut
-    down at once, so that they exit cleanly and remove their temporary folders (``/tmp/pymp-*``)
-    instead of being killed at interpreter exit."""
+    down at once, so that they exit cleanly instead of being killed at interpreter exit. A worker
+    too slow to stop is still killed; its temporary files go with the run's folder for them
+    (``utils.worker_temp_dir``)."""
     batches = iter(loader)
     try:
         yield from batches
