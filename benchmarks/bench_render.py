@@ -23,10 +23,10 @@ def run(size: int = 320, frames: int = 60, repeats: int = 5, organ: str = "colon
     Uses the ``scenario_paper`` recipe (the one that renders 320x320 frames) at ``size``;
     ``resolution`` ({"n_theta", "ring_step"}) overrides its mesh resolution.
     """
-    from geodepth_lite import appearance as ap
-    from geodepth_lite import manifest as mf
-    from geodepth_lite import render as rd
-    from geodepth_lite import tube as tb
+    from geodepth_lite.data import appearance as ap
+    from geodepth_lite.data import manifest as mf
+    from geodepth_lite.data import render as rd
+    from geodepth_lite.data import tube as tb
 
     overrides = {"camera": {"width": size, "height": size}}
     if resolution:

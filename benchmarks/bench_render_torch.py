@@ -14,12 +14,12 @@ import time
 
 import torch
 
-from geodepth_lite import appearance as ap
-from geodepth_lite import manifest as mf
-from geodepth_lite import render as rd
-from geodepth_lite import render_torch as rt
-from geodepth_lite import synth
-from geodepth_lite import tube as tb
+from geodepth_lite.data import appearance as ap
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data import render as rd
+from geodepth_lite.data import render_torch as rt
+from geodepth_lite.data import synth
+from geodepth_lite.data import tube as tb
 
 
 def _sync(dev: torch.device) -> None:

@@ -24,7 +24,7 @@ of repeats, it times:
    tensors: without the cache, with it warm, and with the nearest points given (all but the search),
    medians of interleaved repeats and their ratio.
 
-``--data analytic`` takes analytic lumen, wall and close-up views (:mod:`geodepth_lite.analytic`,
+``--data analytic`` takes analytic lumen, wall and close-up views (:mod:`geodepth_lite.data.analytic`,
 no rendering, so no VTK) instead of rendered frames of the synthetic dataset.
 
 The predictions are the ground truth times a smooth random factor (about +-10 %), so both
@@ -60,7 +60,7 @@ def _timed(fn, device) -> float:
 
 def analytic_batch(batch: int, size: int, device) -> dict:
     """``batch`` analytic frames (image, depth, K): lumen, wall and close-up views in turn (no VTK)."""
-    from geodepth_lite import analytic
+    from geodepth_lite.data import analytic
 
     K = torch.from_numpy(analytic.intrinsics(size)).float()
     depth, image = [], []
@@ -109,8 +109,8 @@ def load_batch(batch: int, size: int, device, data: str = "synthetic") -> dict:
     (``data="analytic"``: :func:`analytic_batch`)."""
     if data == "analytic":
         return analytic_batch(batch, size, device)
-    from geodepth_lite.datasets import SyntheticDepthDataset
-    from geodepth_lite.synth import ensure_dataset
+    from geodepth_lite.data.datasets import SyntheticDepthDataset
+    from geodepth_lite.data.synth import ensure_dataset
 
     overrides = {"camera": {"width": size, "height": size}, "splits": {"train": batch, "val": 1, "test": 1}}
     root = ensure_dataset("scenario_smoke", overrides=overrides, progress=False)

@@ -37,8 +37,9 @@ VARIANTS = {"fp32": (False, False), "bf16": (True, False), "channels_last": (Fal
 
 def load_batch(profile: str, case: int, frames: int) -> tuple[dict, dict, list]:
     """(the profile's configuration, one batch of its first training frames, their frame ids)."""
-    from geodepth_lite import config, inference, synth, train
-    from geodepth_lite.datasets.synthetic import load_split
+    from geodepth_lite.data import synth
+    from geodepth_lite.data.datasets.synthetic import load_split
+    from geodepth_lite.training import config, inference, train
 
     cfg = config.make_config(profile, case, 0)
     root = synth.ensure_dataset(cfg["dataset"], overrides={"splits": {"train": frames}}, progress=False)
@@ -60,7 +61,7 @@ class Stepper:
         self.first_loss = None  # the loss of its first step, from the weights every variant starts from
 
     def step(self) -> None:
-        from geodepth_lite import train
+        from geodepth_lite.training import train
 
         cast = torch.autocast("cpu", dtype=torch.bfloat16) if self.bf16 else contextlib.nullcontext()
         with cast:
@@ -113,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, help="also write the record here")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    from geodepth_lite import train, utils
+    from geodepth_lite import utils
+    from geodepth_lite.training import train
 
     cfg, batch, ids = load_batch(args.profile, args.case, args.frames)
     utils.seed_everything(0)

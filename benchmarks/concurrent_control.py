@@ -17,7 +17,9 @@ import copy
 import json
 from pathlib import Path
 
-from geodepth_lite import provenance, run_cache, study, study2, utils
+from geodepth_lite import utils
+from geodepth_lite.evaluation import study, study2
+from geodepth_lite.training import provenance, run_cache
 
 METRICS = ("abs_rel", "rmse")
 

@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from geodepth_lite import exploratory, provenance, study, utils
+from geodepth_lite import utils
+from geodepth_lite.evaluation import exploratory, study
+from geodepth_lite.training import provenance
 
 
 def match(out: Path) -> int:
@@ -50,7 +52,8 @@ def run(out: Path, workers: int) -> int:
 def floor(out: Path) -> int:
     import torch
 
-    from geodepth_lite import checkpoint, inference, run_cache, utils
+    from geodepth_lite import utils
+    from geodepth_lite.training import checkpoint, inference, run_cache
 
     lam = exploratory.read_match(out)["lambda3"]
     ds = study.evaluation_sets("teach")[study.PRIMARY]

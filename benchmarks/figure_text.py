@@ -21,7 +21,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from geodepth_lite import utils, viz  # noqa: E402
+from geodepth_lite import utils  # noqa: E402
+from geodepth_lite.views import viz  # noqa: E402
 
 HOOK = '''
 import json, os
@@ -29,7 +30,7 @@ import matplotlib.backend_bases as bb
 _print_figure = bb.FigureCanvasBase.print_figure
 def _measured(self, *args, **kwargs):
     try:  # a measurement never stops the lesson: a failure is recorded instead
-        from geodepth_lite import viz
+        from geodepth_lite.views import viz
         heights = viz.text_heights_px(self.figure)
         row = {"width_in": round(float(self.figure.get_figwidth()), 2), "texts": len(heights),
                "least_px": round(float(heights[0][1]), 2) if heights else None,

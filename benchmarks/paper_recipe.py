@@ -30,10 +30,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geodepth_lite import analytic, baselines, checkpoint, config, train, utils
+from geodepth_lite import utils
 from geodepth_lite.core import losses
 from geodepth_lite.core.metrics import compute_depth_metrics
-from geodepth_lite.datasets import load_split, resolve_dataset
+from geodepth_lite.data import analytic
+from geodepth_lite.data.datasets import load_split, resolve_dataset
+from geodepth_lite.evaluation import baselines
+from geodepth_lite.training import checkpoint, config, train
 
 LOG = Path(__file__).with_name("paper_recipe_log.jsonl")
 ROOT = Path(__file__).resolve().parents[1]

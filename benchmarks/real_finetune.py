@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geodepth_lite import checkpoint, evaluate, gallery, inference, provenance, run_cache, utils
+from geodepth_lite import utils
+from geodepth_lite.evaluation import evaluate, gallery
+from geodepth_lite.training import checkpoint, inference, provenance, run_cache
 
 PROFILE, CASE, SEED, FLIPS = "teach", 4, 0, "hv"
 CANDIDATES = {"A": 2, "B": 3}  # fine-tuning epochs

@@ -16,10 +16,10 @@ import time
 import numpy as np
 import torch
 
-from geodepth_lite import manifest as mf
-from geodepth_lite import render as rd
-from geodepth_lite import render_agreement as ra
-from geodepth_lite import render_torch as rt
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data import render as rd
+from geodepth_lite.data import render_agreement as ra
+from geodepth_lite.data import render_torch as rt
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -59,10 +59,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from geodepth_lite import checkpoint, config, datasets, evaluate, inference, synth, train, utils
-from geodepth_lite import manifest as mf
-from geodepth_lite.border import border_error_map
+from geodepth_lite import utils
 from geodepth_lite.core.metrics import compute_depth_metrics
+from geodepth_lite.data import datasets, synth
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.evaluation import evaluate
+from geodepth_lite.evaluation.border import border_error_map
+from geodepth_lite.training import checkpoint, config, inference, train
 
 LOG = Path(__file__).with_name("tuning_log.jsonl")
 COMMANDS = ("train", "closeups", "flips")

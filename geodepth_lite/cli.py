@@ -25,22 +25,22 @@ import traceback
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.utils import FileProblem, os_reason
 
-# name -> (module, one-line help)
+# name -> (module under geodepth_lite, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "synth": ("geodepth_lite.synth", "generate a synthetic RGB-depth dataset from a manifest"),
-    "verify": ("geodepth_lite.integrity", "check a generated dataset against its checksums"),
-    "train": ("geodepth_lite.train_cli", "train the depth network (a profile, or your own settings)"),
-    "train-many": ("geodepth_lite.train_many", "train several cases or seeds at once on one device, one process each"),
-    "evaluate": ("geodepth_lite.evaluate_cli", "evaluate a checkpoint with the seven depth metrics"),
-    "predict": ("geodepth_lite.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
-    "reproduce": ("geodepth_lite.reproduce", "run the numbered notebooks with papermill and write a report"),
-    "convert-checkpoint": ("geodepth_lite.checkpoint", "rewrite checkpoints of the first format so they load safely"),
-    "gpu-check": ("geodepth_lite.gpu_check", "check the CUDA paths in minutes and predict the paper profile's time"),
-    "bundle": ("geodepth_lite.bundle", "pack a profile's trained models into one file to hand out (a class bundle)"),
-    "unbundle": ("geodepth_lite.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
-    "exercises": ("geodepth_lite.exercises", "write the student release of the notebooks' graded exercises (nbgrader)"),
-    "course": ("geodepth_lite.course", "run a course with nbgrader: release, collect, autograde, feedback, grades"),
-    "book": ("geodepth_lite.book", "publish the executed notebooks as a static web book (Jupyter Book 2, MyST)"),
+    "synth": ("data.synth", "generate a synthetic RGB-depth dataset from a manifest"),
+    "verify": ("data.integrity", "check a generated dataset against its checksums"),
+    "train": ("training.train_cli", "train the depth network (a profile, or your own settings)"),
+    "train-many": ("training.train_many", "train several cases or seeds at once on one device, one process each"),
+    "evaluate": ("evaluation.evaluate_cli", "evaluate a checkpoint with the seven depth metrics"),
+    "predict": ("apps.predict", "zero-shot depth, colorized depth and PLY for your own images or video"),
+    "reproduce": ("workbook.reproduce", "run the numbered notebooks with papermill and write a report"),
+    "convert-checkpoint": ("training.checkpoint", "rewrite checkpoints of the first format so they load safely"),
+    "gpu-check": ("apps.gpu_check", "check the CUDA paths in minutes and predict the paper profile's time"),
+    "bundle": ("apps.bundle", "pack a profile's trained models into one file to hand out (a class bundle)"),
+    "unbundle": ("apps.bundle", "unpack a class bundle, so the notebooks load its models instead of training"),
+    "exercises": ("workbook.exercises", "write the student release of the notebooks' graded exercises (nbgrader)"),
+    "course": ("workbook.course", "run a course with nbgrader: release, collect, autograde, feedback, grades"),
+    "book": ("workbook.book", "publish the executed notebooks as a static web book (Jupyter Book 2, MyST)"),
 }
 
 
@@ -63,7 +63,7 @@ def build_parser(commands: tuple[str, ...] | None = None) -> argparse.ArgumentPa
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help=f"show the full traceback of an error (also: {DEBUG_ENV}=1)")
-        module = importlib.import_module(module_name)
+        module = importlib.import_module(f"geodepth_lite.{module_name}")
         ident = name.replace("-", "_")
         getattr(module, f"add_arguments_{ident}")(p)
         p.set_defaults(_run=getattr(module, f"run_{ident}"))

@@ -43,7 +43,7 @@ def _isolated_workspace(tmp_path, monkeypatch):
 @pytest.fixture(scope="session")
 def smoke_root(tmp_path_factory) -> Path:
     """The ``scenario_smoke`` dataset, generated once per test session in a folder of its own."""
-    from geodepth_lite import synth
+    from geodepth_lite.data import synth
 
     return Path(synth.ensure_dataset("scenario_smoke", root=tmp_path_factory.mktemp("smoke_data"), progress=False))
 

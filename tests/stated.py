@@ -24,7 +24,9 @@ import re
 import statistics
 from pathlib import Path
 
-from geodepth_lite import config, reproduce, utils
+from geodepth_lite import utils
+from geodepth_lite.training import config
+from geodepth_lite.workbook import reproduce
 
 EXERCISES_HEADING = "## Exercises"  # a lesson's text ends where its graded exercises begin
 WORD = re.compile(r"\S*[A-Za-z0-9]\S*")  # a whitespace-separated token with at least one letter or digit

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from geodepth_lite import ablation
+from geodepth_lite.evaluation import ablation
 
 
 def test_t_interval_hand_computed():

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from geodepth_lite import appearance as ap
+from geodepth_lite.data import appearance as ap
 
 
 def _record(**changes) -> dict:

@@ -8,8 +8,8 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import baselines, evaluate
 from geodepth_lite.core.metrics import compute_depth_metrics
+from geodepth_lite.evaluation import baselines, evaluate
 
 
 def _frames(depths, images=None, organ="colon", group="pink-warm_single"):
@@ -129,7 +129,7 @@ def test_mean_map_is_resized_nearest_and_scores_zero_on_its_own_layout():
 
 
 def test_all_baselines_on_the_smoke_dataset(smoke_root):
-    from geodepth_lite.datasets import SyntheticDepthDataset
+    from geodepth_lite.data.datasets import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(smoke_root, "test")
     res = evaluate.evaluate_baselines(ds, smoke_root, batch_size=4)
@@ -148,7 +148,7 @@ def test_all_baselines_on_the_smoke_dataset(smoke_root):
 
 @pytest.fixture(scope="module")
 def smoke_ckpt(smoke_root, tmp_path_factory):
-    from geodepth_lite import config
+    from geodepth_lite.training import config
 
     cfg = config.make_config("smoke", 4, 0, dataset=str(smoke_root), image_size=32)
     return save_untrained_checkpoint(tmp_path_factory.mktemp("baseline_ckpt") / "checkpoint.pt", cfg)

@@ -8,8 +8,11 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import checkpoint, config, evaluate, notebook, train, utils
+from geodepth_lite import utils
 from geodepth_lite.core import model, sdf
+from geodepth_lite.evaluation import evaluate
+from geodepth_lite.training import checkpoint, config, train
+from geodepth_lite.workbook import notebook
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 

@@ -24,7 +24,8 @@ from types import SimpleNamespace
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import book, cli, exercises
+from geodepth_lite import cli
+from geodepth_lite.workbook import book, exercises
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -393,7 +394,7 @@ sys.path.insert(0, {str(Path(__file__).parent)!r})
 tempfile.tempdir = {str(temp)!r}
 import pytest
 import test_book
-from geodepth_lite import book
+from geodepth_lite.workbook import book
 mp = pytest.MonkeyPatch()
 build = test_book._fake_build(__import__("pathlib").Path({str(tmp_path)!r}), mp)
 mp.setattr(book.Site, "render_sources", lambda self: (print("rendering", flush=True), time.sleep(300)))

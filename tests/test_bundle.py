@@ -10,7 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import bundle, checkpoint, cli, config, run_cache
+from geodepth_lite import cli
+from geodepth_lite.apps import bundle
+from geodepth_lite.training import checkpoint, config, run_cache
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +141,7 @@ def test_a_bundle_of_another_dataset_recipe_is_refused(smoke_runs, tmp_path, mon
 def test_an_unfinished_run_is_not_bundled(tmp_path, monkeypatch, smoke_root):
     _use(monkeypatch, tmp_path / "home")
     cfg = config.make_config("smoke", 1, 0, dataset=str(smoke_root), image_size=32, epochs=2)
-    from geodepth_lite import train
+    from geodepth_lite.training import train
 
     train.fit(cfg, tmp_path / "home" / "runs" / "smoke" / "checkpoints" / "case1_seed0-x", progress=False, stop_after=1)
     with pytest.raises(FileNotFoundError, match="no complete run"):

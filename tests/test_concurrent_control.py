@@ -75,7 +75,7 @@ def test_compare_and_substitute_on_tables_made_here():
 
 
 def test_the_record_is_read_as_data(tmp_path):
-    from geodepth_lite import study2
+    from geodepth_lite.evaluation import study2
 
     rec = study2.read_control()
     lines = study2.control_lines(rec)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import render, tube
 from geodepth_lite.core import camera, model
+from geodepth_lite.data import render, tube
 
 
 def test_render_and_model_use_cameras_depth_range():

@@ -24,7 +24,8 @@ from pathlib import Path
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import autograde, cli, course, exercises, review, sandbox, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.workbook import autograde, course, exercises, review, sandbox
 
 TINY = "99_tiny"
 
@@ -486,9 +487,9 @@ SHARED_WITH_THE_PROJECT = {
     "320c96563e2be11a": {"tests/test_render.py"},
     "603da3fc218796a7": {"geodepth_lite/core/model.py"},
     "03d402e8058d6f40": {"geodepth_lite/core/model.py"},
-    "ac6de9fa23fc3050": {"geodepth_lite/ablation.py"},
-    "b332d63d46722f4b": {"geodepth_lite/border.py"},
-    "693a347d777327f5": {"geodepth_lite/border.py"},
+    "ac6de9fa23fc3050": {"geodepth_lite/evaluation/ablation.py"},
+    "b332d63d46722f4b": {"geodepth_lite/evaluation/border.py"},
+    "693a347d777327f5": {"geodepth_lite/evaluation/border.py"},
 }
 
 
@@ -583,7 +584,7 @@ def test_the_package_pip_installs_holds_no_notebook_and_no_solution(tmp_path):
         files = {n: zf.read(n).decode("utf-8", errors="replace") for n in names}
     assert not [n for n in names if n.endswith(".ipynb")]
     assert all(n.startswith(("geodepth_lite/", "geodepth_lite-")) for n in names), names
-    assert "geodepth_lite/course.py" in names and "geodepth_lite/exercises.py" in names
+    assert "geodepth_lite/workbook/course.py" in names and "geodepth_lite/workbook/exercises.py" in names
     assert solution_leaks(files) == []
 
 
@@ -596,7 +597,7 @@ def test_the_student_edition_holds_no_solution(tiny_course, tmp_path, capsys):
     assert "without notebooks/01_synthetic_dataset.ipynb" in capsys.readouterr().out
     notebooks = sorted(p.name for p in (out / "notebooks").glob("*.ipynb"))
     assert notebooks == ["00_overview.ipynb", f"{TINY}.ipynb"]  # 01-07 left out: they hold the solutions
-    assert (out / "data_manifests").is_dir() and (out / "geodepth_lite" / "course.py").is_file()
+    assert (out / "data_manifests").is_dir() and (out / "geodepth_lite" / "workbook" / "course.py").is_file()
     assert not any(course.holds_solutions(p) for p in out.rglob("*.ipynb"))
     assert solution_leaks(_text_files(out)) == []
     assert not (out / ".lock").exists()

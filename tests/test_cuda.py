@@ -21,9 +21,11 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from geodepth_lite import analytic, config, evaluate, inference, train
 from geodepth_lite.core import camera, losses, sdf
 from geodepth_lite.core.model import DepthNet
+from geodepth_lite.data import analytic
+from geodepth_lite.evaluation import evaluate
+from geodepth_lite.training import config, inference, train
 
 pytestmark = pytest.mark.cuda
 ROOT = Path(__file__).resolve().parents[1]
@@ -136,7 +138,7 @@ def _agree(a: torch.Tensor, b: torch.Tensor) -> bool:
 
 
 def test_predict_on_cuda_matches_the_cpu(trained, analytic_root):
-    from geodepth_lite import checkpoint
+    from geodepth_lite.training import checkpoint
 
     ds = evaluate.open_eval_dataset(str(analytic_root), split="test")
     images = torch.stack([ds[i]["image"] for i in range(len(ds))])

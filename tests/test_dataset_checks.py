@@ -7,8 +7,10 @@ from pathlib import Path
 import pytest
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import cli, config, integrity, synth
-from geodepth_lite import manifest as mf
+from geodepth_lite import cli
+from geodepth_lite.data import integrity, synth
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.training import config
 from geodepth_lite.utils import FileProblem
 
 

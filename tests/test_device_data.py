@@ -9,8 +9,9 @@ import math
 import pytest
 import torch
 
-from geodepth_lite import checkpoint, config, datasets, inference, train, train_many
 from geodepth_lite.core.model import DepthNet
+from geodepth_lite.data import datasets
+from geodepth_lite.training import checkpoint, config, inference, train, train_many
 
 
 def _cfg(root, **kw):

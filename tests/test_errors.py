@@ -18,8 +18,11 @@ import pytest
 import torch
 from conftest import one_line_error, save_nan_checkpoint
 
-from geodepth_lite import checkpoint, cli, config, datasets, evaluate, synth, train, utils
-from geodepth_lite import manifest as mf
+from geodepth_lite import cli, utils
+from geodepth_lite.data import datasets, synth
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.evaluation import evaluate
+from geodepth_lite.training import checkpoint, config, train
 
 
 @pytest.fixture
@@ -202,7 +205,7 @@ def test_a_nan_checkpoint_is_refused_and_nothing_is_written(smoke_root, tmp_path
 
 
 def test_a_model_that_predicts_nan_writes_nothing(smoke_root, tmp_path, capsys, monkeypatch, untrained_checkpoint):
-    from geodepth_lite import predict
+    from geodepth_lite.apps import predict
 
     monkeypatch.setattr(predict, "predict_frames",
                         lambda m, frames, s, flips="none": [np.full(f.shape[:2], np.nan) for f in frames])

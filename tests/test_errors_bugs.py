@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import cli, predict, reproduce
+from geodepth_lite import cli
+from geodepth_lite.apps import predict
 from geodepth_lite.core import losses, metrics, sdf
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.workbook import reproduce
 
 
 def _predict_argv(tmp_path, *extra: str) -> list[str]:

@@ -27,7 +27,8 @@ import pytest
 import torch
 from conftest import one_line_error
 
-from geodepth_lite import checkpoint, cli
+from geodepth_lite import cli
+from geodepth_lite.training import checkpoint
 
 CAP = 2 * 2**30  # address space of a command: torch and a normal predict run fit (about 1.5 GiB suffices)
 RSS_MAX = 2**30  # the resident memory no crafted file may make a command exceed

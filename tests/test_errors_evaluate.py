@@ -20,7 +20,9 @@ import numpy as np
 import pytest
 from conftest import one_line_error
 
-from geodepth_lite import baselines, checkpoint, cli, evaluate, tables, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.evaluation import baselines, evaluate, tables
+from geodepth_lite.training import checkpoint
 
 
 class RunsCode:

@@ -12,7 +12,9 @@ import pytest
 import torch
 from conftest import one_line_error
 
-from geodepth_lite import checkpoint, cli, integrity, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.data import integrity
+from geodepth_lite.training import checkpoint
 
 # --------------------------------------------------------------------------- --device
 

@@ -26,9 +26,11 @@ import torch
 from conftest import one_line_error, save_untrained_checkpoint
 from numpy._core.multiarray import _reconstruct
 
-from geodepth_lite import checkpoint, cli, datasets, fov, images, integrity, predict, utils
-from geodepth_lite import manifest as mf
-from geodepth_lite.datasets import base
+from geodepth_lite import cli, utils
+from geodepth_lite.data import datasets, fov, frames, images, integrity
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data.datasets import base
+from geodepth_lite.training import checkpoint
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -349,18 +351,18 @@ def test_the_bomb_is_a_real_image_of_that_size(bomb):
 
 def test_an_image_over_the_pixel_limit_is_refused_from_its_header(smoke_root, untrained_checkpoint, bomb, tmp_path,
                                                                    capsys):
-    for read in (images.read_rgb, predict.read_frame, fov.read_mask, base.read_png_unit, base.read_png_raw):
+    for read in (images.read_rgb, frames.read_frame, fov.read_mask, base.read_png_unit, base.read_png_raw):
         with pytest.raises(utils.FileProblem, match="over the limit of 50000000 pixels") as info:
             read(bomb)
         assert info.value.path == bomb
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    shutil.copy(bomb, frames)
-    shutil.copy(next((smoke_root / "test" / "rgb").glob("*.png")), frames / "fine.png")
-    argv = ["predict", "--checkpoint", str(untrained_checkpoint), "--input", str(frames), "--out", str(tmp_path / "p"),
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    shutil.copy(bomb, folder)
+    shutil.copy(next((smoke_root / "test" / "rgb").glob("*.png")), folder / "fine.png")
+    argv = ["predict", "--checkpoint", str(untrained_checkpoint), "--input", str(folder), "--out", str(tmp_path / "p"),
             "--no-progress", "--ply", "none"]
     assert cli.main(argv) == 2  # the bomb named, the other frame written
-    one_line_error(capsys, str(frames / bomb.name), "over the limit")
+    one_line_error(capsys, str(folder / bomb.name), "over the limit")
     assert (tmp_path / "p" / "fine_depth.npy").is_file()
     mask_argv = [*argv[:6], str(tmp_path / "m"), "--no-progress", "--mask", str(bomb)]
     assert cli.main(mask_argv) == 2

@@ -26,8 +26,10 @@ import torch
 from conftest import one_line_error
 from PIL import Image
 
-from geodepth_lite import bundle, cli, exercises, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.apps import bundle
 from geodepth_lite.core.model import DepthNet
+from geodepth_lite.workbook import exercises
 
 DEAD_PID = 2**22 + 1  # above Linux's largest pid_max: no process can have it
 RUN = "case1_seed0-0123abcd"

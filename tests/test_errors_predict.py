@@ -21,7 +21,10 @@ import pytest
 from conftest import save_nan_checkpoint
 from PIL import Image
 
-from geodepth_lite import checkpoint, cli, predict, recon, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.data import frames
+from geodepth_lite.training import checkpoint
+from geodepth_lite.views import depth_files, recon
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +115,7 @@ def _write_16bit(kind: str, folder: Path) -> Path:
 @pytest.mark.parametrize("kind", ["grey PNG (I;16)", "grey TIFF (I;16)", "grey in 32 bits (I)",
                                   "RGB PNG 16-bit", "RGB TIFF 16-bit"])
 def test_16_bit_images_are_scaled_to_8_bits_not_clipped(tmp_path, kind):
-    rgb = predict.read_frame(_write_16bit(kind, tmp_path))
+    rgb = frames.read_frame(_write_16bit(kind, tmp_path))
     assert rgb.shape == (12, 20, 3) and rgb.dtype == np.uint8
     assert (rgb[:, :10] == 101).all(), np.unique(rgb[:, :10])  # PIL's convert("RGB") gave 255
     assert (rgb[:, 10:] == 255).all()
@@ -122,7 +125,7 @@ def test_float_images_in_0_1_are_scaled(tmp_path):
     import tifffile
 
     tifffile.imwrite(tmp_path / "f.tif", np.full((4, 6), 0.4, np.float32))
-    assert (predict.read_frame(tmp_path / "f.tif") == 102).all()  # convert("RGB") gave 0
+    assert (frames.read_frame(tmp_path / "f.tif") == 102).all()  # convert("RGB") gave 0
 
 
 def test_the_cli_colours_a_16_bit_png_by_its_8_bit_values(tmp_path, ckpt, capsys):
@@ -220,7 +223,7 @@ def test_a_video_without_a_video_stream_says_so(tmp_path, ckpt, capsys):
 def test_a_video_that_breaks_midway_names_the_last_good_frame(tmp_path, ckpt, capsys, monkeypatch):
     video = tmp_path / "clip.mp4"
     iio.imwrite(video, np.stack([_frame(48, 64, k) for k in range(5)]), fps=10)
-    real_read_video = predict.read_video
+    real_read_video = frames.read_video
 
     def breaks_after_3(path):
         for k, frame in enumerate(real_read_video(path)):
@@ -229,7 +232,7 @@ def test_a_video_that_breaks_midway_names_the_last_good_frame(tmp_path, ckpt, ca
                                    "\n=== stderr ===\nffmpeg version n9\n  built with gcc\n[in#0 @ 0x5] decode error")
             yield frame
 
-    monkeypatch.setattr(predict, "read_video", breaks_after_3)
+    monkeypatch.setattr(frames, "read_video", breaks_after_3)
     out = tmp_path / "out"
     assert _run(ckpt, video, out, "--ply", "none", "--batch-size", "2") == 2
     errors, stdout = _errors(capsys)
@@ -296,7 +299,7 @@ def test_the_room_asked_for_covers_one_frames_outputs(tmp_path, ckpt, ply):
     src = _folder(tmp_path / "in", {"a.png": _frame(48, 64)})
     assert _run(ckpt, src, tmp_path / "out", "--ply", ply, "--panel", "none") == 0
     written = sum(p.stat().st_size for p in (tmp_path / "out").iterdir())
-    assert written <= predict.frame_output_bytes(64, 48, ply, panel="none") <= 4 * written + 8192
+    assert written <= depth_files.frame_output_bytes(64, 48, ply, panel="none") <= 4 * written + 8192
 
 
 @pytest.mark.parametrize("panel", ["depth", "prior"])
@@ -306,10 +309,10 @@ def test_the_room_asked_for_covers_the_panel(tmp_path, ckpt, panel):
     src = _folder(tmp_path / "in", {"a.png": _frame(48, 64)})
     assert _run(ckpt, src, tmp_path / "out", "--ply", "none", "--panel", panel) == 0
     image = tmp_path / "out" / "a_panel.png"
-    assert Image.open(image).size == predict.panel_size(64, 48, panel)
-    extra = predict.frame_output_bytes(64, 48, "none", panel=panel) - predict.frame_output_bytes(64, 48, "none",
+    assert Image.open(image).size == depth_files.panel_size(64, 48, panel)
+    extra = depth_files.frame_output_bytes(64, 48, "none", panel=panel) - depth_files.frame_output_bytes(64, 48, "none",
                                                                                                   panel="none")
-    assert image.stat().st_size <= extra == predict.png_bytes(*predict.panel_size(64, 48, panel))
+    assert image.stat().st_size <= extra == depth_files.png_bytes(*depth_files.panel_size(64, 48, panel))
 
 
 # --------------------------------------------------------------------------- 6. stale temporary files
@@ -347,7 +350,7 @@ def test_predicts_own_outputs_in_the_input_folder_are_skipped(tmp_path, ckpt, ca
     for old in ("a_depth.png", "a_panel.png"):  # an old run's outputs beside its depth
         (src / old).write_bytes((tmp_path / "in" / "a.png").read_bytes())
     np.save(src / "a_depth.npy", np.ones((20, 24), np.float32))
-    files, _ = predict.list_inputs(src)
+    files, _ = frames.list_inputs(src)
     # photos named *_depth.png or *_panel.png without their *_depth.npy stay inputs
     assert [f.name for f in files] == ["a.png", "b_panel.png", "scan_depth.png"]
     out = src / "pred"  # --out inside --input: the listing is not recursive
@@ -413,7 +416,7 @@ def test_refused_runs_leave_no_output_folder(tmp_path, ckpt, capsys):
 
 def _mask_cases(tmp_path: Path) -> dict:
     """{the words the error must hold: the --mask file}, each refused before any work."""
-    from geodepth_lite import fov
+    from geodepth_lite.data import fov
 
     (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n this is not a png")
     small = fov.save_mask(np.ones((10, 12), bool), tmp_path / "small.png")
@@ -446,7 +449,7 @@ def test_a_bad_mask_file_loses_nothing_already_written(tmp_path, ckpt, capsys):
 
 
 def test_a_frame_of_another_size_than_the_mask_is_named_and_the_others_go_on(tmp_path, ckpt, capsys):
-    from geodepth_lite import fov
+    from geodepth_lite.data import fov
 
     src = _folder(tmp_path / "in", {"a.png": _frame(20, 24), "b.png": _frame(30, 24), "c.png": _frame(20, 24, 1)})
     mask = np.zeros((20, 24), bool)

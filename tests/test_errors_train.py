@@ -23,7 +23,10 @@ import pytest
 import torch
 from conftest import one_line_error, save_untrained_checkpoint
 
-from geodepth_lite import checkpoint, cli, config, integrity, reproduce, synth, train, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.data import integrity, synth
+from geodepth_lite.training import checkpoint, config, train
+from geodepth_lite.workbook import reproduce
 
 
 def _smoke_cfg(root, **kw):

@@ -8,8 +8,9 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import border, checkpoint, config, evaluate, inference, tables
 from geodepth_lite.core.metrics import compute_depth_metrics
+from geodepth_lite.evaluation import border, evaluate, tables
+from geodepth_lite.training import checkpoint, config, inference
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def smoke(smoke_root, tmp_path_factory):
 
 def test_cli_writes_metrics_frames_and_error_maps(smoke, tmp_path, capsys):
     from geodepth_lite import cli
-    from geodepth_lite.datasets import SyntheticDepthDataset
+    from geodepth_lite.data.datasets import SyntheticDepthDataset
 
     root, ckpt = smoke
     out = tmp_path / "eval"
@@ -47,7 +48,7 @@ def test_cli_writes_metrics_frames_and_error_maps(smoke, tmp_path, capsys):
 
 def test_per_frame_means_equal_the_metric_on_the_whole_set(smoke):
     """Groups are averaged from per-frame values: the same numbers as one call on all frames."""
-    from geodepth_lite.datasets import SyntheticDepthDataset
+    from geodepth_lite.data.datasets import SyntheticDepthDataset
 
     root, ckpt = smoke
     model, cfg = checkpoint.load_model(ckpt)
@@ -69,7 +70,7 @@ def test_cli_flips_score_the_mean_over_the_mirrorings(smoke, tmp_path):
     """evaluate --flips hv scores the mean over the four mirrorings (the same metrics as
     evaluate_model with flips="hv"), not the one-pass prediction it scores by default."""
     from geodepth_lite import cli
-    from geodepth_lite.datasets import SyntheticDepthDataset
+    from geodepth_lite.data.datasets import SyntheticDepthDataset
 
     root, ckpt = smoke
     model, cfg = checkpoint.load_model(ckpt)
@@ -92,7 +93,7 @@ def test_cli_flips_score_the_mean_over_the_mirrorings(smoke, tmp_path):
 def test_a_perfect_prediction_up_to_scale_scores_perfectly(smoke):
     """A model that returns the ground truth up to a scale gets Abs Rel 0, a1 1 (median scaling)."""
     root, _ = smoke
-    from geodepth_lite.datasets import SyntheticDepthDataset
+    from geodepth_lite.data.datasets import SyntheticDepthDataset
 
     ds = SyntheticDepthDataset(root, "test")
     gts = {int(ds[i]["index"]): ds[i]["depth"] for i in range(len(ds))}

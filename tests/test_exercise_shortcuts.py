@@ -23,8 +23,8 @@ from unittest import mock
 
 import pytest
 
-from geodepth_lite import exercises as E
-from geodepth_lite import grading, review
+from geodepth_lite.workbook import exercises as E
+from geodepth_lite.workbook import grading, review
 
 NOTEBOOKS = {p.name: json.loads(p.read_text()) for p in E.notebook_paths()}
 EXERCISES = {ex.ident: ex for nb in NOTEBOOKS.values() for ex in E.notebook_exercises(nb).values()}
@@ -45,7 +45,7 @@ OPEN = _manual()
 SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one the prompt names)
     "01-1": [("""
         import re
-        from geodepth_lite import manifest
+        from geodepth_lite.data import manifest
         my_fields = {}
         for letter, edit in edits.items():
             try:
@@ -138,7 +138,7 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
                                  border_weight=2.0)[0]
         """,)],
     "05-1": [("""
-        from geodepth_lite import ablation
+        from geodepth_lite.evaluation import ablation
         _res = {"seeds": [0, 1, 2], "scores": {}}
         for _s in range(3):
             _res["scores"][(1, _s)] = {"test split": {"rmse": float(CASE1[_s])}}
@@ -147,19 +147,19 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         r, rel, p, rel_low, rel_high = _q["rel_diffs"], _q["rel"], _q["p"], _q["rel_low"], _q["rel_high"]
         """,)],
     "05-2": [("""
-        from geodepth_lite import ablation
+        from geodepth_lite.evaluation import ablation
         return ablation.holm(pvalues, alpha)
         """,)],
     "05-3": [("""
         verdicts = {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(toy_result)}
         """,)],
     "06-1": [("""
-        from geodepth_lite import border
+        from geodepth_lite.evaluation import border
         bands, ratios = border.border_bands(np.nan_to_num(abs_mean) * count, count)
         worst = max(ratios, key=ratios.get)
         """,)],
     "06-2": [("""
-        from geodepth_lite import evaluate
+        from geodepth_lite.evaluation import evaluate
         _rows = [dict(metrics.compute_depth_metrics(p, g), organ=o) for g, p, o in zip(test_gt, test_pred, test_organ)]
         _colon = evaluate.summarize(_rows, by="organ")["colon"]
         _held = evaluate.summarize([metrics.compute_depth_metrics(p, g) for g, p in zip(heldout_gt, heldout_pred)])
@@ -179,7 +179,7 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         return float(np.sqrt(c3 + c1 * c1 / 4 + c2 * c2 / 4)), float(c1 / 2), float(c2 / 2)
         """,)],
     "07-3": [("""
-        from geodepth_lite import recon
+        from geodepth_lite.views import recon
         frame_ratios = recon.median_scale_ratios(pred_frames, gt_frames)
         ratio_cv = float(np.std(frame_ratios) / np.mean(frame_ratios))
         """,)],
@@ -452,7 +452,7 @@ def test_an_explanation_of_mere_words_earns_no_points_automatically():
 
 # ------------------------------------------------------------------------------------------ grading.forbid
 def test_forbid_replaces_every_binding_and_restores_them():
-    from geodepth_lite import ablation, study
+    from geodepth_lite.evaluation import ablation, study
 
     original = ablation.holm
     namespace = {"holm_alias": ablation.holm, "other": len}
@@ -468,7 +468,7 @@ def test_forbid_replaces_every_binding_and_restores_them():
 
 
 def test_forbid_catches_a_reference_taken_before_the_block():
-    from geodepth_lite import ablation
+    from geodepth_lite.evaluation import ablation
 
     def sneaky(p, _kept=ablation.holm):  # a default argument keeps the original function
         return _kept(p)
@@ -608,7 +608,7 @@ FAMILIES = ("grader's files", "guard off", "out of the guard's sight", "package 
             "pasted values", "fished reference", "edited history", "the checks' tools or inputs changed")
 def _pasted_verdicts() -> str:
     """05.3's verdicts as the visible check's message prints them after a failed run."""
-    from geodepth_lite import ablation
+    from geodepth_lite.evaluation import ablation
 
     namespace = E.new_namespace()
     E.run_cell(answer_with(EXERCISES["05-3"].answer, ("verdicts = {}",)), namespace)
@@ -626,7 +626,7 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
     ("guard off", "function"): ("05-2", ("""
         global _kept
         import sys
-        from geodepth_lite import ablation
+        from geodepth_lite.evaluation import ablation
         try:
             _kept
         except NameError:  # the first call, in the visible check, is not guarded
@@ -637,7 +637,7 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
     ("out of the guard's sight", "function"): ("05-2", ("""
         global _kept
         from concurrent.futures import ThreadPoolExecutor
-        from geodepth_lite import ablation
+        from geodepth_lite.evaluation import ablation
         try:
             _kept
         except NameError:  # the first call, in the visible check, is not guarded
@@ -646,7 +646,7 @@ FAMILY_SHORTCUTS = {  # (family, kind) -> (exercise, its answer's regions, the r
             return pool.submit(_kept[0], pvalues, alpha).result()
         """,), "concurrency"),
     ("package source", "function"): ("05-2", ("""
-        from geodepth_lite import ablation
+        from geodepth_lite.evaluation import ablation
         copy = {}
         exec(open(ablation.__file__).read(), copy)  # a fresh copy of the module: its code is not watched
         return copy["holm"](pvalues, alpha)
@@ -883,7 +883,7 @@ def solution(ident: str) -> str:
 def reviewed(ident: str, answer: str) -> list:
     """The static review of ``answer`` as exercise ``ident``'s answer cell, as ``course autograde`` runs it:
     the lecturer's notebook against the returned one."""
-    from geodepth_lite import review
+    from geodepth_lite.workbook import review
 
     name = next(n for n, nb in NOTEBOOKS.items() if ident in E.notebook_exercises(nb))
     returned = copy.deepcopy(NOTEBOOKS[name])
@@ -902,7 +902,7 @@ def test_every_family_of_shortcut_is_played_against_every_kind_of_exercise():
 
 @pytest.mark.parametrize("family, kind", sorted(FAMILY_SHORTCUTS))
 def test_each_shortcut_loses_its_points_or_is_flagged_with_its_reason(family, kind):
-    from geodepth_lite import review
+    from geodepth_lite.workbook import review
 
     ident, answer, rule = family_answer((family, kind))
     found = reviewed(ident, answer)
@@ -942,7 +942,7 @@ def test_an_answer_equal_to_anything_fails_the_exact_types(family, kind, monkeyp
 
 
 def test_the_solutions_and_ordinary_constructs_pass_the_review_clean():
-    from geodepth_lite import review
+    from geodepth_lite.workbook import review
 
     assert {ident: reviewed(ident, solution(ident)) for ident in EXERCISES} == dict.fromkeys(EXERCISES, [])
     for ident, regions in NO_GRAD_ANSWERS.items():
@@ -1002,7 +1002,7 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                        "        return 'A'", {}),
     "special-attribute": ("g = f.__globals__", "name = f.__name__", {}),
     "package-source": ("from geodepth_lite import ablation\ntext = open(ablation.__file__).read()",
-                       "def holm(p):\n    \"\"\"Like geodepth_lite/ablation.py's holm, by hand.\"\"\"\n"
+                       "def holm(p):\n    \"\"\"Like geodepth_lite/evaluation/ablation.py's holm, by hand.\"\"\"\n"
                        "    return p\n\n\ntext = (root / 'manifest.json').read_text()", {}),
     "grader-files": ("db = open('../../gradebook.db', 'rb').read()",
                      "sums = (root / 'checksums.sha256').read_text()", {}),
@@ -1018,7 +1018,7 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
 
 
 def test_every_rule_has_a_planted_answer_and_a_near_miss():
-    from geodepth_lite import review
+    from geodepth_lite.workbook import review
 
     assert set(RULE_CASES) == set(review.RULES)
     borrowed = review.review_cell("from unittest.mock import ANY\n\noffset_blind = ANY")  # equal to anything
@@ -1027,7 +1027,7 @@ def test_every_rule_has_a_planted_answer_and_a_near_miss():
 
 @pytest.mark.parametrize("rule", sorted(RULE_CASES))
 def test_each_rule_flags_its_planted_answer_and_not_the_near_miss(rule):
-    from geodepth_lite import review
+    from geodepth_lite.workbook import review
 
     planted, near_miss, context = RULE_CASES[rule]
     assert rule in {f.rule for f in review.review_cell(planted, **context)}, planted
@@ -1037,7 +1037,7 @@ def test_each_rule_flags_its_planted_answer_and_not_the_near_miss(rule):
 def test_the_visible_check_of_05_3_names_what_differs_but_never_the_expected_verdicts():
     """A failed visible check says which verdicts differ and what the student wrote, not what the check
     wanted: there is nothing to paste from its message."""
-    from geodepth_lite import ablation
+    from geodepth_lite.evaluation import ablation
 
     namespace = E.new_namespace()
     E.run_cell(answer_with(EXERCISES["05-3"].answer, ("verdicts = {}",)), namespace)
@@ -1108,7 +1108,7 @@ def fine(x):
 
 
 def test_forbid_checks_what_the_notebooks_functions_return_decorated_or_not():
-    from geodepth_lite import ablation
+    from geodepth_lite.evaluation import ablation
 
     namespace = E.new_namespace()
     E.run_cell("class Lesson:\n    pass\n\n\ndef lesson():\n    return Lesson()", namespace)  # an earlier cell

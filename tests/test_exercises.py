@@ -6,7 +6,7 @@ import json
 import pytest
 from test_course import notebook_strings, solution_leaks
 
-from geodepth_lite import exercises as E
+from geodepth_lite.workbook import exercises as E
 
 NOTEBOOKS = E.notebook_paths()
 LEVELS = ("recall", "apply", "open")

@@ -9,11 +9,12 @@ import pytest
 import torch
 from scipy import stats
 
-from geodepth_lite import checkpoint, config, exploratory, inference, run_cache, study, study2
-from geodepth_lite import tables as tbl
 from geodepth_lite.core import losses
 from geodepth_lite.core.model import DepthNet
-from geodepth_lite.datasets import load_split, resolve_dataset
+from geodepth_lite.data.datasets import load_split, resolve_dataset
+from geodepth_lite.evaluation import exploratory, study, study2
+from geodepth_lite.evaluation import tables as tbl
+from geodepth_lite.training import checkpoint, config, inference, run_cache
 
 SEEDS = range(8)
 

@@ -158,7 +158,7 @@ def test_the_explorer_over_a_sitting(lab):
 
     assert contents(lab, LESSON)["writable"] is False, (
         "the lesson guard is not enabled in this environment: install with `python -m pip install -r "
-        "environment.txt` (its ./jupyter-config line enables geodepth_lite.lesson_guard)")
+        "environment.txt` (its ./jupyter-config line enables geodepth_lite.workbook.lesson_guard)")
     with sync_playwright() as pw:
         browser = pw.chromium.launch_persistent_context(str(lab["user_data"]), executable_path=CHROMIUM,
                                                         args=CHROMIUM_ARGS, headless=True,

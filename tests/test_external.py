@@ -7,10 +7,10 @@ import pytest
 import torch
 from PIL import Image
 
-from geodepth_lite import external
 from geodepth_lite.core import metrics
 from geodepth_lite.core.model import DepthNet
-from geodepth_lite.integrity import file_sha256
+from geodepth_lite.data.integrity import file_sha256
+from geodepth_lite.evaluation import external
 
 
 def test_the_simcol3d_manifest_names_ten_pairs_and_their_source():

@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 from scipy import ndimage
 
-from geodepth_lite import fov
+from geodepth_lite.data import fov
 from geodepth_lite.utils import FileProblem
 
 H, W = 120, 160  # a 4:3 frame, small enough to be fast, large enough for glyphs of 8 px

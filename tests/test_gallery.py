@@ -9,9 +9,9 @@ import pytest
 import torch
 from PIL import Image
 
-from geodepth_lite import gallery
 from geodepth_lite.core.model import DepthNet
-from geodepth_lite.integrity import file_sha256
+from geodepth_lite.data.integrity import file_sha256
+from geodepth_lite.evaluation import gallery
 
 
 def _prior(h=32, w=32):

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from geodepth_lite import cli, gpu_check
+from geodepth_lite import cli
+from geodepth_lite.apps import gpu_check
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -265,7 +266,7 @@ def test_a_paper_run_cut_off_by_its_time_limit_is_recorded(tmp_path, monkeypatch
 
 
 def test_sdf_share_in_words_calls_a_faster_case4_step_noise():
-    from geodepth_lite.gpu_check import share_words
+    from geodepth_lite.apps.gpu_check import share_words
 
     sh = {"case4_first_s": 0.100, "case2_first_s": 0.080, "share_first": 1 - 0.080 / 0.100}
     assert share_words(sh, "first") == "20.0 % (100.0 ms a step)"

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from geodepth_lite import analytic, evaluate, external, gallery, images, predict
+from geodepth_lite.data import analytic, frames, images
+from geodepth_lite.evaluation import evaluate, external, gallery
 
 SIZE = 32
 
@@ -62,7 +63,7 @@ def _external_reads(monkeypatch, frame16) -> np.ndarray:
 def test_a_16_bit_png_reads_the_same_in_predict_evaluate_the_gallery_and_external(tmp_path, monkeypatch, frame16):
     want = images.read_rgb(frame16)
     assert (want[:, : SIZE // 2] == 101).all()  # scaled, not clipped to 255
-    reads = {"predict": predict.read_frame(frame16), "evaluate": _evaluate_reads(tmp_path, frame16),
+    reads = {"predict": frames.read_frame(frame16), "evaluate": _evaluate_reads(tmp_path, frame16),
              "gallery": _gallery_reads(monkeypatch, frame16), "external": _external_reads(monkeypatch, frame16)}
     for command, rgb in reads.items():
         assert rgb.shape == want.shape and (rgb == want).all(), (command, np.unique(rgb))

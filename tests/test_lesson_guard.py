@@ -20,7 +20,7 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from geodepth_lite import lesson_guard
+from geodepth_lite.workbook import lesson_guard
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
@@ -37,7 +37,8 @@ def checkout(tmp_path, marker=True, solutions=True):
     (repo / "notebooks").mkdir(parents=True)
     if marker:
         (repo / "geodepth_lite").mkdir()
-        (repo / "geodepth_lite" / "lesson_guard.py").write_text("")
+        (repo / "geodepth_lite" / "workbook").mkdir(parents=True)
+        (repo / "geodepth_lite" / "workbook" / "lesson_guard.py").write_text("")
     solved = "x = None\n### BEGIN SOLUTION\nx = 1\n### END SOLUTION" if solutions else "x = None"
     for name in ("lesson", "mine"):
         nb = nbformat.v4.new_notebook(cells=[nbformat.v4.new_markdown_cell("### BEGIN SOLUTION is a marker"),
@@ -117,8 +118,8 @@ def test_the_install_enables_the_extension():
     meta = (ROOT / "jupyter-config" / "pyproject.toml").read_text()
     assert '"etc/jupyter/jupyter_server_config.d" = ["jupyter_server_config.d/geodepth_lite.json"]' in meta
     config = json.loads((ROOT / "jupyter-config" / "jupyter_server_config.d" / "geodepth_lite.json").read_text())
-    assert config == {"ServerApp": {"jpserver_extensions": {"geodepth_lite.lesson_guard": True}}}
-    assert lesson_guard._jupyter_server_extension_points() == [{"module": "geodepth_lite.lesson_guard"}]
+    assert config == {"ServerApp": {"jpserver_extensions": {"geodepth_lite.workbook.lesson_guard": True}}}
+    assert lesson_guard._jupyter_server_extension_points() == [{"module": "geodepth_lite.workbook.lesson_guard"}]
     assert (ROOT / Path(*lesson_guard.PACKAGE_MARKER)).is_file()  # this checkout is recognised as one
 
 
@@ -217,7 +218,7 @@ def server(tmp_path_factory):
     args = ["--no-browser", "--allow-root", "--ServerApp.ip=127.0.0.1", f"--ServerApp.port={port}",
             "--ServerApp.port_retries=0", f"--ServerApp.root_dir={repo}", f"--IdentityProvider.token={token}",
             "--FileContentsManager.delete_to_trash=False", "--ServerApp.jpserver_extensions",
-            "geodepth_lite.lesson_guard=True"]
+            "geodepth_lite.workbook.lesson_guard=True"]
     proc = subprocess.Popen([sys.executable, "-m", "jupyter_server", *args], env=env, cwd=repo, stdout=log,
                             stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     base = f"http://127.0.0.1:{port}/api/contents/"

@@ -12,8 +12,10 @@ import pytest
 import tifffile
 import torch
 
-from geodepth_lite import datasets, evaluate, evaluate_cli, utils
+from geodepth_lite import utils
 from geodepth_lite.core import camera
+from geodepth_lite.data import datasets
+from geodepth_lite.evaluation import evaluate, evaluate_cli
 
 H, W = 6, 8
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from geodepth_lite import analytic
 from geodepth_lite.core import camera, nnsearch, sdf
+from geodepth_lite.data import analytic
 
 
 def _brute(points: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
@@ -119,7 +119,8 @@ def test_equidistant_points_stay_exact_within_the_pair_budget(monkeypatch):
 
 
 def test_analytic_views_and_their_dataset(tmp_path):
-    from geodepth_lite import datasets, integrity, utils
+    from geodepth_lite import utils
+    from geodepth_lite.data import datasets, integrity
 
     for kind in analytic.KINDS:
         d = analytic.depth_map(kind, 48, seed=2)

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import analytic
 from geodepth_lite.core import camera, nnsearch_triton, sdf
+from geodepth_lite.data import analytic
 
 ROOT = Path(__file__).resolve().parents[1]
 

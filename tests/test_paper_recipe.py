@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import analytic, checkpoint, config, train, utils
+from geodepth_lite import utils
 from geodepth_lite.core import losses
 from geodepth_lite.core.model import MAX_DEPTH, MIN_DEPTH, DepthNet, sigmoid_to_depth
+from geodepth_lite.data import analytic
+from geodepth_lite.training import checkpoint, config, train
 
 # Depths of scenario_teach's training split (scene units), measured once over its 600 frames
 # (docs/paper_recipe.md): smallest, median, largest.

@@ -9,8 +9,11 @@ import pytest
 from PIL import Image
 from test_fov import H, W, tissue
 
-from geodepth_lite import cli, fov, predict, recon, viz
+from geodepth_lite import cli
 from geodepth_lite.core import camera
+from geodepth_lite.data import fov, frames
+from geodepth_lite.training import inference
+from geodepth_lite.views import depth_files, recon, viz
 
 
 def _cli(argv):
@@ -48,7 +51,7 @@ def test_folder_with_a_corrupt_file_processes_the_others_and_names_it(tmp_path, 
         ply = recon.load_ply(out / f"{name}.ply")
         assert ply.n_points == h * w
         # the PLY is the depth back-projected with the default intrinsics (about 84 degrees)
-        K = camera.intrinsics_from_fov(w, h, predict.DEFAULT_FOV_DEG)
+        K = camera.intrinsics_from_fov(w, h, frames.DEFAULT_FOV_DEG)
         np.testing.assert_allclose(np.asarray(ply.points),
                                    camera.backproject(depth.astype(np.float64), K).reshape(-1, 3),
                                    rtol=1e-5, atol=1e-6)
@@ -57,19 +60,19 @@ def test_folder_with_a_corrupt_file_processes_the_others_and_names_it(tmp_path, 
 
 
 def test_batching_does_not_change_the_prediction(checkpoint):
-    from geodepth_lite.checkpoint import load_model
+    from geodepth_lite.training.checkpoint import load_model
 
     model, cfg = load_model(checkpoint)
     frames = [_frame(40, 56, 0), _frame(33, 47, 1), _frame(64, 64, 2)]
-    together = predict.predict_frames(model, frames, cfg["image_size"])
-    alone = [predict.predict_frames(model, [f], cfg["image_size"])[0] for f in frames]
+    together = inference.predict_frames(model, frames, cfg["image_size"])
+    alone = [inference.predict_frames(model, [f], cfg["image_size"])[0] for f in frames]
     for a, b in zip(together, alone):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
 def test_predict_averages_the_mirrorings_by_default(tmp_path, checkpoint):
     """The CLI's depth is predict_frames with flips "hv" unless --flips says otherwise."""
-    from geodepth_lite.checkpoint import load_model
+    from geodepth_lite.training.checkpoint import load_model
 
     model, cfg = load_model(checkpoint)
     src = tmp_path / "in"
@@ -80,7 +83,7 @@ def test_predict_averages_the_mirrorings_by_default(tmp_path, checkpoint):
         out = tmp_path / flips
         assert _cli(["predict", "--checkpoint", str(checkpoint), "--input", str(src), "--out", str(out),
                      "--ply", "none", "--no-progress", *args]) == 0
-        want = predict.predict_frames(model, [frame], cfg["image_size"], flips)[0]
+        want = inference.predict_frames(model, [frame], cfg["image_size"], flips)[0]
         np.testing.assert_allclose(np.load(out / "a_depth.npy"), want, rtol=1e-5, atol=1e-6)
     assert not np.allclose(np.load(tmp_path / "hv" / "a_depth.npy"), np.load(tmp_path / "none" / "a_depth.npy"))
 
@@ -179,23 +182,23 @@ def test_outside_the_field_of_view_is_nan_black_and_pointless(tmp_path, checkpoi
     assert not np.array_equal(wild[mask], png[mask])
     # the PLY: the inside pixels only, back-projected, and no triangle reaching outside
     ply = recon.load_ply(out / "clean.ply")
-    K = camera.intrinsics_from_fov(W, H, predict.DEFAULT_FOV_DEG)
+    K = camera.intrinsics_from_fov(W, H, frames.DEFAULT_FOV_DEG)
     np.testing.assert_allclose(np.asarray(ply.points), camera.backproject(np.nan_to_num(depth), K)[mask],
                                rtol=1e-5, atol=1e-6)
     assert ply.n_cells > 0
     # the panel and the summary line
-    assert Image.open(out / "clean_panel.png").size == predict.panel_size(W, H, "prior")
+    assert Image.open(out / "clean_panel.png").size == depth_files.panel_size(W, H, "prior")
     line = capsys.readouterr().out.strip().splitlines()[0]
-    assert line == predict.frame_summary("clean", depth, {"points": ply.n_points, "triangles": ply.n_cells})
+    assert line == depth_files.frame_summary("clean", depth, {"points": ply.n_points, "triangles": ply.n_cells})
     assert line.startswith(f"clean: {100 * (1 - mask.mean()):.1f}% masked, depth ")
 
 
 def test_frame_summary_line():
     depth = np.array([[np.nan, 1.0], [2.0, 4.0]], np.float32)
-    assert predict.frame_summary("f", depth, {"points": 12345, "triangles": None}) == (
+    assert depth_files.frame_summary("f", depth, {"points": 12345, "triangles": None}) == (
         "f: 25.0% masked, depth 1-4 (median 2), 12 345 points")
-    assert predict.frame_summary("f", depth, {"points": 3, "triangles": 1}).endswith("3 points, 1 triangles")
-    assert predict.frame_summary("f", depth, {"points": None, "triangles": None}).endswith(", no PLY")
+    assert depth_files.frame_summary("f", depth, {"points": 3, "triangles": 1}).endswith("3 points, 1 triangles")
+    assert depth_files.frame_summary("f", depth, {"points": None, "triangles": None}).endswith(", no PLY")
 
 
 def test_mask_none_keeps_every_pixel_and_auto_finds_no_border_in_a_plain_frame(tmp_path, checkpoint):

@@ -6,7 +6,8 @@ import subprocess
 import numpy
 import torch
 
-from geodepth_lite import config, provenance, train, utils
+from geodepth_lite import utils
+from geodepth_lite.training import config, provenance, train
 
 
 def _cfg(root, **kw):
@@ -65,7 +66,7 @@ def test_study_tables_carry_each_run_s_sessions_and_invent_none(tmp_path):
     import csv
     import json as _json
 
-    from geodepth_lite import study
+    from geodepth_lite.evaluation import study
 
     def run(name, sessions):
         folder = tmp_path / name

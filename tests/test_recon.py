@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from geodepth_lite import recon
 from geodepth_lite.core import camera
+from geodepth_lite.views import recon
 
 
 def _step_scene(H=24, W=32):
@@ -81,7 +81,7 @@ def test_ply_round_trip_through_vtks_reader(tmp_path, binary, kind):
 def test_rendered_frames_back_project_onto_the_mesh_and_fuse_with_their_poses():
     """A synthetic frame (tube mesh + renderer): every back-projected pixel lies on the wall
     within 1% of its depth, and two consecutive frames fused with T_world_cam do too."""
-    from geodepth_lite import render, tube
+    from geodepth_lite.data import render, tube
 
     tb = tube.build_tube("colon", seed=3, resolution={"n_theta": 64, "ring_step": 0.15})
     K = camera.intrinsics(48, 48)

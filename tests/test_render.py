@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from geodepth_lite import manifest as mf
-from geodepth_lite import render, tube
 from geodepth_lite.core import camera
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data import render, tube
 
 
 def _cylinder_check(K, width, height, poses_s=(3.0, 12.0)):
@@ -109,7 +109,7 @@ def _sphere_depth(K, size, centre, radius, inside=False):
 
 
 def test_shape_index_of_analytic_surfaces():
-    from geodepth_lite import viz
+    from geodepth_lite.views import viz
 
     K = camera.intrinsics(48)
     cap = _sphere_depth(K, 48, np.array([0.0, 0.0, 5.0]), 3.0)          # dome towards the camera

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import cli, integrity, render, synth, tube
-from geodepth_lite import manifest as mf
-from geodepth_lite import render_torch as rt
+from geodepth_lite import cli
 from geodepth_lite.core import camera
+from geodepth_lite.data import integrity, render, synth, tube
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data import render_torch as rt
 
 TINY = {"camera": {"width": 32, "height": 32}, "splits": {"train": 4, "test": 2}, "frames_per_scene": 2}
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,7 +136,7 @@ class _RayLength(rt.TorchRenderer):
 
 @pytest.fixture(scope="module")
 def teach_frames():
-    from geodepth_lite import render_agreement as ra
+    from geodepth_lite.data import render_agreement as ra
 
     m = mf.load_manifest("scenario_teach")
     c = m["camera"]
@@ -146,7 +147,7 @@ def teach_frames():
 
 
 def _rows(teach_frames, cls):
-    from geodepth_lite import render_agreement as ra
+    from geodepth_lite.data import render_agreement as ra
 
     m, inputs, vtk_frames = teach_frames
     c = m["camera"]
@@ -155,7 +156,7 @@ def _rows(teach_frames, cls):
 
 
 def test_torch_frames_agree_with_vtk_on_teach_frames(teach_frames):
-    from geodepth_lite import render_agreement as ra
+    from geodepth_lite.data import render_agreement as ra
 
     rows = _rows(teach_frames, rt.TorchRenderer)
     assert len(rows) == 6 and len({r["organ"] for r in rows}) == 3
@@ -166,7 +167,7 @@ def test_torch_frames_agree_with_vtk_on_teach_frames(teach_frames):
 @pytest.mark.parametrize("cls, measure", [(_Shifted, "mad_raw"), (_LightMoved, "mad_raw"),
                                           (_RayLength, "depth_share")])
 def test_the_agreement_bounds_catch_a_wrong_renderer(teach_frames, cls, measure):
-    from geodepth_lite import render_agreement as ra
+    from geodepth_lite.data import render_agreement as ra
 
     problems = ra.within_bounds(_rows(teach_frames, cls))
     assert any(f": {measure} " in p for p in problems), problems
@@ -241,8 +242,9 @@ BLOCKED = textwrap.dedent("""
 def test_the_torch_path_needs_neither_vtk_nor_matplotlib(tmp_path):
     script = BLOCKED + textwrap.dedent(f"""
         import json
-        from geodepth_lite import cli, integrity, synth
-        from geodepth_lite import manifest as mf
+        from geodepth_lite import cli
+        from geodepth_lite.data import integrity, synth
+        from geodepth_lite.data import manifest as mf
 
         assert synth.resolve_renderer("auto") == "torch"
         m = mf.load_manifest("scenario_smoke", {TINY!r})

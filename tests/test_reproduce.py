@@ -6,7 +6,7 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from geodepth_lite import reproduce
+from geodepth_lite.workbook import reproduce
 
 
 def _notebook(path: Path, params: str, body: str) -> Path:
@@ -20,7 +20,7 @@ def _notebook(path: Path, params: str, body: str) -> Path:
 
 
 BODY = """\
-from geodepth_lite import notebook, reproduce
+from geodepth_lite.workbook import notebook, reproduce
 import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -115,7 +115,7 @@ def test_the_models_of_the_real_notebooks_are_trained_together():
     """reproduce trains what notebooks 04-07 load before it runs them: the predict model of 04, 06
     and 07 (one run folder), 07's model for real frames, and 05's case x seed runs, with 05's
     worker count."""
-    from geodepth_lite import run_cache
+    from geodepth_lite.training import run_cache
 
     nbs = {p.name[:2]: p for p in reproduce.list_notebooks()}
     predict, real = run_cache.predict_settings("teach"), run_cache.real_settings("teach")
@@ -129,7 +129,7 @@ def test_the_models_of_the_real_notebooks_are_trained_together():
 
 
 def test_a_notebook_that_must_train_says_so_with_the_expected_minutes(monkeypatch, capsys):
-    from geodepth_lite import config, run_cache
+    from geodepth_lite.training import config, run_cache
 
     teach = run_cache.estimated_minutes(config.make_config("teach", 1, 0))
     predict = run_cache.estimated_minutes(config.make_config("teach", 4, 0, **run_cache.predict_settings("teach")))
@@ -381,7 +381,8 @@ def fake_jobs(tmp_path, monkeypatch):
     """Notebooks 01 (no model), 02 (cases 1 and 2 of the ablation) and 03 (no model); training and
     notebook execution replaced by fakes that record their spans and write tables as a notebook does;
     the jobs run in threads. Case 2 trains longest: 02 ends last."""
-    from geodepth_lite import notebook, run_cache
+    from geodepth_lite.training import run_cache
+    from geodepth_lite.workbook import notebook
 
     d = tmp_path / "nbs"
     d.mkdir()
@@ -446,7 +447,8 @@ def test_reproduce_trains_and_runs_side_by_side_and_the_report_keeps_its_order(f
 def test_a_failed_training_job_ends_the_command_with_its_name(fake_jobs, monkeypatch, capsys):
     """Case 2's training fails: one line names it, exit 1; the notebook that loads it never starts,
     the notebooks that ran beside it keep what they wrote; no report."""
-    from geodepth_lite import cli, run_cache
+    from geodepth_lite import cli
+    from geodepth_lite.training import run_cache
 
     trained = run_cache.train_run
 
@@ -469,7 +471,7 @@ def test_the_real_notebooks_jobs_wait_for_the_models_they_load(tmp_path, monkeyp
     """From the real notebooks' metadata (nothing trained): 10 training jobs; 00-03 need none, 04
     and 06 the predict model, 05 the eight ablation runs, 07 the predict model and the one for real
     frames. Estimates: ``run_cache.estimated_minutes`` and each notebook's recorded duration."""
-    from geodepth_lite import config, run_cache
+    from geodepth_lite.training import config, run_cache
 
     monkeypatch.setattr(run_cache, "is_complete", lambda *a, **k: False)
     monkeypatch.setattr(reproduce, "prepare_training", lambda *a, **k: None)

@@ -118,7 +118,7 @@ def check_record(fresh: dict, committed: dict, reference: dict | None = None) ->
     """The numbers of ``fresh`` outside their tolerance of ``committed``, one line each. The paired
     tests ("paired | ...") are held to ``reference`` (default ``committed``), a record of the same
     tests over as many or more seeds (``study.check_subset``)."""
-    from geodepth_lite import study
+    from geodepth_lite.evaluation import study
 
     bad = [f"{k}: committed {committed[k]}, now {fresh[k]} (tolerance {tolerance(k, committed[k]):.3f})"
            for k in committed
@@ -186,7 +186,7 @@ def test_the_paired_check_passes_fresh_draws_and_fails_a_wrong_effect():
     distribution (mean -4, sd 1.5 points) many times. The check must pass at least FRESH_LEVEL of
     the pairs, and catch Case 3's RMSE moved by 8 points (about 5 sd of one seed) most of the time.
     It cannot catch 2 points: three fresh seeds leave that inside the range."""
-    from geodepth_lite import study
+    from geodepth_lite.evaluation import study
 
     rng = np.random.default_rng(0)
     trials, passed, caught = 400, 0, {2.0: 0, 8.0: 0}
@@ -204,7 +204,7 @@ def test_the_paired_check_passes_fresh_draws_and_fails_a_wrong_effect():
 
 
 def test_a_wrong_record_is_named():
-    from geodepth_lite import study
+    from geodepth_lite.evaluation import study
 
     committed = _paired_record({k: np.array([-4.0, -2.0, -6.0, -3.0, -5.0, -4.5, -3.5, -4.0]) for k in STEMS})
     stem = STEMS[2]
@@ -250,7 +250,7 @@ def teach_models():
     """Every model the recorded notebooks will train, trained first in one pool (as ``reproduce``
     does), so that notebook 04's long ``predict`` model overlaps notebook 05's ablation runs, and
     each ablation run is scored by the process that trained it (notebook 05 reads the scores)."""
-    from geodepth_lite import reproduce
+    from geodepth_lite.workbook import reproduce
 
     with pytest.MonkeyPatch.context() as mp:
         use_real_workspace(mp)
@@ -275,13 +275,13 @@ def test_record_matches_committed(path, tmp_path, monkeypatch, teach_models):
         done = nbformat.read(str(out), as_version=4)
         fresh = record_in(tmp_path / "run", path)
     else:
-        from geodepth_lite import reproduce
+        from geodepth_lite.workbook import reproduce
 
         fresh = record_in(reproduce.resolve_run_dir("teach"), path)
     assert sorted(fresh) == sorted(committed), "the record's entries changed: re-execute the notebook"
     reference = None
     if path.stem == "05_ablation":  # the retrained subset is held to the committed study of 8 seeds
-        from geodepth_lite import study
+        from geodepth_lite.evaluation import study
 
         reference = study.paired_record(study.read_tables())
     bad = check_record(fresh, committed, reference)

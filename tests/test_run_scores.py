@@ -14,8 +14,9 @@ import pytest
 import torch
 from conftest import save_untrained_checkpoint
 
-from geodepth_lite import evaluate, run_cache, run_scores, study
 from geodepth_lite.core import metrics
+from geodepth_lite.evaluation import evaluate, run_scores, study
+from geodepth_lite.training import run_cache
 
 PRIMARY = study.PRIMARY
 

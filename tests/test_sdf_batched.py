@@ -10,9 +10,9 @@ import pytest
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from geodepth_lite import analytic
 from geodepth_lite.core import camera, sdf
 from geodepth_lite.core import losses as L
+from geodepth_lite.data import analytic
 
 SYNC_OPS = {"aten._local_scalar_dense", "aten.item", "aten.is_nonzero", "aten.nonzero", "aten.nonzero_static"}
 MAX_OPS, MAX_SYNCS = 200, 0  # one batched loss of 20 frames, forward and backward (ground-truth fields cached)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import config, train
 from geodepth_lite.core import camera, sdf
 from geodepth_lite.core import losses as L
+from geodepth_lite.training import config, train
 
 H, W = 12, 16
 K_NARROW = camera.intrinsics(W, H, focal_ratio=1.0)  # fx = fy = 16: x/z within +-0.5, room for a steep tilt

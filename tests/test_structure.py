@@ -110,7 +110,7 @@ def test_no_function_is_over_60_lines():
 
 
 def test_train_py_is_the_loop_alone():
-    source = (PACKAGE / "train.py").read_text()
+    source = (PACKAGE / "training" / "train.py").read_text()
     names = {n.name for n in ast.parse(source).body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
     assert {"fit", "Trainer", "get_lr_factor", "compute_losses", "validate"} <= names
     assert not names & {"make_config", "save_checkpoint", "load_model", "predict_depth", "add_arguments_train"}
@@ -242,14 +242,15 @@ def test_the_package_has_no_import_cycle():
 def test_the_import_graph_sees_the_subpackage():
     """The scans above read datasets/ too, its relative imports resolved both ways."""
     graph = _import_graph()
-    assert {"datasets", "datasets.base", "datasets.synthetic", "datasets.subsets"} <= set(graph)
-    assert {"core.camera", "datasets.base"} <= graph["datasets.endoslam"]  # from ..core import camera; .base
-    assert "datasets.synthetic" in graph["datasets"] and "datasets" in graph["evaluate"]
-    outside = {"x": set(), "datasets.y": set(), "datasets": set()}
-    from_top = _first_party_imports(ast.parse("from geodepth_lite.datasets.y import Z").body[0], [], set(outside))
-    assert from_top == [("datasets.y", "Z", "Z")]
-    inside = _first_party_imports(ast.parse("from .. import x").body[0], ["datasets"], set(outside))
-    assert inside == [("x", None, "x")]
+    assert {"data.datasets", "data.datasets.base", "data.datasets.synthetic", "data.datasets.subsets"} <= set(graph)
+    assert {"core.camera", "data.datasets.base"} <= graph["data.datasets.endoslam"]  # from ...core import camera
+    assert "data.datasets.synthetic" in graph["data.datasets"] and "data.datasets" in graph["evaluation.evaluate"]
+    outside = {"data.x": set(), "data.datasets.y": set(), "data.datasets": set()}
+    from_top = _first_party_imports(ast.parse("from geodepth_lite.data.datasets.y import Z").body[0], [],
+                                    set(outside))
+    assert from_top == [("data.datasets.y", "Z", "Z")]
+    inside = _first_party_imports(ast.parse("from .. import x").body[0], ["data", "datasets"], set(outside))
+    assert inside == [("data.x", None, "x")]
 
 
 def _outside_the_method(graph: dict[str, set[str]]) -> dict[str, list[str]]:
@@ -272,6 +273,41 @@ def test_the_wing_check_finds_an_import_from_outside():
     assert _outside_the_method(graph) == {"core.losses": ["config"]}
 
 
+# The wings from the ground floor up (docs/architecture.md): a wing imports only from the wings before it in
+# this order and from the top-level ``utils``. training and views share a floor and do not import each other.
+WING_FLOORS = {"core": 1, "data": 2, "training": 3, "views": 3, "evaluation": 4, "apps": 5, "workbook": 5}
+
+
+def _wing_climbs(graph: dict[str, set[str]]) -> list[str]:
+    """Each import from a wing into a wing on its own or a higher floor, as "module -> imported module"."""
+    def wing(module: str) -> str | None:
+        top = module.split(".")[0]
+        return top if top in WING_FLOORS else None
+    found = []
+    for module, deps in sorted(graph.items()):
+        for dep in sorted(deps):
+            a, b = wing(module), wing(dep)
+            if a and b and a != b and WING_FLOORS[b] >= WING_FLOORS[a]:
+                found.append(f"{module} -> {dep}")
+    return found
+
+
+def test_every_module_sits_in_a_wing_but_the_entry_points_and_utils():
+    tops = {m.split(".")[0] for m in _import_graph()}
+    assert tops - set(WING_FLOORS) == {"__init__", "__main__", "cli", "utils"}
+
+
+def test_each_wing_imports_only_from_the_wings_below_it():
+    assert _wing_climbs(_import_graph()) == []
+
+
+def test_the_wing_order_check_finds_an_import_from_above():
+    graph = _import_graph()
+    graph["evaluation.gallery"] = graph["evaluation.gallery"] | {"apps.predict"}  # the former reader in the CLI
+    graph["training.train"] = graph["training.train"] | {"views.viz"}
+    assert _wing_climbs(graph) == ["evaluation.gallery -> apps.predict", "training.train -> views.viz"]
+
+
 def test_the_cycle_check_finds_a_cycle():
     """The check can fail: a cycle hidden behind a function-level import is found."""
     assert _cycle({"checkpoint": {"utils"}, "train": {"checkpoint"}, "utils": set()}) == []
@@ -288,7 +324,7 @@ def test_no_benchmark_ships_inside_the_package():
 def test_reproduce_knows_no_notebook_by_name():
     """reproduce.py finds the notebooks (``NN_*.ipynb``) and runs what it finds: no notebook's name,
     nor its ``NN_`` number, appears in its source."""
-    source = (PACKAGE / "reproduce.py").read_text()
+    source = (PACKAGE / "workbook" / "reproduce.py").read_text()
     names = set()
     for path in (ROOT / "notebooks").glob("*.ipynb"):
         names.add(path.stem)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from geodepth_lite import ablation, config, run_cache, study
+from geodepth_lite.evaluation import ablation, study
+from geodepth_lite.training import config, run_cache
 
 METRICS = study.METRIC_COLUMNS
 

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from geodepth_lite import ablation, config, run_cache, study, study2, synth
-from geodepth_lite import manifest as mf
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data import synth
+from geodepth_lite.evaluation import ablation, study, study2
+from geodepth_lite.training import config, run_cache
 
 METRICS = study.METRIC_COLUMNS
 SEEDS = range(8)

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from geodepth_lite import exploratory, study, study2
+from geodepth_lite.evaluation import exploratory, study, study2
 
 ROOT = Path(__file__).resolve().parent.parent
 BEFORE = ROOT / "tests" / "data" / "study_sentences_before.md"

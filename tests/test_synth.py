@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geodepth_lite import cli, integrity, synth
-from geodepth_lite import manifest as mf
-from geodepth_lite.datasets import SyntheticDepthDataset
+from geodepth_lite import cli
+from geodepth_lite.data import integrity, synth
+from geodepth_lite.data import manifest as mf
+from geodepth_lite.data.datasets import SyntheticDepthDataset
 
 TINY = {"camera": {"width": 32, "height": 32}, "splits": {"train": 4, "test": 2}, "frames_per_scene": 2}
 

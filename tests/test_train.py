@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import augment, checkpoint, config, datasets, inference, run_cache, train, utils
+from geodepth_lite import utils
 from geodepth_lite.core import metrics
+from geodepth_lite.data import augment, datasets
+from geodepth_lite.training import checkpoint, config, inference, run_cache, train
 
 
 def _cfg(root, case=4, seed=0, **kw):
@@ -192,7 +194,7 @@ def test_paper_profile_has_the_papers_settings():
 
 
 def test_case_lambdas_switch_terms_on_with_the_profiles_weights():
-    from geodepth_lite import config
+    from geodepth_lite.training import config
 
     w2, w3 = config.PROFILES["teach"]["geo_weights"]
     assert [config.make_config("teach", c)["lambdas"] for c in (1, 2, 3, 4)] == [
@@ -331,7 +333,7 @@ def test_ddp_two_cpu_processes_with_gloo(smoke_root, tmp_path):
 def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, smoke_root):
     """The model of notebooks 04/06/07 and predict: the profile's predict_image_size and
     predict_overrides, its own run folder; the loaded network pads as it was trained."""
-    from geodepth_lite import config
+    from geodepth_lite.training import config
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], predict_image_size=32,
                                                          predict_overrides={"input_pad": 16, "border_weight": 2.0},
@@ -350,7 +352,9 @@ def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, sm
 def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides():
     """teach: the predict settings and augment="crop", its own run folder; paper: the predict model
     itself (no overrides). The train command's --augment names the same run."""
-    from geodepth_lite import cli, config, reproduce
+    from geodepth_lite import cli
+    from geodepth_lite.training import config
+    from geodepth_lite.workbook import reproduce
 
     real, pred = run_cache.real_settings("teach"), run_cache.predict_settings("teach")
     assert real == {**pred, "augment": "crop"}
@@ -434,7 +438,7 @@ def test_fov_augmentation_paints_a_border_fills_it_and_leaves_it_out_of_the_loss
     """augment="fov": about half the frames get a field of view with text; outside it the image is
     the nearest inside pixel (what predict shows the network) and ``valid`` is False there; the
     depth, K and the other frames are the flipped originals."""
-    from geodepth_lite import fov
+    from geodepth_lite.data import fov
 
     B, H, W = 12, 48, 64
     torch.manual_seed(5)
@@ -461,7 +465,7 @@ def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smok
     """One job per run folder (notebooks 04, 06 and 07 ask for the same model; an override equal
     to the profile's value is the same run), finished runs skipped, the largest input first; the
     paths come back in the order asked."""
-    from geodepth_lite import config
+    from geodepth_lite.training import config
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
     calls = []
@@ -501,7 +505,7 @@ def test_a_fine_tuning_run_starts_from_the_finished_run_beside_it(smoke_root, tm
     """init_from: the weights of the named run folder beside this one; with a learning rate of 1e-12
     they stay those weights (Adam moves each by about the learning rate a step), while a run without
     init_from stays at its own initialisation; the provenance names the source checkpoint by its SHA-256."""
-    from geodepth_lite import integrity
+    from geodepth_lite.data import integrity
 
     runs = tmp_path / "checkpoints"
     source_cfg = _cfg(smoke_root, epochs=1)
@@ -543,7 +547,7 @@ def test_a_fine_tuning_run_refuses_a_missing_unfinished_or_misnamed_source(smoke
 def test_ensure_runs_starts_a_fine_tuning_run_after_its_source(monkeypatch, smoke_root):
     """One worker: the run that fine-tunes another waits until that one is trained, whatever the
     order asked; a source already finished is not waited for."""
-    from geodepth_lite import config
+    from geodepth_lite.training import config
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
     calls = []

@@ -8,7 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import analytic, checkpoint, cli, config, train_many, utils
+from geodepth_lite import cli, utils
+from geodepth_lite.data import analytic
+from geodepth_lite.training import checkpoint, config, train_many
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +147,7 @@ def test_default_concurrency_fills_the_cores_at_the_profiles_threads():
 
 
 def test_resume_continues_an_interrupted_run(tiny_root, tmp_path, capsys):
-    from geodepth_lite import train
+    from geodepth_lite.training import train
 
     out = tmp_path / "out"
     out.mkdir()

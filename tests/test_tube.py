@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from geodepth_lite import tube
+from geodepth_lite.data import tube
 
 LOW_RES = {"n_theta": 48, "ring_step": 0.15}
 

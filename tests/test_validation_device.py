@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from geodepth_lite import config, train
 from geodepth_lite.core import losses, metrics, sdf
+from geodepth_lite.training import config, train
 
 
 def frames(seed: int = 0):
@@ -69,7 +69,7 @@ def _smoke_cfg(root, **kw):
 def test_validation_evaluates_the_sdf_term_only_where_asked_and_leaves_the_rng_alone(monkeypatch, smoke_root,
                                                                                   val_sdf):
     from geodepth_lite.core.model import DepthNet
-    from geodepth_lite.datasets import load_split
+    from geodepth_lite.data.datasets import load_split
 
     cfg = _smoke_cfg(smoke_root, val_sdf=val_sdf)
     ds = load_split(smoke_root, "val", 32, limit=6)

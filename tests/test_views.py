@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from geodepth_lite import appearance, render, synth, tube
-from geodepth_lite import manifest as mf
+from geodepth_lite.data import appearance, render, synth, tube
+from geodepth_lite.data import manifest as mf
 
 
 def _manifest(views, size=32, n=12, **extra):

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from geodepth_lite import widgets
 from geodepth_lite.core import camera
+from geodepth_lite.workbook import widgets
 
 
 def tube_like(H=32, W=32):
@@ -282,7 +282,7 @@ def test_readable_pt_is_the_size_that_the_book_shows_at_the_least_height():
     (12); and text of that size measures at least 8 px as shown."""
     from matplotlib.figure import Figure
 
-    from geodepth_lite import viz
+    from geodepth_lite.views import viz
 
     assert (viz.FIGURE_DPI, viz.BOOK_COLUMN_PX, viz.MIN_TEXT_PX) == (100, 800, 8.0)
     assert viz.readable_pt(8) == 6.0 and viz.readable_pt(16) == 12.0 and viz.shown_scale(16) == 0.5
@@ -299,7 +299,7 @@ def test_every_text_of_the_explorer_and_the_loss_maps_is_readable(which):
     viz.MIN_TEXT_PX tall. The same figure with the former 7 pt captions fails the check."""
     from matplotlib.figure import Figure
 
-    from geodepth_lite import viz
+    from geodepth_lite.views import viz
 
     gt, image, K = explorer_inputs()
     if which == "static":
@@ -325,7 +325,7 @@ def test_the_lessons_figure_helpers_write_readable_text_at_any_width(width):
     viz.MIN_TEXT_PX tall as the book shows it (the colour bars' former 7 pt captions fail at 15 in)."""
     import matplotlib.pyplot as plt
 
-    from geodepth_lite import viz
+    from geodepth_lite.views import viz
 
     explorer_inputs()  # the Agg backend
     rng = np.random.default_rng(0)
@@ -342,7 +342,7 @@ def test_the_lessons_figure_helpers_write_readable_text_at_any_width(width):
     figs.append(viz.error_map_figure([ex, ex], row_labels=["a", "b"]))
     figs.append(viz.border_map_figure({"signed": rng.random((16, 16)) - 0.5, "abs": rng.random((16, 16)),
                                        "ratios": {"test": 1.2}}))
-    from geodepth_lite import gallery
+    from geodepth_lite.evaluation import gallery
 
     row = {"image": rng.random((16, 16, 3)), "depth": depth, "prior": depth, "view": "close-up",
            "file": "a_long_file_name_of_a_frame.png", "r": 0.63, "far_share": 0.04}
@@ -382,7 +382,7 @@ def test_the_lessons_that_docs_name_draw_readable_text_by_their_record():
     import re
     from pathlib import Path
 
-    from geodepth_lite import viz
+    from geodepth_lite.views import viz
 
     root = Path(__file__).resolve().parents[1]
     record = json.loads((root / "benchmarks" / "figure_text.json").read_text())

@@ -26,8 +26,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from geodepth_lite import config, gpu_check, train, utils  # noqa: E402
+from geodepth_lite import utils
+from geodepth_lite.apps import gpu_check
 from geodepth_lite.core import sdf
+from geodepth_lite.training import config, train  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,2 @@
+"""The apps wing: the commands a user runs on their own data or machine (predict, gpu-check, bundle).
+"""

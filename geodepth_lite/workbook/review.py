@@ -1,0 +1,484 @@
+"""A static review of the students' answer cells: constructs that no honest answer needs send the exercise
+to manual grading, with the reason, instead of letting it score silently.
+
+A student's answer runs in the same kernel as the exercise's checks, so it could reach what the checks
+use: read their references out of the notebook's variables or the calling frames, turn the grading guard
+off (:func:`geodepth_lite.workbook.grading.forbid`) or put back what it replaced, run a forbidden function in
+another thread or process, rebuild it from the package's source, return a value that compares equal to
+anything, or edit the kernel's input history that the checks run the answer from again. Each of these
+needs a construct that the exercises never ask for (``inspect``, ``threading``, ``sys.setprofile``,
+``exec``, ``In``, a class defining ``__eq__``...). :data:`RULES` lists them, each with its reason;
+:func:`review_cell` reads an answer cell's syntax tree (it never runs it) and returns a
+:class:`Finding` per construct; ``course autograde`` calls :func:`review_notebook` on each graded
+submission, in the grader's process.
+
+A tripwire for a person, not a proof: a finding means "look at this answer", and an answer without one
+may still be dishonest (the checks and the sandbox of :mod:`geodepth_lite.workbook.sandbox` are the other
+defences). A cell that is not valid Python is not reviewed: it fails its check when it runs.
+"""
+
+from __future__ import annotations
+
+import ast
+import builtins
+import re
+from dataclasses import dataclass
+
+from geodepth_lite.workbook import exercises
+
+RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
+    "introspection": "reads the running program itself (frames, code objects, the garbage collector), where "
+                     "the checks' references and code are",
+    "concurrency": "runs code where the grading guard does not look (another thread, another process, the "
+                   "shell, the network)",
+    "dynamic-code": "builds or loads code at run time (exec, eval, compile, importlib), out of the reviewed text",
+    "guard": "changes a module, the interpreter's hooks or an object made outside the answer: the grading "
+             "guard's replacements live there",
+    "kernel-history": "reads or edits the kernel's input history, from which the checks run the answer again",
+    "namespace": "reads or writes the notebook's variables by name (globals(), vars(), builtins, __main__), "
+                 "the checks' references among them",
+    "check-names": "reads a variable that only the checks define (their inputs or reference values)",
+    "special-method": "defines or borrows a special method (such as __eq__, __hash__, __bool__, __float__; "
+                      "unittest.mock's ANY) that changes how the checks compare or convert the answer",
+    "special-attribute": "reaches into objects through special attributes (__globals__, __dict__, __class__, "
+                         "frames), where the checks' state is",
+    "package-source": "reads the package's source files, to rebuild a function the exercise forbids",
+    "grader-files": "names the grader's files (the course's solutions, gradebook or other submissions)",
+    "shadowed-builtin": "rebinds a builtin (abs, float, isinstance...) in the notebook's namespace, where the "
+                        "checks call it",
+    "given-inputs": "changes the code the exercise gives (its inputs, from which the checks compute their "
+                    "references)",
+    "unreadable": "is too deeply nested for the review to read: look at it by hand",
+    "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
+                      "message shows it)",
+}
+
+MODULES = {  # module (its first name) -> rule
+    **dict.fromkeys(("inspect", "gc", "dis", "traceback", "pydoc", "ctypes", "trace", "tracemalloc",
+                     "faulthandler"), "introspection"),
+    **dict.fromkeys(("subprocess", "threading", "_thread", "multiprocessing", "concurrent", "asyncio", "pty",
+                     "socket", "signal", "sched", "shlex"), "concurrency"),
+    **dict.fromkeys(("importlib", "runpy", "code", "codeop", "marshal", "zipimport"), "dynamic-code"),
+    **dict.fromkeys(("builtins", "__main__", "__builtin__"), "namespace"),
+    **dict.fromkeys(("IPython", "ipykernel", "jupyter_client"), "kernel-history"),
+    **dict.fromkeys(("linecache", "pkgutil"), "package-source"),
+    "unittest": "special-method",  # unittest.mock.ANY is equal to anything
+}
+SUBMODULES = {"multiprocessing": "concurrency", "threading": "concurrency", "subprocess": "concurrency"}
+OS_CALLS = re.compile(r"(system|popen|fork\w*|exec\w*|spawn\w*|posix_spawn\w*|kill\w*|_exit|startfile)")
+SYS_ATTRIBUTES = {
+    **dict.fromkeys(("setprofile", "settrace", "getprofile", "gettrace", "monitoring", "addaudithook",
+                     "meta_path", "path_hooks", "setrecursionlimit"), "guard"),
+    **dict.fromkeys(("_getframe", "_current_frames", "exc_info", "exception", "last_traceback"), "introspection"),
+    "modules": "namespace",
+}
+BUILTINS = {**dict.fromkeys(("exec", "eval", "compile", "__import__"), "dynamic-code"),
+            **dict.fromkeys(("globals", "vars", "locals"), "namespace"), "breakpoint": "introspection"}
+HISTORY_NAMES = re.compile(r"(In|Out|_ih|_oh|_dh|_i{1,3}|_i\d+|_\d+|get_ipython|__builtins__|__main__)")
+KERNEL_NAMES = {"In", "Out", "_ih", "_oh", "_dh", "get_ipython", "__builtins__", "__main__"}  # even if assigned
+FRAME_ATTRIBUTES = re.compile(r"(f_back|f_globals|f_locals|f_builtins|f_code|f_trace|tb_frame|tb_next|"
+                              r"gi_frame|cr_frame|ag_frame|co_code|co_consts|co_names)")
+PLAIN_DUNDERS = {"__init__", "__name__", "__doc__", "__version__"}  # attributes an honest answer may use
+PLAIN_METHODS = {"__init__", "__post_init__", "__repr__", "__str__"}  # methods an honest class may define
+DUNDER = re.compile(r"__\w+__")
+PACKAGE_PATH = re.compile(r"geodepth_lite\s*[/\\]|\.py\b")  # a path into the package, or any .py file
+GRADER_PATH = re.compile(r"gradebook|\.ipynb\b|\b(source|submitted|autograded|release|feedback)[/\\]")
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One construct of an answer cell: its line, the rule and what was found."""
+    line: int
+    rule: str
+    what: str
+
+    def text(self) -> str:
+        return f"line {self.line}: {self.what}: {RULES[self.rule]}"
+
+
+def _root_name(node: ast.AST) -> str | None:
+    """The name an attribute chain starts from (``os`` of ``os.path.join``)."""
+    while isinstance(node, (ast.Attribute, ast.Subscript, ast.Call)):
+        node = node.func if isinstance(node, ast.Call) else node.value
+    return node.id if isinstance(node, ast.Name) else None
+
+
+def bound_names(tree: ast.AST) -> set[str]:
+    """Every name a piece of code binds anywhere: assignments, parameters, functions, classes, imports."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name) and isinstance(node.ctx, (ast.Store, ast.Del)):
+            names.add(node.id)
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.arg):
+            names.add(node.arg)
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ExceptHandler) and node.name:
+            names.add(node.name)
+    return names
+
+
+def _is_literal(node: ast.AST) -> bool:
+    """A value written out in full: a number or string, or a container of them (None and empty ones are
+    not: a released answer starts from those)."""
+    def written(n):
+        if isinstance(n, ast.Constant):
+            return n.value is not None
+        if isinstance(n, ast.UnaryOp) and isinstance(n.op, (ast.USub, ast.UAdd)):
+            return written(n.operand)
+        if isinstance(n, (ast.List, ast.Tuple, ast.Set)):
+            return bool(n.elts) and all(written(e) for e in n.elts)
+        if isinstance(n, ast.Dict):
+            return bool(n.keys) and all(k is not None and written(k) and written(v) for k, v in zip(n.keys, n.values))
+        return False
+
+    return written(node)
+
+
+def top_level_values(tree: ast.Module) -> dict[str, list[ast.AST]]:
+    """name -> the values assigned to it outside any function or class (loops and branches included)."""
+    out: dict[str, list[ast.AST]] = {}
+    stack = list(tree.body)
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        if isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None:
+            for target in (node.targets if isinstance(node, ast.Assign) else [node.target]):
+                pairs = (zip(target.elts, node.value.elts) if isinstance(target, ast.Tuple) and isinstance(
+                    node.value, ast.Tuple) and len(target.elts) == len(node.value.elts) else [(target, node.value)])
+                for t, v in pairs:
+                    for name in (n.id for n in ast.walk(t) if isinstance(n, ast.Name)):
+                        out.setdefault(name, []).append(v if isinstance(t, ast.Name) else t)
+        stack.extend(n for n in ast.iter_child_nodes(node) if isinstance(n, ast.stmt))
+    return out
+
+
+def _aliases(tree: ast.AST) -> dict[str, str]:
+    """local name -> the module or module attribute it stands for (``o`` -> ``os`` after ``import os as o``);
+    ``os`` and ``sys`` stand for themselves where an earlier cell imported them."""
+    out = {"os": "os", "sys": "sys"}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                out[a.asname or a.name.split(".")[0]] = a.name if a.asname else a.name.split(".")[0]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            for a in node.names:
+                out[a.asname or a.name] = f"{node.module}.{a.name}"
+    return out
+
+
+def _module_rule(dotted: str) -> str | None:
+    """The rule a module (or a module's attribute, ``os.system``) falls under, if any."""
+    parts = dotted.split(".")
+    if parts[0] in MODULES:
+        return MODULES[parts[0]]
+    hit = next((SUBMODULES[p] for p in parts[1:] if p in SUBMODULES), None)
+    if hit:
+        return hit
+    if parts[0] == "os" and len(parts) > 1 and OS_CALLS.fullmatch(parts[1]):
+        return "concurrency"
+    if parts[0] == "sys" and len(parts) > 1:
+        return SYS_ATTRIBUTES.get(parts[1])
+    return None
+
+
+def _dotted(node: ast.AST, aliases: dict[str, str]) -> str | None:
+    """``os.system`` for ``o.system`` after ``import os as o``; None for anything but a name's attributes."""
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name) or node.id not in aliases:
+        return None
+    return ".".join([aliases[node.id], *reversed(parts)])
+
+
+def _import_findings(tree: ast.AST, aliases: dict[str, str]) -> list[Finding]:
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [Finding(node.lineno, rule, f"import {a.name}") for a in node.names
+                      for rule in [_module_rule(a.name)] if rule]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            rule = _module_rule(node.module)
+            if rule:
+                found.append(Finding(node.lineno, rule, f"from {node.module} import ..."))
+                continue
+            found += [Finding(node.lineno, r, f"from {node.module} import {a.name}") for a in node.names
+                      for r in [_module_rule(f"{node.module}.{a.name}")] if r]
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Load):
+            dotted = _dotted(node, aliases)
+            rule = _module_rule(dotted) if dotted and "." in dotted else None
+            if rule:
+                found.append(Finding(node.lineno, rule, dotted))
+    return found
+
+
+def _call_findings(tree: ast.AST, own: set[str], aliases: dict[str, str]) -> list[Finding]:
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        name = node.func.id if isinstance(node.func, ast.Name) else None
+        if name in BUILTINS and name not in own:
+            found.append(Finding(node.lineno, BUILTINS[name], f"{name}()"))
+        if name in ("getattr", "setattr", "delattr", "hasattr") and len(node.args) >= 2:
+            attr = node.args[1]
+            if not (isinstance(attr, ast.Constant) and isinstance(attr.value, str)):
+                found.append(Finding(node.lineno, "special-attribute", f"{name}() of an attribute named at run time"))
+            elif name in ("setattr", "delattr") and _outside(node.args[0], own, aliases):
+                found.append(Finding(node.lineno, "guard", f"{name}() on {ast.unparse(node.args[0])}"))
+        if name == "open" or (isinstance(node.func, ast.Attribute) and node.func.attr in (
+                "read_text", "read_bytes", "open", "loadtxt", "fromfile")):
+            text = " ".join(ast.unparse(a) for a in (*node.args, node.func))
+            if PACKAGE_PATH.search(text) or "__file__" in text or "__spec__" in text:
+                found.append(Finding(node.lineno, "package-source", f"reading {ast.unparse(node)[:60]}"))
+    return found
+
+
+def _outside(node: ast.AST, own: set[str], aliases: dict[str, str]) -> bool:
+    """Whether an expression starts from a module or from a name the answer cell did not make."""
+    root = _root_name(node)
+    return root is not None and (root in aliases or root not in own)
+
+
+def _docstrings(tree: ast.AST) -> set[int]:
+    """The ids of the strings that stand alone as statements (docstrings): text no code uses."""
+    return {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
+
+
+def _name_findings(tree: ast.AST, own: set[str], check_names: set[str]) -> list[Finding]:
+    found = []
+    prose = _docstrings(tree)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name):
+            if HISTORY_NAMES.fullmatch(node.id) and (node.id in KERNEL_NAMES or node.id not in own):
+                rule = "namespace" if node.id in ("__builtins__", "__main__") else "kernel-history"
+                found.append(Finding(node.lineno, rule, node.id))
+            elif node.id in check_names and node.id not in own and isinstance(node.ctx, ast.Load):
+                found.append(Finding(node.lineno, "check-names", node.id))
+        elif isinstance(node, ast.Attribute):
+            if (DUNDER.fullmatch(node.attr) and node.attr not in PLAIN_DUNDERS) or FRAME_ATTRIBUTES.fullmatch(
+                    node.attr):
+                found.append(Finding(node.lineno, "special-attribute", f".{node.attr}"))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in prose:
+            if DUNDER.fullmatch(node.value) and node.value not in PLAIN_DUNDERS:
+                found.append(Finding(node.lineno, "special-attribute", repr(node.value)))
+            elif PACKAGE_PATH.search(node.value):
+                found.append(Finding(node.lineno, "package-source", repr(node.value[:60])))
+            elif GRADER_PATH.search(node.value):
+                found.append(Finding(node.lineno, "grader-files", repr(node.value[:60])))
+    return found
+
+
+def _class_findings(tree: ast.AST) -> list[Finding]:
+    found = []
+    for cls in (n for n in ast.walk(tree) if isinstance(n, ast.ClassDef)):
+        if any(k.arg == "metaclass" for k in cls.keywords):
+            found.append(Finding(cls.lineno, "special-method", f"class {cls.name} with a metaclass"))
+        for node in cls.body:
+            targets = getattr(node, "targets", [getattr(node, "target", None)])
+            names = ([node.name] if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) else
+                     [t.id for t in targets if isinstance(t, ast.Name)])
+            found += [Finding(node.lineno, "special-method", f"class {cls.name} defines {n}") for n in names
+                      if DUNDER.fullmatch(n) and n not in PLAIN_METHODS]
+    return found
+
+
+def _write_findings(tree: ast.AST, own: set[str], aliases: dict[str, str]) -> list[Finding]:
+    """Attributes set or deleted on a module or on an object the answer did not make."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Attribute, ast.Subscript)) and isinstance(node.ctx, (ast.Store, ast.Del)):
+            if isinstance(node, ast.Subscript) and not isinstance(node.value, ast.Attribute):
+                continue  # an item of a list or dict: only an attribute's items (``mod.table[k] = ...``) count
+            if _outside(node.value, own - set(aliases), aliases):
+                found.append(Finding(node.lineno, "guard", f"{ast.unparse(node)} changed"))
+    return found
+
+
+def _literal_findings(tree: ast.Module, computed: set[str]) -> list[Finding]:
+    found = []
+    for name, values in top_level_values(tree).items():
+        if name in computed:
+            found += [Finding(v.lineno, "literal-answer", f"{name} = {ast.unparse(v)[:50]}") for v in values
+                      if _is_literal(v)]
+    return found
+
+
+def module_scope(tree: ast.Module) -> list[ast.stmt]:
+    """The statements that run in the notebook's namespace: the cell's top level, with the bodies of its
+    loops, branches, ``with`` and ``try`` blocks, but not of functions or classes."""
+    out, stack = [], list(reversed(tree.body))
+    while stack:
+        node = stack.pop()
+        out.append(node)
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            stack.extend(reversed([n for n in ast.iter_child_nodes(node) if isinstance(n, (ast.stmt,
+                                                                                          ast.excepthandler))]))
+    return [n for n in out if isinstance(n, ast.stmt)]
+
+
+def _scope_names(node: ast.stmt) -> set[str]:
+    """The names one statement binds (or changes in place: ``x[0] = 1``) in the namespace it runs in."""
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return {node.name}
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        return {(a.asname or a.name).split(".")[0] for a in node.names}
+    targets = {ast.Assign: lambda n: n.targets, ast.AugAssign: lambda n: [n.target], ast.AnnAssign: lambda n: [
+        n.target], ast.For: lambda n: [n.target], ast.Delete: lambda n: n.targets,
+               ast.With: lambda n: [i.optional_vars for i in n.items if i.optional_vars is not None]}
+    found = set()
+    for target in targets.get(type(node), lambda n: [])(node):
+        found |= {_root_name(target)} - {None} | {n.id for n in ast.walk(target) if isinstance(n, ast.Name)
+                                                  and isinstance(n.ctx, (ast.Store, ast.Del))}
+    return found
+
+
+BUILTIN_NAMES = frozenset(n for n in dir(builtins) if not n.startswith("_"))
+
+
+def _shadow_findings(tree: ast.Module, called: frozenset[str]) -> list[Finding]:
+    return [Finding(node.lineno, "shadowed-builtin", f"{name} rebound") for node in module_scope(tree)
+            for name in sorted(_scope_names(node) & called)]
+
+
+def builtins_read(check_sources) -> frozenset[str]:
+    """The builtins the check cells use (``abs``, ``float``, ``isinstance``...): those an answer must not
+    rebind in the namespace it shares with them."""
+    read = set()
+    for src in check_sources:
+        try:
+            read |= {n.id for n in ast.walk(ast.parse(src)) if isinstance(n, ast.Name)}
+        except (SyntaxError, ValueError):
+            continue
+    return frozenset(read & BUILTIN_NAMES)
+
+
+def released(answer: str) -> str:
+    """An answer cell as the release gives it: each solution region replaced by ``raise NotImplementedError()``."""
+    out, inside = [], False
+    for line in answer.splitlines():
+        if line.strip() == exercises.SOLUTION_MARKERS[0]:
+            out.append(line[: len(line) - len(line.lstrip())] + "raise NotImplementedError()")
+            inside = True
+        elif line.strip() == exercises.SOLUTION_MARKERS[1]:
+            inside = False
+        elif not inside:
+            out.append(line)
+    return "\n".join(out)
+
+
+def given_inputs(answer: str, check: str) -> dict[str, list[str]]:
+    """input name -> the given statements (``ast.dump``) that bind it: the names the released answer cell binds
+    in the notebook's namespace with a value (not the ``None`` a student replaces, not a function left to
+    write, not an import) and the check reads without making them itself."""
+    try:
+        check_tree = ast.parse(check)
+        read = {n.id for n in ast.walk(check_tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+        read -= bound_names(check_tree)  # what the check makes itself is no input
+        statements = module_scope(ast.parse(released(answer)))
+    except (SyntaxError, ValueError):
+        return {}
+    out: dict[str, list[str]] = {}
+    for node in statements:
+        stub = any(isinstance(n, ast.Raise) and "NotImplementedError" in ast.unparse(n) for n in ast.walk(node))
+        if stub or isinstance(node, (ast.Import, ast.ImportFrom)) or (isinstance(node, ast.Assign) and _is_empty(
+                node.value)) or (
+                isinstance(node, ast.Assign) and isinstance(node.value, ast.Tuple) and all(
+                _is_empty(e) or (isinstance(e, ast.Constant) and e.value == "") for e in node.value.elts)):
+            continue
+        for name in _scope_names(node) & read:
+            out.setdefault(name, []).append(ast.dump(node))
+    return out
+
+
+def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Finding]:
+    found = []
+    kept = {ast.dump(n) for n in module_scope(tree)}
+    for node in module_scope(tree):
+        changed = sorted(n for n in _scope_names(node) & set(given) if ast.dump(node) not in given[n])
+        found += [Finding(node.lineno, "given-inputs", f"{name} changed") for name in changed]
+    for name, statements in sorted(given.items()):
+        if not set(statements) <= kept:
+            found.append(Finding(1, "given-inputs", f"the given lines that set {name} are not all there"))
+    return found
+
+
+def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES) -> list[Finding]:
+    """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
+    the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
+    computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
+    (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`)."""
+    try:
+        tree = ast.parse(source)
+        own = bound_names(tree)
+        aliases = _aliases(tree)
+        found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
+                 + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
+                 + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed))
+                 + _shadow_findings(tree, frozenset(shadowed)) + _given_findings(tree, given or {}))
+    except (SyntaxError, ValueError):
+        return []  # IPython syntax or a typo: the cell fails when it runs, and scores nothing
+    except (RecursionError, MemoryError):  # Python's own parser gives up on it too
+        return [Finding(1, "unreadable", "the whole cell")]
+    unique = {(f.line, f.rule, f.what): f for f in found}
+    return sorted(unique.values(), key=lambda f: (f.line, f.rule, f.what))
+
+
+def check_only_names(check_sources, other_sources) -> set[str]:
+    """Names the check cells bind that no other cell of the notebook does (lessons, answers)."""
+    def names(sources):
+        out = set()
+        for src in sources:
+            try:
+                out |= bound_names(ast.parse(src))
+            except (SyntaxError, ValueError):
+                continue
+        return out
+
+    return names(check_sources) - names(other_sources)
+
+
+def computed_names(solution: str, check: str) -> set[str]:
+    """The variables the check reads that the exercise's solution (its answer cell) assigns at top level with
+    anything but a written-out value: the values the exercise asks the student to compute."""
+    try:
+        values = top_level_values(ast.parse(solution))
+        read = {n.id for n in ast.walk(ast.parse(check)) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+    except (SyntaxError, ValueError):
+        return set()
+    return {name for name, vs in values.items()
+            if name in read and not all(_is_literal(v) or _is_empty(v) for v in vs)}
+
+
+def _is_empty(node: ast.AST) -> bool:
+    return (isinstance(node, ast.Constant) and node.value is None) or (
+        isinstance(node, (ast.List, ast.Tuple, ast.Set, ast.Dict)) and not getattr(node, "elts", getattr(
+            node, "keys", None)))
+
+
+def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
+    """exercise id -> the findings of its answer cell, for each exercise of ``submitted`` (a returned
+    notebook's JSON) that has any. ``source``: the same notebook with its solutions (the course's
+    ``source/``), which says what only the checks define and what the solutions compute."""
+    reference = exercises.notebook_exercises(source)
+    check_cells = [id(ex.cells["check"]) for ex in reference.values() if "check" in ex.cells]
+    others = ["".join(c.get("source", "")) for c in source["cells"]  # a list of lines, or one string
+              if c.get("cell_type") == "code" and id(c) not in check_cells]
+    only = check_only_names([ex.check for ex in reference.values()], others)
+    called = builtins_read(ex.check for ex in reference.values())
+    out = {}
+    for ident, ex in exercises.notebook_exercises(submitted).items():
+        ref = reference.get(ident)
+        if ref is None or "answer" not in ex.cells:
+            continue
+        solution = "\n".join(ln for ln in ref.answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
+        found = review_cell(ex.answer, check_names=only, computed=computed_names(solution, ref.check),
+                            given=given_inputs(ref.answer, ref.check), shadowed=called)
+        if found:
+            out[ident] = found
+    return out

@@ -1,0 +1,121 @@
+"""The sandbox a student's notebook runs in while ``course autograde`` grades it.
+
+nbgrader's autograde runs in the lecturer's process, outside the sandbox: it reads the gradebook,
+puts the hidden tests back into the notebook and records the scores. Only the notebook's *kernel*,
+where the student's code runs, is started inside bubblewrap (``bwrap``) by
+:class:`geodepth_lite.workbook.sandbox_kernel.SandboxKernelManager`, which nbgrader's executor uses in place
+of jupyter's kernel manager. The cells, hidden tests included, reach the kernel one by one over the
+kernel protocol, never as a file the kernel could read ahead. Inside the sandbox the kernel sees:
+
+- read-only: the system's programs and libraries (``/usr``), the Python environment
+  (``sys.prefix``, ``sys.base_prefix``), the ``geodepth_lite`` package, and what the lessons read of
+  the checkout (``data_manifests/``, ``benchmarks/``, ``pyproject.toml``, the folders of
+  ``notebooks/`` such as ``study/``, but not the notebooks, which hold the solutions) and of the
+  workspace (``data/``, ``runs/``); nothing else of the checkout (no ``tests/``, ``.git``, nor a
+  course folder, a returned-notebooks folder or a grade table kept there), and the course folder
+  hidden under an empty one where it lies inside a folder the kernel reads;
+- read-write: its own scratch folder (a copy of the submission's files but the notebooks, thrown away
+  afterwards),
+  an empty ``/tmp`` and the folder of its connection sockets;
+- no network (a new network namespace: not even the host's loopback), no other process (a new PID
+  namespace), the environment cleared but for a few variables.
+
+The kernel talks to the executor through Unix sockets in a private folder (``transport = ipc``), so it
+needs no network and never sees another kernel's connection file.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from geodepth_lite import utils
+
+SCRATCH_ENV = "GEODEPTH_SANDBOX_SCRATCH"  # the per-submission scratch folder the grader made
+HIDDEN_ENV = "GEODEPTH_SANDBOX_HIDE"  # os.pathsep-separated folders hidden inside the sandbox (the course)
+REQUIRE_ENV = "GEODEPTH_REQUIRE_SANDBOX"  # "1": the tests fail, not skip, where no sandbox can be made
+# what the kernel reads of the checkout (with each folder of notebooks/, never a notebook) and of the workspace
+CHECKOUT_READS = ("geodepth_lite", "data_manifests", "benchmarks", "pyproject.toml")
+WORKSPACE_READS = ("data", "runs")
+KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LITE_HOME", "MPLBACKEND")
+
+
+def _package_root() -> Path:
+    return utils.package_parent()
+
+
+def _inside(path: Path, folders) -> bool:
+    return any(path == f or f in path.parents for f in folders)
+
+
+def readable_paths(hidden: list[Path] = ()) -> list[Path]:
+    """What the kernel may read: the Python environment, the package, the checkout's data the lessons
+    read (:data:`CHECKOUT_READS`, and each folder of ``notebooks/`` but not its notebooks) and the
+    workspace's ``data/`` and ``runs/``; none of ``hidden``; each path that exists, once, none under
+    another."""
+    hidden = [Path(h).resolve() for h in hidden]
+    paths = [Path(sys.prefix), Path(sys.base_prefix), Path(sys.executable).resolve().parent.parent]
+    root = utils.project_root()
+    if root is not None:
+        paths += [root / name for name in CHECKOUT_READS]
+        paths += [d for d in sorted((root / "notebooks").glob("*/")) if not d.name.startswith(".")]
+    else:
+        paths.append(_package_root() / "geodepth_lite")
+    paths += [utils.workspace() / name for name in WORKSPACE_READS]
+    out: list[Path] = []
+    for p in (p.resolve() for p in paths if p.exists() and not p.is_symlink()):
+        if p != Path("/") and not _inside(p, out) and not _inside(p, hidden):
+            out = [q for q in out if p not in q.parents] + [p]
+    return out
+
+
+def _system_binds() -> list[str]:
+    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", "--dev", "/dev", "--tmpfs", "/tmp"]
+    for name in ("bin", "lib", "lib64", "sbin"):
+        link = Path("/") / name
+        if link.is_symlink():
+            cmd += ["--symlink", os.readlink(link), str(link)]
+        elif link.is_dir():
+            cmd += ["--ro-bind", str(link), str(link)]
+    return cmd
+
+
+def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path]) -> list[str]:
+    """``argv`` (a kernel's command) run inside bubblewrap: see the module docstring."""
+    cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv", *_system_binds()]
+    for etc in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/passwd", "/etc/group", "/etc/fonts"):
+        if Path(etc).exists():
+            cmd += ["--ro-bind", etc, etc]
+    readable = readable_paths(hidden)
+    for path in readable:
+        if not _inside(path, [Path("/usr")]):
+            cmd += ["--ro-bind", str(path), str(path)]
+    for path in (Path(h).resolve() for h in hidden):  # the course folder, where it lies under a readable one
+        if _inside(path, readable):
+            cmd += ["--tmpfs", str(path)]
+    work, sockets = scratch / "work", scratch / "kernel"
+    cmd += ["--bind", str(work), str(work), "--bind", str(sockets), str(sockets), "--chdir", str(work),
+            "--setenv", "HOME", "/tmp", "--setenv", "PATH", f"{Path(sys.executable).parent}:/usr/bin:/bin",
+            "--setenv", "PYTHONPATH", str(_package_root()), "--setenv", "MPLBACKEND", "Agg"]
+    for key in KEPT_ENV:
+        if key in os.environ and key != "MPLBACKEND":
+            cmd += ["--setenv", key, os.environ[key]]
+    return cmd + ["--", *argv]
+
+
+def unavailable() -> str | None:
+    """Why no sandbox can be made here (one line), or None when bubblewrap runs a program in one."""
+    if shutil.which("bwrap") is None:
+        return "bubblewrap (bwrap) is not installed"
+    probe = ["bwrap", "--die-with-parent", "--unshare-all", *_system_binds()]
+    try:
+        done = subprocess.run([*probe, "true"], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"bubblewrap cannot start ({exc})"
+    if done.returncode != 0:
+        lines = (done.stderr or done.stdout).strip().splitlines()
+        return f"bubblewrap cannot make a sandbox here ({lines[-1] if lines else f'exit {done.returncode}'})"
+    return None
