@@ -19,7 +19,7 @@ from pathlib import Path
 
 from geodepth_lite import utils
 from geodepth_lite.evaluation import study, study2
-from geodepth_lite.training import provenance, run_cache
+from geodepth_lite.training import config, provenance, run_cache
 
 METRICS = ("abs_rel", "rmse")
 
@@ -60,8 +60,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
     start, (commit, clean) = provenance.utc_now(), provenance.code_version()
-    paths = run_cache.ensure_runs("teach", [(1, s, {}) for s in seeds], workers=1)
-    fresh, _ = study.score({("silog", 1, s): p for s, p in zip(seeds, paths)}, study.evaluation_sets("teach"))
+    prof = config.profile("teach")
+    paths = run_cache.ensure_runs([prof.run(1, s) for s in seeds], workers=1)
+    fresh, _ = study.score({("silog", 1, s): p for s, p in zip(seeds, paths)}, study.evaluation_sets(prof))
     tables1, tables2 = study.read_tables(), study2.read_tables()
     rows = compare(fresh, tables1)
     record = {

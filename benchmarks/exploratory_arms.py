@@ -21,12 +21,12 @@ from pathlib import Path
 
 from geodepth_lite import utils
 from geodepth_lite.evaluation import exploratory, study
-from geodepth_lite.training import provenance
+from geodepth_lite.training import config, provenance
 
 
 def match(out: Path) -> int:
     start, (commit, clean) = provenance.utc_now(), provenance.code_version()
-    m = exploratory.measure_ratio()
+    m = exploratory.measure_ratio(config.profile("teach"))
     rec = {"what": "box-grid SDF term / frustum SDF term (val_sdf, view sign, sdf_grid 8) on the teach "
                    "profile's silog Case 1 seed 0 predictions over the validation split",
            **m, "lambda3": exploratory.matched_lambda3(m["ratio"]), "start_utc": start,
@@ -40,11 +40,12 @@ def match(out: Path) -> int:
 
 def run(out: Path, workers: int) -> int:
     lambda3 = exploratory.read_match(out)["lambda3"]
-    paths = exploratory.train_arms(lambda3, workers=workers, progress=True)
-    sets = study.evaluation_sets("teach")
+    prof = config.profile("teach")
+    paths = exploratory.train_arms(lambda3, prof, workers=workers, progress=True)
+    sets = study.evaluation_sets(prof)
     runs, frames = exploratory.score_arms(paths, sets, progress=True)
     sessions = study.provenance_rows({(exploratory.ARM_CELLS[a][0], c, s): p for (a, c, s), p in paths.items()})
-    study.write_tables(out, runs, frames, study.score_baselines("teach", sets), sessions)
+    study.write_tables(out, runs, frames, study.score_baselines(prof, sets), sessions)
     print(f"{len(paths)} runs scored; wrote {out}")
     return 0
 
@@ -56,15 +57,16 @@ def floor(out: Path) -> int:
     from geodepth_lite.training import checkpoint, inference, run_cache
 
     lam = exploratory.read_match(out)["lambda3"]
-    ds = study.evaluation_sets("teach")[study.PRIMARY]
+    prof = config.profile("teach")
+    ds = study.evaluation_sets(prof)[study.PRIMARY]
     batch = inference.collate([ds[i] for i in range(0, len(ds), 4)])
     gt = batch["depth"]
     valid = (gt > 0) & torch.isfinite(gt)
     rows = []
-    for arm, case, seed, settings in exploratory.arm_runs(lam):
+    for arm, case, seed, run in exploratory.arm_runs(lam, prof):
         if arm != "E2":
             continue
-        folder = run_cache.checkpoint_dir("teach", case, seed, **settings)
+        folder = run_cache.checkpoint_dir(run)
         model, _ = checkpoint.load_model(folder / checkpoint.CHECKPOINT_NAME)
         with torch.no_grad():
             pred = model(batch["image"]).float()

@@ -22,7 +22,7 @@ import torch
 
 from geodepth_lite import utils
 from geodepth_lite.evaluation import evaluate, gallery
-from geodepth_lite.training import checkpoint, inference, provenance, run_cache
+from geodepth_lite.training import checkpoint, config, inference, provenance, run_cache
 
 PROFILE, CASE, SEED, FLIPS = "teach", 4, 0, "hv"
 CANDIDATES = {"A": 2, "B": 3}  # fine-tuning epochs
@@ -31,11 +31,12 @@ CLOSE = ("close-up", "wall")
 
 def settings(epochs: int | None) -> dict:
     """The reference's settings (epochs None) or a candidate's: fine-tuned from the predict model."""
-    real = run_cache.real_settings(PROFILE)
+    prof = config.profile(PROFILE)
+    real = prof.real_settings()
     if epochs is None:
         return {k: v for k, v in real.items() if k != "init_from"} | {"augment": "crop"}
-    source = run_cache.checkpoint_dir(PROFILE, CASE, SEED, **run_cache.predict_settings(PROFILE)).name
-    return {**run_cache.predict_settings(PROFILE), "augment": "crop", "init_from": source, "epochs": epochs}
+    source = prof.predict_run(CASE, SEED).folder_name
+    return {**prof.predict_settings(), "augment": "crop", "init_from": source, "epochs": epochs}
 
 
 def score(path: Path) -> dict:
@@ -66,10 +67,11 @@ def main() -> None:
     torch.set_num_threads(2)
     start = provenance.utc_now()
     t0 = time.perf_counter()
-    runs = [(CASE, SEED, settings(e)) for e in CANDIDATES.values()]
-    paths = run_cache.ensure_runs(PROFILE, runs, workers=2, progress=True)
+    prof = config.profile(PROFILE)
+    runs = [prof.run(CASE, SEED, **settings(e)) for e in CANDIDATES.values()]
+    paths = run_cache.ensure_runs(runs, workers=2, progress=True)
     train_wall = time.perf_counter() - t0
-    ref_path = run_cache.checkpoint_dir(PROFILE, CASE, SEED, **settings(None)) / checkpoint.CHECKPOINT_NAME
+    ref_path = run_cache.checkpoint_dir(prof.run(CASE, SEED, **settings(None))) / checkpoint.CHECKPOINT_NAME
     ref = score(ref_path)
     cands = {name: score(p) for name, p in zip(CANDIDATES, paths)}
     ok = [n for n in CANDIDATES if qualifies(cands[n], ref)]

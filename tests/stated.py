@@ -83,15 +83,15 @@ def tuning_minutes(run: str) -> float:
 def model_count(profile: str = "teach") -> int:
     """The number of trained models the notebooks load (``reproduce`` trains them, ``bundle`` packs them)."""
     plan = [(nb, {"profile": profile}) for nb in reproduce.list_notebooks()]
-    return len(reproduce.training_runs(profile, plan)[0])
+    return len(reproduce.training_runs(config.profile(profile), plan)[0])
 
 
 def ablation_run_count(profile: str = "teach") -> int:
     """The number of ablation runs (at the profile's own settings) the notebooks load: notebook 05's
     default subset, every case at the profile's seeds."""
     plan = [(nb, {"profile": profile}) for nb in reproduce.list_notebooks()]
-    runs = reproduce.training_runs(profile, plan)[0]
-    return sum(1 for _, _, overrides in runs if not overrides)
+    runs = reproduce.training_runs(config.profile(profile), plan)[0]
+    return sum(1 for run in runs if not run.overrides)
 
 
 def lesson_words(name: str | Path) -> int:

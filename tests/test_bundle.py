@@ -24,7 +24,7 @@ def smoke_runs(tmp_path_factory, smoke_root):
     old = os.environ.get("GEODEPTH_LITE_HOME")
     os.environ["GEODEPTH_LITE_HOME"] = str(home)
     try:
-        paths = [run_cache.ensure_checkpoint("smoke", c, 0, image_size=32) for c in (1, 4)]
+        paths = [run_cache.ensure_checkpoint(config.profile("smoke").run(c, 0, image_size=32)) for c in (1, 4)]
     finally:
         if old is None:
             os.environ.pop("GEODEPTH_LITE_HOME", None)
@@ -57,7 +57,8 @@ def test_a_bundle_unpacks_to_the_same_weights_without_optimizer_state(smoke_runs
         assert all(torch.equal(got["model"][k], want["model"][k]) for k in want["model"])
         assert (mine.parent / "log.json").read_bytes() == (path.parent / "log.json").read_bytes()
     # the run cache now finds the runs complete: a notebook would load them instead of training
-    assert run_cache.is_complete("smoke", 1, 0, image_size=32) and run_cache.is_complete("smoke", 4, 0, image_size=32)
+    smoke = config.profile("smoke")
+    assert all(run_cache.is_complete(smoke.run(c, 0, image_size=32)) for c in (1, 4))
     assert cli.main(["unbundle", str(target)]) == 0  # again: the same files, nothing refused
 
 

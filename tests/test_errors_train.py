@@ -327,7 +327,7 @@ def test_an_interrupted_dataset_of_the_same_manifest_is_completed(tmp_path):
 
 def test_dry_run_refuses_what_the_real_run_refuses(capsys):
     with pytest.raises(ValueError, match="case must be one of"):
-        reproduce.reproduce("smoke", notebooks=["04"], params={"case": 9}, dry_run=True)
+        reproduce.reproduce(config.profile("smoke"), notebooks=["04"], params={"case": 9}, dry_run=True)
 
 
 # --------------------------------------------------------------------------- leftovers

@@ -53,14 +53,15 @@ def test_the_measurement_is_the_two_terms_on_the_runs_predictions():
     """measure_ratio on a finished smoke Case 1 run (an untrained network saved as one) equals the two
     terms computed batch by batch without the validation code, and the two differ, so swapping the
     samplings or measuring one twice would be seen."""
-    cfg = config.make_config("smoke", 1, 0)
-    folder = run_cache.checkpoint_dir("smoke", 1, 0)
+    smoke = config.profile("smoke")
+    cfg = smoke.run(1, 0).as_dict()
+    folder = run_cache.checkpoint_dir(smoke.run(1, 0))
     folder.mkdir(parents=True)
     torch.manual_seed(0)
     net = DepthNet(input_pad=int(cfg.get("input_pad", 0)), depth_range=cfg.get("head_range"))
     checkpoint.save_checkpoint(folder / checkpoint.CHECKPOINT_NAME,
                                {"model": net.state_dict(), "cfg": cfg, "complete": True, "epoch": cfg["epochs"]})
-    m = exploratory.measure_ratio("smoke")
+    m = exploratory.measure_ratio(smoke)
     model, _ = checkpoint.load_model(folder / checkpoint.CHECKPOINT_NAME)
     ds = load_split(resolve_dataset(cfg), "val", cfg["image_size"], limit=cfg["val_frames"])
     want = _brute_terms(cfg, model, ds)
@@ -73,7 +74,7 @@ def test_the_measurement_is_the_two_terms_on_the_runs_predictions():
 
 def test_the_measurement_needs_the_finished_run():
     with pytest.raises(FileNotFoundError, match="no finished Case 1 run"):
-        exploratory.measure_ratio("smoke")
+        exploratory.measure_ratio(config.profile("smoke"))
 
 
 def _record(folder, **rec):
@@ -99,9 +100,10 @@ def test_a_matching_record_is_read_bounded_and_must_follow_the_rule(tmp_path):
 
 
 def test_the_run_list_is_the_plans_sixteen_runs():
-    runs = exploratory.arm_runs(0.018)
+    teach = config.profile("teach")
+    runs = exploratory.arm_runs(0.018, teach)
     assert len(runs) == 16 and sorted({s for _, _, s, _ in runs}) == list(SEEDS)
-    cfgs = {(a, s): config.make_config("teach", c, s, **o) for a, c, s, o in runs}
+    cfgs = {(a, s): run.as_dict() for a, c, s, run in runs}
     e1, e2 = cfgs[("E1", 0)], cfgs[("E2", 0)]
     assert (e1["depth_term"], e1["lambdas"], e1["sdf_sampling"], e1["sdf_grid"]) == ("silog", [1.0, 0.0, 0.018],
                                                                                        "frustum", 8)
@@ -110,9 +112,9 @@ def test_the_run_list_is_the_plans_sixteen_runs():
     b3 = config.make_config("teach", 3, 0, **study2.arm_settings("B", 3))
     assert {k for k in e1 if e1[k] != b3[k]} == {"lambdas"}
     # no run is one of either study's
-    earlier = {run_cache.checkpoint_dir("teach", c, s, **o) for _, c, s, o in study.study_runs("teach")}
-    earlier |= {run_cache.checkpoint_dir("teach", c, s, **o) for _, c, s, o in study2.study_runs("teach")}
-    assert not earlier & {run_cache.checkpoint_dir("teach", c, s, **o) for _, c, s, o in runs}
+    earlier = {run_cache.checkpoint_dir(run) for *_, run in study.study_runs(teach)}
+    earlier |= {run_cache.checkpoint_dir(run) for *_, run in study2.study_runs(teach)}
+    assert not earlier & {run_cache.checkpoint_dir(run) for *_, run in runs}
 
 
 def _tables(levels: dict) -> dict:
@@ -159,8 +161,8 @@ def committed():
 def test_the_committed_runs_are_the_plans_runs(committed):
     lam = committed["match"]["lambda3"]
     assert lam == 0.018
-    want = {(exploratory.ARM_CELLS[a][0], c, s): config.config_hash(config.make_config("teach", c, s, **o))
-            for a, c, s, o in exploratory.arm_runs(lam)}
+    want = {(exploratory.ARM_CELLS[a][0], c, s): run.hash
+            for a, c, s, run in exploratory.arm_runs(lam, config.profile("teach"))}
     got = {(r["depth_term"], int(r["case"]), int(r["seed"])): r["config_hash"] for r in committed["provenance"]}
     assert got == want
     runs = committed["arms"]["runs"]

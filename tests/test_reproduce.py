@@ -20,11 +20,12 @@ def _notebook(path: Path, params: str, body: str) -> Path:
 
 
 BODY = """\
+from geodepth_lite.training import config
 from geodepth_lite.workbook import notebook, reproduce
 import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-out = reproduce.resolve_run_dir(profile, run_dir)
+out = reproduce.resolve_run_dir(config.profile(profile), run_dir)
 notebook.save_table(out, f"{NAME}_numbers", ["what", "value"], [["scale", scale], ["profile", profile]], \
 title="T{NAME}")
 fig = plt.figure(); plt.plot([0, scale]); notebook.save_figure(fig, out, f"{NAME}_line")
@@ -115,31 +116,33 @@ def test_the_models_of_the_real_notebooks_are_trained_together():
     """reproduce trains what notebooks 04-07 load before it runs them: the predict model of 04, 06
     and 07 (one run folder), 07's model for real frames, and 05's case x seed runs, with 05's
     worker count."""
-    from geodepth_lite.training import run_cache
+    from geodepth_lite.training import config
 
     nbs = {p.name[:2]: p for p in reproduce.list_notebooks()}
-    predict, real = run_cache.predict_settings("teach"), run_cache.real_settings("teach")
-    runs, workers = reproduce.training_runs("teach", [(nbs["04"], {}), (nbs["05"], {"seeds": [0, 1], "workers": 1}),
-                                                     (nbs["06"], {"seed": 2}), (nbs["07"], {})])
-    assert runs[0] == (4, 0, predict) and runs[-2:] == [(4, 2, predict), (4, 0, real)] and len(runs) == 11
-    assert runs[1:-2] == [(c, s, {}) for c in (1, 2, 3, 4) for s in (0, 1)] and workers == 1
-    assert reproduce.training_runs("teach", [(nbs["01"], {}), (nbs["05"], {})]) == (
-        [(c, s, {}) for c in (1, 2, 3, 4) for s in (0, 1)], None)
-    assert reproduce.training_runs("teach", [(nbs["00"], {})]) == ([], None)
+    teach = config.profile("teach")
+    runs, workers = reproduce.training_runs(teach, [(nbs["04"], {}), (nbs["05"], {"seeds": [0, 1], "workers": 1}),
+                                                   (nbs["06"], {"seed": 2}), (nbs["07"], {})])
+    assert runs[0] == teach.predict_run(4, 0) and len(runs) == 11
+    assert runs[-2:] == [teach.predict_run(4, 2), teach.real_run(4, 0)]
+    assert runs[1:-2] == [teach.run(c, s) for c in (1, 2, 3, 4) for s in (0, 1)] and workers == 1
+    assert reproduce.training_runs(teach, [(nbs["01"], {}), (nbs["05"], {})]) == (
+        [teach.run(c, s) for c in (1, 2, 3, 4) for s in (0, 1)], None)
+    assert reproduce.training_runs(teach, [(nbs["00"], {})]) == ([], None)
 
 
 def test_a_notebook_that_must_train_says_so_with_the_expected_minutes(monkeypatch, capsys):
     from geodepth_lite.training import config, run_cache
 
-    teach = run_cache.estimated_minutes(config.make_config("teach", 1, 0))
-    predict = run_cache.estimated_minutes(config.make_config("teach", 4, 0, **run_cache.predict_settings("teach")))
+    prof = config.profile("teach")
+    teach = run_cache.estimated_minutes(prof.run(1, 0))
+    predict = run_cache.estimated_minutes(prof.predict_run(4, 0))
     assert 2.4 <= teach <= 3.4 and 8.0 <= predict <= 12.0  # docs/timings.md: 2.6-3.0 and 9.3 min
     trained = []
     monkeypatch.setattr(run_cache, "fit", lambda cfg, run_dir, **kw: trained.append(run_dir) or run_dir / "ckpt.pt")
-    run_cache.ensure_checkpoint("teach", 1, 0)
+    run_cache.ensure_checkpoint(prof.run(1, 0))
     said = capsys.readouterr().out
     assert trained and "Case 1, seed 0 (teach, 64 px)" in said and "about 3 min" in said
-    run_cache.ensure_checkpoint("teach", 1, 0, announce=False)
+    run_cache.ensure_checkpoint(prof.run(1, 0), announce=False)
     assert capsys.readouterr().out == ""
 
 
@@ -156,7 +159,7 @@ def test_the_study_target_runs_notebook_05_on_its_own_tables(tmp_path, monkeypat
     monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)
     tables = tmp_path / "tables"
     calls = []
-    monkeypatch.setattr(reproduce, "run_study", lambda profile, out, progress: calls.append(profile) or tables)
+    monkeypatch.setattr(reproduce, "run_study", lambda prof, out, progress: calls.append(prof.name) or tables)
     assert cli.main(["reproduce", "--study", "--notebooks", "05"]) == 2
     assert "leave out --notebooks" in capsys.readouterr().err
     assert cli.main(["reproduce", "--study", "--dry-run"]) == 0
@@ -179,7 +182,7 @@ def test_the_study2_target_runs_notebook_05_on_the_second_studys_tables(tmp_path
     _notebook(d / "05_study.ipynb", 'profile = "teach"  # p\nrun_dir = ""  # out\nstudy_tables = ""  # t', "x = 1")
     monkeypatch.setattr(reproduce, "notebooks_dir", lambda: d)
     tables, calls = tmp_path / "tables2", []
-    monkeypatch.setattr(reproduce, "run_study2", lambda profile, out, progress: calls.append(profile) or tables)
+    monkeypatch.setattr(reproduce, "run_study2", lambda prof, out, progress: calls.append(prof.name) or tables)
     assert cli.main(["reproduce", "--study2", "--no-progress"]) == 2
     assert "does not declare the parameter 'study2_tables'" in capsys.readouterr().err and calls == []
     body = 'from pathlib import Path\nPath(run_dir, "seen.txt").write_text(study2_tables)'
@@ -406,8 +409,8 @@ def fake_jobs(tmp_path, monkeypatch):
                                           {**reproduce._marker(nb, params), "seconds": float(k) * 60})
         return float(k)
 
-    def fake_train(profile, case, seed, overrides, *, after=None, progress=False):
-        tl.job(f"case{case}", delay[f"case{case}"])()
+    def fake_train(run, *, after=None, progress=False):
+        tl.job(f"case{run.case}", delay[f"case{run.case}"])()
 
     monkeypatch.setattr(reproduce, "run_notebook", fake_notebook)
     monkeypatch.setattr(run_cache, "train_run", fake_train)
@@ -452,9 +455,9 @@ def test_a_failed_training_job_ends_the_command_with_its_name(fake_jobs, monkeyp
 
     trained = run_cache.train_run
 
-    def failing(profile, case, seed, overrides, **kw):
-        trained(profile, case, seed, overrides, **kw)
-        if case == 2:
+    def failing(run, **kw):
+        trained(run, **kw)
+        if run.case == 2:
             raise ValueError("planted")
 
     monkeypatch.setattr(run_cache, "train_run", failing)
@@ -476,7 +479,7 @@ def test_the_real_notebooks_jobs_wait_for_the_models_they_load(tmp_path, monkeyp
     monkeypatch.setattr(run_cache, "is_complete", lambda *a, **k: False)
     monkeypatch.setattr(reproduce, "prepare_training", lambda *a, **k: None)
     plan = [(nb, {"profile": "teach", "run_dir": str(tmp_path)}, False) for nb in reproduce.list_notebooks()]
-    jobs, slots = reproduce.plan_jobs("teach", plan, tmp_path, inject_run_dir=True, progress=False)
+    jobs, slots = reproduce.plan_jobs(config.profile("teach"), plan, tmp_path, inject_run_dir=True, progress=False)
     assert slots == max(1, reproduce.os.cpu_count() or 1)
     trains = {j.name: j for j in jobs if j.kind == "train"}
     predict, real = "case 4 seed 0 (predict model, 96 px)", "case 4 seed 0 (real model, 96 px)"
@@ -485,9 +488,32 @@ def test_the_real_notebooks_jobs_wait_for_the_models_they_load(tmp_path, monkeyp
     needs = {j.name[:2]: set(j.needs) for j in jobs if j.kind == "notebook"}
     assert needs == {"00": set(), "01": set(), "02": set(), "03": set(), "04": {predict}, "05": ablation,
                      "06": {predict}, "07": {predict, real}}
-    cfg = config.make_config("teach", 4, 0, **run_cache.predict_settings("teach"))
-    assert trains[predict].seconds == 60 * run_cache.estimated_minutes(cfg)
+    assert trains[predict].seconds == 60 * run_cache.estimated_minutes(config.profile("teach").predict_run())
     for j in jobs:
         if j.kind == "notebook":
             nb = next(nb for nb, _, _ in plan if nb.stem == j.name)
             assert j.seconds == json.loads(nb.read_text())["metadata"]["papermill"]["duration"] > 0
+
+
+def _teach_folder_names(prof) -> list[str]:
+    plan = [(nb, {"profile": "teach"}) for nb in reproduce.list_notebooks()]
+    return sorted(run.folder_name for run in reproduce.training_runs(prof, plan)[0])
+
+
+def test_the_run_folders_of_the_previous_release_are_still_found():
+    """The teach models a workspace (or a class bundle, which keeps the folder names) holds from before run
+    configurations became objects: reproduce names exactly those folders, so it finds them and trains none."""
+    from geodepth_lite.training import config
+
+    committed = json.loads((Path(__file__).parent / "data" / "teach_run_folders.json").read_text())
+    assert _teach_folder_names(config.profile("teach")) == committed["folders"]
+
+
+def test_the_folder_check_sees_a_changed_setting(monkeypatch):
+    """One more epoch in the teach profile renames every folder: the check above would fail."""
+    from geodepth_lite.training import config
+
+    committed = json.loads((Path(__file__).parent / "data" / "teach_run_folders.json").read_text())["folders"]
+    monkeypatch.setitem(config.PROFILES, "teach", dict(config.PROFILES["teach"],
+                                                       epochs=config.PROFILES["teach"]["epochs"] + 1))
+    assert not set(_teach_folder_names(config.profile("teach"))) & set(committed)

@@ -250,13 +250,15 @@ def teach_models():
     """Every model the recorded notebooks will train, trained first in one pool (as ``reproduce``
     does), so that notebook 04's long ``predict`` model overlaps notebook 05's ablation runs, and
     each ablation run is scored by the process that trained it (notebook 05 reads the scores)."""
+    from geodepth_lite.training import config
     from geodepth_lite.workbook import reproduce
 
     with pytest.MonkeyPatch.context() as mp:
         use_real_workspace(mp)
         todo = [(p, {}) for p in NOTEBOOKS if reproduced_copy(p, nbformat.read(str(p), as_version=4)) is None]
-        runs, workers = reproduce.training_runs("teach", todo)
-        reproduce.train_models("teach", runs, workers, progress=False)
+        teach = config.profile("teach")
+        runs, workers = reproduce.training_runs(teach, todo)
+        reproduce.train_models(teach, runs, workers, progress=False)
 
 
 @pytest.mark.slow
@@ -275,9 +277,10 @@ def test_record_matches_committed(path, tmp_path, monkeypatch, teach_models):
         done = nbformat.read(str(out), as_version=4)
         fresh = record_in(tmp_path / "run", path)
     else:
+        from geodepth_lite.training import config
         from geodepth_lite.workbook import reproduce
 
-        fresh = record_in(reproduce.resolve_run_dir("teach"), path)
+        fresh = record_in(reproduce.resolve_run_dir(config.profile("teach")), path)
     assert sorted(fresh) == sorted(committed), "the record's entries changed: re-execute the notebook"
     reference = None
     if path.stem == "05_ablation":  # the retrained subset is held to the committed study of 8 seeds

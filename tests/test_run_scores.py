@@ -16,7 +16,7 @@ from conftest import save_untrained_checkpoint
 
 from geodepth_lite.core import metrics
 from geodepth_lite.evaluation import evaluate, run_scores, study
-from geodepth_lite.training import run_cache
+from geodepth_lite.training import config, run_cache
 
 PRIMARY = study.PRIMARY
 
@@ -208,30 +208,33 @@ def test_frames_of_must_name_a_set(run, sets):
 def test_runs_trained_here_are_handed_to_after_in_the_process_that_trained_them(tmp_path, monkeypatch):
     trained, handed = [], []
 
-    def fake_checkpoint(profile, case, seed, *, progress=False, announce=True, **overrides):
-        path = run_cache.checkpoint_dir(profile, case, seed, **overrides) / "checkpoint.pt"
+    def fake_checkpoint(run, *, progress=False, announce=True):
+        path = run_cache.checkpoint_dir(run) / "checkpoint.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(b"x")
-        trained.append((case, seed))
+        trained.append((run.case, run.seed))
         return path
 
     monkeypatch.setattr(run_cache, "ensure_checkpoint", fake_checkpoint)
     monkeypatch.setattr(run_cache, "resolve_dataset", lambda cfg, progress=False: None)
-    monkeypatch.setattr(run_cache, "is_complete", lambda profile, c, s, **o: (c, s) == (2, 0))
-    paths = run_cache.ensure_runs("smoke", [(1, 0, {}), (2, 0, {}), (1, 1, {})], workers=1, after=handed.append)
+    monkeypatch.setattr(run_cache, "is_complete", lambda run: (run.case, run.seed) == (2, 0))
+    smoke = config.profile("smoke")
+    paths = run_cache.ensure_runs([smoke.run(1, 0), smoke.run(2, 0), smoke.run(1, 1)], workers=1, after=handed.append)
     assert trained == [(1, 0), (1, 1)]
     assert handed == [paths[0], paths[2]]
 
 
 def test_the_study_scores_its_runs_through_a_picklable_hook():
-    hook = pickle.loads(pickle.dumps(functools.partial(study.score_run, "teach")))
-    assert hook.func is study.score_run and hook.args == ("teach",)
+    teach, smoke = config.profile("teach"), config.profile("smoke")
+    hook = pickle.loads(pickle.dumps(functools.partial(study.score_run, teach)))
+    assert hook.func is study.score_run and hook.args == (teach,) and hook.args[0]["image_size"] == 64
     # the runs the retrained subset reads: teach's own (silog) ablation runs, not the L1 cells nor
     # the predict model; smoke's own runs use L1, so reproduce --profile smoke scores none of them
-    assert study.is_subset_run("teach", 1, 0, {}) and study.is_subset_run("teach", 4, 7, {})
-    assert not study.is_subset_run("teach", 4, 0, {"depth_term": "l1"})
-    assert not study.is_subset_run("teach", 4, 0, run_cache.predict_settings("teach"))
-    assert not study.is_subset_run("smoke", 4, 0, {}) and study.is_subset_run("smoke", 4, 0, {"depth_term": "silog"})
+    assert study.is_subset_run(teach, teach.run(1, 0)) and study.is_subset_run(teach, teach.run(4, 7))
+    assert not study.is_subset_run(teach, teach.run(4, 0, depth_term="l1"))
+    assert not study.is_subset_run(teach, teach.predict_run(4, 0))
+    assert not study.is_subset_run(smoke, smoke.run(4, 0))
+    assert study.is_subset_run(smoke, smoke.run(4, 0, depth_term="silog"))
 
 
 # --------------------------------------------------------------------------- kept predictions

@@ -316,6 +316,51 @@ def test_the_cycle_check_finds_a_cycle():
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
 
 
+# Where a run's configuration is made: the commands, ``reproduce`` and the notebook set-up make the profile
+# (``config.profile``) or a configuration (``config.make_config``) once and pass the object down.
+CONFIG_EDGES = {"training.config", "training.train_cli", "training.train_many", "workbook.reproduce",
+                "workbook.notebook", "apps.gpu_check", "apps.bundle"}
+CONFIG_MAKERS = {"make_config", "get_profile", "profile"}
+
+
+def config_makers_called(source: str) -> list[str]:
+    """The calls in ``source`` that make a run's configuration from a profile's name, as "line: name":
+    ``config.make_config(...)``, ``config.get_profile(...)``, ``config.profile(...)``, or those names imported
+    from ``config`` and called bare."""
+    tree = ast.parse(source)
+    imported = {a.asname or a.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+                and (node.module or "").split(".")[-1] == "config" for a in node.names if a.name in CONFIG_MAKERS}
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        f = node.func
+        if isinstance(f, ast.Attribute) and f.attr in CONFIG_MAKERS and isinstance(f.value, ast.Name) \
+                and f.value.id == "config":
+            found.append(f"{node.lineno}: config.{f.attr}")
+        elif isinstance(f, ast.Name) and f.id in imported:
+            found.append(f"{node.lineno}: {f.id}")
+    return found
+
+
+def test_no_module_below_the_edge_makes_a_run_config():
+    """Below the edge a run's configuration arrives as an object (``config.Profile``, ``config.RunConfig``);
+    the profile's name does not travel down to be looked up again."""
+    below = {_module_name(path): config_makers_called(path.read_text()) for path in _package_files()
+             if _module_name(path) not in CONFIG_EDGES}
+    assert {m: calls for m, calls in below.items() if calls} == {}
+    edges = {_module_name(path) for path in _package_files() if config_makers_called(path.read_text())}
+    assert edges <= CONFIG_EDGES and "workbook.reproduce" in edges and "workbook.notebook" in edges
+
+
+def test_the_config_edge_check_finds_a_lookup_below_the_edge():
+    planted = ("from geodepth_lite.training import config\n"
+               "from geodepth_lite.training.config import make_config as mk\n"
+               "def sets(profile):\n    prof = config.get_profile(profile)\n    return mk(profile, 1, 0), prof\n"
+               "def fine(prof):\n    return prof.run(1, 0), config.config_hash({})\n")
+    assert config_makers_called(planted) == ["4: config.get_profile", "5: mk"]
+
+
 def test_no_benchmark_ships_inside_the_package():
     assert not list(PACKAGE.rglob("bench*.py"))
     assert {"bench_render.py", "bench_sdf.py"} <= {p.name for p in (ROOT / "benchmarks").glob("*.py")}

@@ -26,12 +26,13 @@ def _tables(change: dict, seeds=range(8), base=0.10) -> dict:
 
 
 def test_the_study_is_48_runs_and_its_silog_seeds_0_to_2_are_the_default_ablation():
-    runs = study.study_runs("teach")
+    teach = config.profile("teach")
+    runs = study.study_runs(teach)
     assert len(runs) == 48 and len({(t, c, s) for t, c, s, _ in runs}) == 48
-    default = {run_cache.checkpoint_dir("teach", c, s) for c in (1, 2, 3, 4) for s in study.DEFAULT_SEEDS}
-    ours = {run_cache.checkpoint_dir("teach", c, s, **o) for t, c, s, o in runs if t == "silog"}
+    default = {run_cache.checkpoint_dir(teach.run(c, s)) for c in (1, 2, 3, 4) for s in study.DEFAULT_SEEDS}
+    ours = {run_cache.checkpoint_dir(run) for t, c, s, run in runs if t == "silog"}
     assert default <= ours
-    l1 = [config.make_config("teach", c, s, **o) for t, c, s, o in runs if t == "l1"]
+    l1 = [run.as_dict() for t, c, s, run in runs if t == "l1"]
     assert {cfg["depth_term"] for cfg in l1} == {"l1"} and {cfg["case"] for cfg in l1} == {1, 4}
     assert config.make_config("teach", 1, 0)["depth_term"] == "silog"
 

@@ -45,20 +45,21 @@ def _pair(changes: dict, base=None):
 
 
 def test_the_run_list_is_24_runs_with_each_arms_settings():
-    runs = study2.study_runs("teach")
+    teach = config.profile("teach")
+    runs = study2.study_runs(teach)
     assert len(runs) == 24 and len({(c, s) for _, c, s, _ in runs}) == 24
     assert {(a, c) for a, c, _, _ in runs} == {("A", 2), ("A", 4), ("B", 3)}
-    assert all(o == study2.ARM_B_SETTINGS for a, _, _, o in runs if a == "B")
+    assert all(dict(run.overrides) == study2.ARM_B_SETTINGS for a, _, _, run in runs if a == "B")
     assert sorted({s for _, _, s, _ in runs}) == list(range(8))
-    cfgs = {(c, s): config.make_config("teach", c, s, **o) for _, c, s, o in runs}
+    cfgs = {(c, s): run.as_dict() for _, c, s, run in runs}
     # arm A: lambda2 = 1 on the gradient + normal terms, lambda3 = 0.01 on the SDF term (Case 4 only)
     assert {tuple(cfgs[(c, 0)]["lambdas"]) for c in (2, 4)} == {(1.0, 1.0, 0.0), (1.0, 1.0, 0.01)}
     assert cfgs[(3, 0)]["lambdas"] == config.make_config("teach", 3, 0)["lambdas"]
     assert all(cfgs[(3, s)][k] == v for s in SEEDS for k, v in study2.ARM_B_SETTINGS.items())
     assert {cfg["depth_term"] for cfg in cfgs.values()} == {"silog"}
     # none of the study's runs is one of the first study's (or the default ablation's)
-    first = {run_cache.checkpoint_dir("teach", c, s, **o) for _, c, s, o in study.study_runs("teach")}
-    assert not first & {run_cache.checkpoint_dir("teach", c, s, **o) for _, c, s, o in runs}
+    first = {run_cache.checkpoint_dir(run) for *_, run in study.study_runs(teach)}
+    assert not first & {run_cache.checkpoint_dir(run) for *_, run in runs}
 
 
 def test_scene_of_is_the_scene_plans():

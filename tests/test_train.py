@@ -253,9 +253,10 @@ def test_camera_augmentation_changes_the_image_only_and_repeats_under_the_same_s
 
 
 def test_ensure_checkpoint_trains_once_then_reuses(smoke_root, tmp_path):
-    path = run_cache.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    run = config.profile("smoke").run(case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    path = run_cache.ensure_checkpoint(run)
     stamp = path.stat().st_mtime_ns
-    again = run_cache.ensure_checkpoint("smoke", case=1, seed=0, dataset=str(smoke_root), image_size=32)
+    again = run_cache.ensure_checkpoint(config.profile("smoke").run(1, 0, dataset=str(smoke_root), image_size=32))
     assert again == path and path.stat().st_mtime_ns == stamp
     assert path.parent.parent == utils.runs_dir() / "smoke" / "checkpoints"
     model, cfg = checkpoint.load_model(path)
@@ -338,15 +339,16 @@ def test_predict_checkpoint_uses_the_profiles_predict_image_size(monkeypatch, sm
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], predict_image_size=32,
                                                          predict_overrides={"input_pad": 16, "border_weight": 2.0},
                                                          dataset=str(smoke_root)))
-    path = run_cache.predict_checkpoint("smoke", case=1, seed=0)
+    smoke = config.profile("smoke")
+    path = run_cache.ensure_checkpoint(smoke.predict_run(case=1, seed=0))
     net, cfg = checkpoint.load_model(path)
     assert cfg["image_size"] == 32 and cfg["case"] == 1 and cfg["border_weight"] == 2.0
     assert cfg["input_pad"] == 16 and net.input_pad == 16
-    assert path.parent == run_cache.checkpoint_dir("smoke", 1, 0, image_size=32, input_pad=16, border_weight=2.0)
-    assert path.parent != run_cache.checkpoint_dir("smoke", 1, 0)  # the ablation's run (64 px) is another folder
+    assert path.parent == run_cache.checkpoint_dir(smoke.run(1, 0, image_size=32, input_pad=16, border_weight=2.0))
+    assert path.parent != run_cache.checkpoint_dir(smoke.run(1, 0))  # the ablation's run (64 px) is another folder
     assert config.PROFILES["teach"]["predict_image_size"] % 32 == 0
     for name in config.PROFILES:  # every profile's predict model is a valid configuration
-        config.make_config(name, 4, 0, **run_cache.predict_settings(name))
+        config.profile(name).predict_run()
 
 
 def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides():
@@ -356,13 +358,14 @@ def test_the_model_for_real_frames_is_the_predict_model_with_the_real_overrides(
     from geodepth_lite.training import config
     from geodepth_lite.workbook import reproduce
 
-    real, pred = run_cache.real_settings("teach"), run_cache.predict_settings("teach")
+    teach, paper = config.profile("teach"), config.profile("paper")
+    real, pred = teach.real_settings(), teach.predict_settings()
     assert real == {**pred, "augment": "crop"}
-    assert run_cache.checkpoint_dir("teach", 4, 0, **real) != run_cache.checkpoint_dir("teach", 4, 0, **pred)
-    assert run_cache.real_settings("paper") == run_cache.predict_settings("paper")
+    assert run_cache.checkpoint_dir(teach.real_run()) != run_cache.checkpoint_dir(teach.predict_run())
+    assert paper.real_settings() == paper.predict_settings() and paper.real_run() == paper.predict_run()
     for name in config.PROFILES:
-        config.make_config(name, 4, 0, **run_cache.real_settings(name))
-    assert reproduce.SETTINGS["real"]("teach") == real
+        config.profile(name).real_run()
+    assert reproduce.SETTINGS["real"](teach) == real
     args = cli.build_parser().parse_args(["train", "--image-size", "96", "--input-pad", "16", "--border-weight",
                                           "2", "--augment", "crop"])
     cfg = config.make_config("teach", 4, 0, image_size=args.image_size, input_pad=args.input_pad,
@@ -470,18 +473,19 @@ def test_ensure_runs_trains_each_run_folder_once_largest_first(monkeypatch, smok
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
     calls = []
 
-    def fake_ensure(profile, case, seed, progress=False, **overrides):
-        calls.append((case, seed, overrides.get("image_size")))
+    def fake_ensure(run, progress=False, announce=True):
+        calls.append((run.case, run.seed, run.overrides.get("image_size")))
 
     monkeypatch.setattr(run_cache, "ensure_checkpoint", fake_ensure)
     monkeypatch.setattr(run_cache, "resolve_dataset", lambda cfg, progress=False: smoke_root)
-    monkeypatch.setattr(run_cache, "is_complete", lambda profile, c, s, **o: (c, s) == (2, 0))
+    monkeypatch.setattr(run_cache, "is_complete", lambda run: (run.case, run.seed) == (2, 0))
     assert config.PROFILES["smoke"]["image_size"] == 64
-    runs = [(1, 0, {}), (4, 0, {"image_size": 96}), (1, 1, {}), (4, 0, {"image_size": 96}),
-            (1, 0, {"image_size": 64}), (2, 0, {})]
-    paths = run_cache.ensure_runs("smoke", runs, workers=1)
+    smoke = config.profile("smoke")
+    runs = [smoke.run(1, 0), smoke.run(4, 0, image_size=96), smoke.run(1, 1), smoke.run(4, 0, image_size=96),
+            smoke.run(1, 0, image_size=64), smoke.run(2, 0)]
+    paths = run_cache.ensure_runs(runs, workers=1)
     assert calls == [(4, 0, 96), (1, 0, None), (1, 1, None)]
-    assert paths == [run_cache.checkpoint_dir("smoke", c, s, **o) / "checkpoint.pt" for c, s, o in runs]
+    assert paths == [run_cache.checkpoint_dir(run) / "checkpoint.pt" for run in runs]
     assert paths[1] == paths[3] and paths[0] == paths[4] and len(set(paths)) == 4
 
 
@@ -551,11 +555,12 @@ def test_ensure_runs_starts_a_fine_tuning_run_after_its_source(monkeypatch, smok
 
     monkeypatch.setitem(config.PROFILES, "smoke", dict(config.PROFILES["smoke"], dataset=str(smoke_root)))
     calls = []
-    monkeypatch.setattr(run_cache, "ensure_checkpoint",
-                        lambda profile, case, seed, progress=False, **o: calls.append((case, seed, o.get("init_from"))))
+    monkeypatch.setattr(run_cache, "ensure_checkpoint", lambda run, progress=False, announce=True: calls.append(
+        (run.case, run.seed, run["init_from"])))
     monkeypatch.setattr(run_cache, "resolve_dataset", lambda cfg, progress=False: smoke_root)
-    monkeypatch.setattr(run_cache, "is_complete", lambda profile, c, s, **o: False)
-    source = run_cache.checkpoint_dir("smoke", 4, 0, image_size=96).name
-    runs = [(4, 0, {"image_size": 64, "init_from": source}), (1, 0, {}), (4, 0, {"image_size": 96})]
-    run_cache.ensure_runs("smoke", runs, workers=1)
+    monkeypatch.setattr(run_cache, "is_complete", lambda run: False)
+    smoke = config.profile("smoke")
+    source = smoke.run(4, 0, image_size=96).folder_name
+    runs = [smoke.run(4, 0, image_size=64, init_from=source), smoke.run(1, 0), smoke.run(4, 0, image_size=96)]
+    run_cache.ensure_runs(runs, workers=1)
     assert calls == [(4, 0, None), (1, 0, None), (4, 0, source)]

@@ -32,7 +32,8 @@ from scipy import stats
 
 from geodepth_lite.data import datasets, synth
 from geodepth_lite.evaluation import baselines, evaluate, tables
-from geodepth_lite.training import checkpoint, config, run_cache
+from geodepth_lite.training import checkpoint, run_cache
+from geodepth_lite.training.config import Profile
 
 CASE_NAMES = {1: "depth + smooth", 2: "+ grad + normal", 3: "+ SDF", 4: "all five"}
 # Section 4.2.1: the paper's reduction against Case 1, in percent (negative = better)
@@ -48,9 +49,8 @@ ALPHA = 0.05  # family-wise error rate of the verdicts (Holm), two-sided
 WIDTH_BOUND = 2 * min(abs(v) for per in PAPER_REDUCTION.values() for v in per.values())  # 20 points
 
 
-def ablation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
+def ablation_sets(prof: Profile, progress: bool = False) -> dict[str, Any]:
     """{IN_DOMAIN: the profile's test split, HELDOUT: the three held-out groups' test frames together}."""
-    prof = config.get_profile(profile)
     test = evaluate.open_eval_dataset(prof["dataset"], split="test", progress=progress)
     parts = [evaluate.open_eval_dataset(str(synth.ensure_dataset(m, overrides=prof["heldout_overrides"],
                                                                   progress=progress)), split="test")
@@ -58,15 +58,15 @@ def ablation_sets(profile: str, progress: bool = False) -> dict[str, Any]:
     return {IN_DOMAIN: test, HELDOUT: torch.utils.data.ConcatDataset(parts)}
 
 
-def baseline_scores(profile: str, sets: dict[str, Any]) -> dict[str, dict[str, dict]]:
+def baseline_scores(prof: Profile, sets: dict[str, Any]) -> dict[str, dict[str, dict]]:
     """{set: {baseline: overall metrics}}; the mean depth map is fitted on the profile's training split."""
-    root = datasets.resolve_dataset(config.make_config(profile, 1, 0))
+    root = datasets.resolve_dataset(prof.run(1, 0).as_dict())
     mean_map = baselines.fit_mean_depth_map(root, "train")
     return {name: {b: r["overall"] for b, r in evaluate.evaluate_baselines(ds, mean_map).items()}
             for name, ds in sets.items()}
 
 
-def run(profile: str, cases: list[int], seeds: list[int], *, workers: int | None = None,
+def run(prof: Profile, cases: list[int], seeds: list[int], *, workers: int | None = None,
         progress: bool = False) -> dict:
     """Train (or reuse) every (case, seed) and score each on every evaluation set.
 
@@ -74,15 +74,15 @@ def run(profile: str, cases: list[int], seeds: list[int], *, workers: int | None
     "baselines": {set: {baseline: overall metrics}}, "frames": {set: n}, "checkpoints": {...}}.
     """
     runs = [(c, s) for c in cases for s in seeds]
-    paths = run_cache.ensure_checkpoints(profile, runs, workers=workers)
-    sets = ablation_sets(profile, progress=progress)
+    paths = dict(zip(runs, run_cache.ensure_runs([prof.run(c, s) for c, s in runs], workers=workers)))
+    sets = ablation_sets(prof, progress=progress)
     scores = {}
     for run_key, path in paths.items():
         model, cfg = checkpoint.load_model(path)
         scores[run_key] = {name: evaluate.evaluate_model(model, ds, image_size=cfg["image_size"])["overall"]
                            for name, ds in sets.items()}
-    return {"profile": profile, "cases": list(cases), "seeds": list(seeds), "scores": scores,
-            "baselines": baseline_scores(profile, sets), "frames": {k: len(v) for k, v in sets.items()},
+    return {"profile": prof.name, "cases": list(cases), "seeds": list(seeds), "scores": scores,
+            "baselines": baseline_scores(prof, sets), "frames": {k: len(v) for k, v in sets.items()},
             "checkpoints": paths}
 
 

@@ -27,6 +27,7 @@ from geodepth_lite.evaluation import tables as tbl
 from geodepth_lite.evaluation.ablation import WIDTH_BOUND
 from geodepth_lite.evaluation.study import PRIMARY, SEEDS
 from geodepth_lite.training import checkpoint, config, run_cache, train
+from geodepth_lite.training.config import Profile, RunConfig
 
 BOX_LAMBDA3 = 0.01          # the first study's and arm B's lambda3
 E2_WEIGHTS = (1.0, 0.01)    # E2's (lambda2, lambda3): arm A's
@@ -46,15 +47,17 @@ def matched_lambda3(ratio: float, base: float = BOX_LAMBDA3) -> float:
     return float(f"{v:.2g}")
 
 
-def measure_ratio(profile: str = "teach", seed: int = 0) -> dict:
+def measure_ratio(prof: Profile, seed: int = 0) -> dict:
     """The plan's measurement: the unweighted SDF term that validation reports (``train.validate``'s
     ``val_sdf``) on ``profile``'s validation split, on the predictions of its finished silog Case 1
     run at ``seed``, with the box grid and with the frustum samples; {"bbox", "frustum", "ratio",
     "checkpoint", "frames"}. The run must exist (it is not trained here)."""
-    cfg = config.make_config(profile, 1, seed)
-    path = run_cache.checkpoint_dir(profile, 1, seed) / checkpoint.CHECKPOINT_NAME
-    if not run_cache.is_complete(profile, 1, seed):
-        raise FileNotFoundError(f"{path}: no finished Case 1 run (seed {seed}) of the {profile} profile to measure on")
+    run = prof.run(1, seed)
+    cfg = run.as_dict()
+    path = run_cache.checkpoint_dir(run) / checkpoint.CHECKPOINT_NAME
+    if not run_cache.is_complete(run):
+        raise FileNotFoundError(f"{path}: no finished Case 1 run (seed {seed}) of the {prof.name} profile to "
+                                "measure on")
     model, _ = checkpoint.load_model(path)
     root = resolve_dataset(cfg)
     ds = load_split(root, "val", cfg["image_size"], limit=cfg["val_frames"])
@@ -89,28 +92,28 @@ def read_match(folder: str | Path | None = None) -> dict:
     return rec
 
 
-def run_settings(arm: str, lambda3: float, profile: str = "teach") -> dict:
+def run_settings(arm: str, lambda3: float, prof: Profile) -> dict:
     """The run settings of ``arm`` beyond ``profile``'s (``lambda3``: E1's matched weight)."""
     term, case = ARM_CELLS[arm]
     if arm == "E1":
-        return {**study.run_overrides(profile, term), "lambdas": config.case_lambdas(case, (0.0, lambda3)),
+        return {**study.run_overrides(prof, term), "lambdas": config.case_lambdas(case, (0.0, lambda3)),
                 "sdf_sampling": "frustum"}
-    return {**study.run_overrides(profile, term), "lambdas": config.case_lambdas(case, E2_WEIGHTS)}
+    return {**study.run_overrides(prof, term), "lambdas": config.case_lambdas(case, E2_WEIGHTS)}
 
 
-def arm_runs(lambda3: float, seeds=SEEDS, profile: str = "teach") -> list[tuple[str, int, int, dict]]:
-    """Every run of the two arms as (arm, case, seed, settings), E1's eight then E2's."""
-    return [(arm, ARM_CELLS[arm][1], int(s), run_settings(arm, lambda3, profile)) for arm in ARM_CELLS
-            for s in seeds]
+def arm_runs(lambda3: float, prof: Profile, seeds=SEEDS) -> list[tuple[str, int, int, RunConfig]]:
+    """Every run of the two arms as (arm, case, seed, its configuration), E1's eight then E2's."""
+    return [(arm, ARM_CELLS[arm][1], int(s), prof.run(ARM_CELLS[arm][1], int(s), **run_settings(arm, lambda3, prof)))
+            for arm in ARM_CELLS for s in seeds]
 
 
-def train_arms(lambda3: float, profile: str = "teach", seeds=SEEDS, *, workers: int | None = None,
+def train_arms(lambda3: float, prof: Profile, seeds=SEEDS, *, workers: int | None = None,
                progress: bool = False) -> dict[tuple[str, int, int], Path]:
     """Train (or reuse) every run; {(arm, case, seed): checkpoint}; each scored by its own worker."""
-    runs = arm_runs(lambda3, seeds, profile)
-    study.evaluation_sets(profile, progress=progress)
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
-                                  after=functools.partial(study.score_run, profile))
+    runs = arm_runs(lambda3, prof, seeds)
+    study.evaluation_sets(prof, progress=progress)
+    paths = run_cache.ensure_runs([run for *_, run in runs], workers=workers, progress=progress,
+                                  after=functools.partial(study.score_run, prof))
     return {(a, c, s): p for (a, c, s, _), p in zip(runs, paths)}
 
 

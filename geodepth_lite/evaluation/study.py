@@ -38,7 +38,8 @@ from geodepth_lite.core import metrics
 from geodepth_lite.data import synth
 from geodepth_lite.evaluation import ablation, evaluate, run_scores
 from geodepth_lite.evaluation import tables as tbl
-from geodepth_lite.training import checkpoint, config, provenance, run_cache
+from geodepth_lite.training import checkpoint, provenance, run_cache
+from geodepth_lite.training.config import Profile, RunConfig
 
 SEEDS = tuple(range(8))          # the plan's paired seeds
 DEFAULT_SEEDS = (0, 1)           # the default reproduce's ablation seeds: a subset a test run retrains
@@ -61,58 +62,58 @@ def committed_dir() -> Path:
     return root / "notebooks" / "study"
 
 
-def run_overrides(profile: str, depth_term: str) -> dict:
+def run_overrides(prof: Profile, depth_term: str) -> dict:
     """The settings of a study run beyond the profile's ablation settings: none for the profile's
     own depth term (so those runs are the default ablation's), else ``depth_term``."""
-    return {} if config.get_profile(profile).get("depth_term") == depth_term else {"depth_term": depth_term}
+    return {} if prof.get("depth_term") == depth_term else {"depth_term": depth_term}
 
 
-def study_runs(profile: str = "teach", seeds=SEEDS) -> list[tuple[str, int, int, dict]]:
-    """Every run of the study as (depth term, case, seed, settings for ``run_cache.ensure_runs``)."""
-    return [(term, case, int(s), run_overrides(profile, term)) for term, case in CELLS for s in seeds]
+def study_runs(prof: Profile, seeds=SEEDS) -> list[tuple[str, int, int, RunConfig]]:
+    """Every run of the study as (depth term, case, seed, its configuration for ``run_cache.ensure_runs``)."""
+    return [(term, case, int(s), prof.run(case, int(s), **run_overrides(prof, term))) for term, case in CELLS
+            for s in seeds]
 
 
-def train(profile: str = "teach", seeds=SEEDS, *, workers: int | None = None,
+def train(prof: Profile, seeds=SEEDS, *, workers: int | None = None,
           progress: bool = False) -> dict[tuple[str, int, int], Path]:
     """Train (or reuse, or continue) every run of the study; {(depth term, case, seed): checkpoint}.
     Each run trained here is scored by the process that trained it (:func:`score_run`)."""
-    runs = study_runs(profile, seeds)
-    evaluation_sets(profile, progress=progress)  # built before the workers, which score on them
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
-                                  after=functools.partial(score_run, profile))
+    runs = study_runs(prof, seeds)
+    evaluation_sets(prof, progress=progress)  # built before the workers, which score on them
+    paths = run_cache.ensure_runs([run for *_, run in runs], workers=workers, progress=progress,
+                                  after=functools.partial(score_run, prof))
     return {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
 
 
-def score_run(profile: str, path: str | Path) -> dict:
+def score_run(prof: Profile, path: str | Path) -> dict:
     """The scores of one trained run on the study's sets (:func:`evaluation_sets`), with the frame
     rows of the confirmation set: computed once and kept in its run folder (``run_scores.scores``)."""
-    return run_scores.scores(path, evaluation_sets(profile), frames_of=PRIMARY)
+    return run_scores.scores(path, evaluation_sets(prof), frames_of=PRIMARY)
 
 
-def subset_folders(profile: str) -> set[Path]:
+def subset_folders(prof: Profile) -> set[Path]:
     """The run folders of the silog cells at any of the plan's seeds: the runs :func:`retrain_subset`
     reads (with the ``teach`` profile, its default seeds are the default ``reproduce``'s ablation runs)."""
-    return {run_cache.checkpoint_dir(profile, c, s, **o) for t, c, s, o in study_runs(profile) if t == "silog"}
+    return {run_cache.checkpoint_dir(run) for t, _, _, run in study_runs(prof) if t == "silog"}
 
 
-def is_subset_run(profile: str, case: int, seed: int, overrides: dict) -> bool:
-    """Whether the run (case, seed, settings for ``run_cache.ensure_runs``) is one :func:`retrain_subset` reads."""
-    return run_cache.checkpoint_dir(profile, case, seed, **overrides) in subset_folders(profile)
+def is_subset_run(prof: Profile, run: RunConfig) -> bool:
+    """Whether ``run`` is one that :func:`retrain_subset` reads."""
+    return run_cache.checkpoint_dir(run) in subset_folders(prof)
 
 
-def score_if_subset_run(profile: str, path: str | Path) -> None:
+def score_if_subset_run(prof: Profile, path: str | Path) -> None:
     """:func:`score_run` when ``path`` is the checkpoint of a run :func:`retrain_subset` reads;
     nothing otherwise (``reproduce`` trains other models beside the ablation's)."""
-    if Path(path).parent in subset_folders(profile):
-        score_run(profile, path)
+    if Path(path).parent in subset_folders(prof):
+        score_run(prof, path)
 
 
-def evaluation_sets(profile: str = "teach", progress: bool = False) -> dict[str, Any]:
+def evaluation_sets(prof: Profile, progress: bool = False) -> dict[str, Any]:
     """{PRIMARY: the confirmation set, ablation.HELDOUT: the three held-out groups together,
     CLOSEUPS: the held-out close-ups}, at the profile's sizes."""
-    prof = config.get_profile(profile)
     sets = {PRIMARY: evaluate.open_eval_dataset(str(synth.ensure_dataset(CONFIRM, progress=progress)))}
-    sets[ablation.HELDOUT] = ablation.ablation_sets(profile, progress=progress)[ablation.HELDOUT]
+    sets[ablation.HELDOUT] = ablation.ablation_sets(prof, progress=progress)[ablation.HELDOUT]
     sets[CLOSEUPS] = evaluate.open_eval_dataset(
         str(synth.ensure_dataset("heldout_closeup", overrides=prof["closeup_overrides"], progress=progress)))
     return sets
@@ -143,10 +144,10 @@ def score(checkpoints: dict[tuple[str, int, int], Path], sets: dict[str, Any], *
     return runs, frames
 
 
-def score_baselines(profile: str, sets: dict[str, Any]) -> list[dict]:
+def score_baselines(prof: Profile, sets: dict[str, Any]) -> list[dict]:
     """The trivial predictors on every set, one row each (``ablation.baseline_scores``)."""
     return [{"set": name, "baseline": b, **{m: _fmt(v[m]) for m in METRIC_COLUMNS}}
-            for name, per in ablation.baseline_scores(profile, sets).items() for b, v in per.items()]
+            for name, per in ablation.baseline_scores(prof, sets).items() for b, v in per.items()]
 
 
 def write_tables(out: str | Path, runs: list[dict], frames: list[dict], baselines: list[dict],
@@ -207,8 +208,7 @@ def typed_row(row: dict) -> dict:
     return out
 
 
-def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | None = None,
-                 want=None) -> list[str]:
+def check_tables(tables: dict, frames_per_run: int | None = None, want=None) -> list[str]:
     """What is wrong with study tables read with ``frames=True``, one line each (none: they hold
     the plan's study). Every run of :func:`study_runs` has one row per evaluation set; its row on
     the confirmation set is the mean of its frame rows (to the tables' 6 significant digits), and
@@ -216,7 +216,7 @@ def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | Non
     ``runs.csv`` alone, or a run left out or added, is named. ``want``: the runs expected, as
     (depth term, case, seed) (default: this study's)."""
     problems = []
-    want = set(want) if want is not None else {(t, c, s) for t, c, s, _ in study_runs(profile)}
+    want = set(want) if want is not None else {(t, c, int(s)) for t, c in CELLS for s in SEEDS}
     sets = {r["set"] for r in tables["runs"]}
     have: dict = {}
     for r in tables["runs"]:
@@ -243,7 +243,7 @@ def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | Non
     return problems
 
 
-def retrain_subset(profile: str = "teach", seeds=DEFAULT_SEEDS, *, workers: int | None = None,
+def retrain_subset(prof: Profile, seeds=DEFAULT_SEEDS, *, workers: int | None = None,
                    progress: bool = False, baselines: bool = True) -> dict:
     """The silog cells at ``seeds`` trained (or reused) on this computer and scored on the study's
     sets: tables like :func:`read_tables`'s, plus "checkpoints" {(term, case, seed): path}. With the
@@ -251,14 +251,14 @@ def retrain_subset(profile: str = "teach", seeds=DEFAULT_SEEDS, *, workers: int 
     the process that trains it or at first need, and read from its run folder after that (:func:`score`).
     ``baselines=False`` leaves the trivial predictors out ("baselines" is empty): they involve no
     training, and the committed tables hold them."""
-    runs = [r for r in study_runs(profile, seeds) if r[0] == "silog"]
-    sets = evaluation_sets(profile, progress=progress)  # built before the workers, which score on them
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
-                                  after=functools.partial(score_run, profile))
+    runs = [r for r in study_runs(prof, seeds) if r[0] == "silog"]
+    sets = evaluation_sets(prof, progress=progress)  # built before the workers, which score on them
+    paths = run_cache.ensure_runs([run for *_, run in runs], workers=workers, progress=progress,
+                                  after=functools.partial(score_run, prof))
     checkpoints = {(t, c, s): p for (t, c, s, _), p in zip(runs, paths)}
     rows, _ = score(checkpoints, sets, progress=progress)
     return {"runs": [typed_row(r) for r in rows],
-            "baselines": [typed_row(r) for r in score_baselines(profile, sets)] if baselines else [],
+            "baselines": [typed_row(r) for r in score_baselines(prof, sets)] if baselines else [],
             "checkpoints": checkpoints}
 
 

@@ -29,6 +29,7 @@ from geodepth_lite.evaluation import tables as tbl
 from geodepth_lite.evaluation.ablation import ALPHA, WIDTH_BOUND  # "too wide": hi - lo > 20 points
 from geodepth_lite.evaluation.study import PRIMARY, SEEDS
 from geodepth_lite.training import config, run_cache
+from geodepth_lite.training.config import Profile, RunConfig
 
 ARM_B_SETTINGS: dict = {"sdf_sampling": "frustum"}  # arm B's SDF samples (docs/teach_recipe.md's rule)
 ARM_A_WEIGHTS = (1.0, 0.01)  # arm A's (lambda2, lambda3): the paper's implied lambda2 = 1, lambda3 as before
@@ -56,10 +57,10 @@ def arm_settings(arm: str, case: int) -> dict:
     return dict(ARM_B_SETTINGS)
 
 
-def study_runs(profile: str = "teach", seeds=SEEDS) -> list[tuple[str, int, int, dict]]:
-    """Every run of the study as (arm, case, seed, settings for ``run_cache.ensure_runs``)
+def study_runs(prof: Profile, seeds=SEEDS) -> list[tuple[str, int, int, RunConfig]]:
+    """Every run of the study as (arm, case, seed, its configuration for ``run_cache.ensure_runs``)
     (:func:`arm_settings`): arm A's Cases 2 and 4, then arm B's Case 3, each at ``seeds``."""
-    return [(arm, case, int(s), arm_settings(arm, case)) for arm, cases in ARMS.items()
+    return [(arm, case, int(s), prof.run(case, int(s), **arm_settings(arm, case))) for arm, cases in ARMS.items()
             for case in cases for s in seeds]
 
 
@@ -68,14 +69,14 @@ def arm_of(case: int) -> str:
     return next(arm for arm, cases in ARMS.items() if case in cases)
 
 
-def train(profile: str = "teach", seeds=SEEDS, *, workers: int | None = None,
+def train(prof: Profile, seeds=SEEDS, *, workers: int | None = None,
           progress: bool = False) -> dict[tuple[str, int, int], Path]:
     """Train (or reuse, or continue) every run of the study; {(arm, case, seed): checkpoint}. Each
     run trained here is scored by the process that trained it (``study.score_run``)."""
-    runs = study_runs(profile, seeds)
-    study.evaluation_sets(profile, progress=progress)  # built before the workers, which score on them
-    paths = run_cache.ensure_runs(profile, [(c, s, o) for _, c, s, o in runs], workers=workers, progress=progress,
-                                  after=functools.partial(study.score_run, profile))
+    runs = study_runs(prof, seeds)
+    study.evaluation_sets(prof, progress=progress)  # built before the workers, which score on them
+    paths = run_cache.ensure_runs([run for *_, run in runs], workers=workers, progress=progress,
+                                  after=functools.partial(study.score_run, prof))
     return {(a, c, s): p for (a, c, s, _), p in zip(runs, paths)}
 
 
@@ -110,11 +111,11 @@ def read_tables(folder: str | Path | None = None, frames: bool = False) -> dict:
     return out
 
 
-def check_tables(tables: dict, profile: str = "teach", frames_per_run: int | None = None) -> list[str]:
+def check_tables(tables: dict, frames_per_run: int | None = None) -> list[str]:
     """What is wrong with the second study's tables (``study.check_tables`` with this study's runs),
     plus any row whose ``arm`` is not its case's; one line each, none when whole."""
-    want = {("silog", c, s) for _, c, s, _ in study_runs(profile)}
-    problems = study.check_tables(tables, profile, frames_per_run, want=want)
+    want = {("silog", c, int(s)) for cases in ARMS.values() for c in cases for s in SEEDS}
+    problems = study.check_tables(tables, frames_per_run, want=want)
     cases = {c for cs in ARMS.values() for c in cs}
     bad = sorted({(r["case"], r["seed"], str(r.get("arm"))) for r in (*tables["runs"], *tables.get("frames", ()))
                   if r["case"] in cases and r.get("arm") != arm_of(r["case"])})

@@ -13,8 +13,10 @@ import json
 import math
 import os
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -334,3 +336,129 @@ def config_hash(cfg: dict) -> str:
     """8 hex digits naming a configuration (cache directory suffix)."""
     blob = json.dumps(config_identity(cfg), sort_keys=True, default=str).encode()
     return hashlib.sha256(blob).hexdigest()[:8]
+
+
+# --------------------------------------------------------------------------- made once, at the edge
+def _frozen(value: Any) -> Any:
+    """A read-only copy of a settings value: mappings as read-only mappings, lists as tuples."""
+    if isinstance(value, Mapping):
+        return MappingProxyType({k: _frozen(v) for k, v in value.items()})
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(v) for v in value)
+    return value
+
+
+def _thawed(value: Any) -> Any:
+    """A plain, writable copy of a value ``_frozen`` made: dicts and lists again (JSON- and fit-ready)."""
+    if isinstance(value, Mapping):
+        return {k: _thawed(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return [_thawed(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True, eq=False)
+class RunConfig:
+    """One training run's settings, checked and frozen: made once where a command, ``reproduce`` or a
+    notebook starts (``Profile.run``), then passed down as this object. It carries its identity (the
+    settings that change the weights) and its hash, which names its run folder exactly as before
+    (``case<c>_seed<s>-<hash>``). Read a setting as ``run["image_size"]``; ``run.as_dict()`` is a
+    plain copy for ``train.fit``."""
+
+    profile: str
+    case: int
+    seed: int
+    overrides: Mapping[str, Any]
+    settings: Mapping[str, Any] = field(repr=False)
+
+    def __getitem__(self, key: str) -> Any:
+        return _thawed(self.settings[key])
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return _thawed(self.settings.get(key, default))
+
+    def as_dict(self) -> dict:
+        """The settings as a plain dict (lists, not tuples): what ``make_config`` returned."""
+        return _thawed(self.settings)
+
+    @property
+    def identity(self) -> dict:
+        return config_identity(self.as_dict())
+
+    @property
+    def hash(self) -> str:
+        return config_hash(self.as_dict())
+
+    @property
+    def folder_name(self) -> str:
+        """The run folder's name: ``case<c>_seed<s>-<config hash>``."""
+        return f"case{self.case}_seed{self.seed}-{self.hash}"
+
+    def __reduce__(self):  # for the worker processes: the read-only mappings themselves do not pickle
+        return (_rebuilt, (RunConfig, self.profile, self.case, self.seed, _thawed(self.overrides), self.as_dict()))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, RunConfig) and (self.profile, self.folder_name) == (other.profile, other.folder_name)
+
+    def __hash__(self) -> int:
+        return hash((self.profile, self.folder_name))
+
+
+@dataclass(frozen=True, eq=False)
+class Profile:
+    """A profile's settings (``PROFILES``), checked and frozen: made once at the edge (``profile(name)``)
+    and passed down, so no module below the edge reads the profile table again. It makes the run
+    configurations of its runs: ``run(case, seed, **overrides)``, and the two models the notebooks
+    load beside the ablation's, ``predict_run()`` and ``real_run()``."""
+
+    name: str
+    settings: Mapping[str, Any] = field(repr=False)
+
+    def __getitem__(self, key: str) -> Any:
+        return _thawed(self.settings[key])
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return _thawed(self.settings.get(key, default))
+
+    def __reduce__(self):
+        return (_rebuilt, (Profile, self.name, _thawed(self.settings)))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Profile) and self.name == other.name
+
+    def __hash__(self) -> int:
+        return hash(self.name)
+
+    def run(self, case: int = 4, seed: int = 0, **overrides: Any) -> RunConfig:
+        """The configuration of ablation ``case``, ``seed`` with ``overrides`` (``make_config``), checked now."""
+        cfg = make_config(self.name, case, seed, **overrides)
+        return RunConfig(self.name, int(case), int(seed), _frozen(dict(overrides)), _frozen(cfg))
+
+    def predict_settings(self) -> dict:
+        """The settings that turn an ablation run into the profile's ``predict`` model (notebooks 04, 06, 07
+        and ``predict``): its ``predict_image_size`` and ``predict_overrides``."""
+        return {**self.get("predict_overrides", {}), "image_size": self["predict_image_size"]}
+
+    def real_settings(self) -> dict:
+        """The settings of the model for real endoscope frames: ``predict_settings`` and ``real_overrides``."""
+        return {**self.predict_settings(), **self.get("real_overrides", {})}
+
+    def predict_run(self, case: int = 4, seed: int = 0) -> RunConfig:
+        return self.run(case, seed, **self.predict_settings())
+
+    def real_run(self, case: int = 4, seed: int = 0) -> RunConfig:
+        return self.run(case, seed, **self.real_settings())
+
+
+def _rebuilt(kind: type, *parts: Any) -> RunConfig | Profile:
+    """A ``RunConfig`` or ``Profile`` from the plain parts its ``__reduce__`` gave (checked when first made)."""
+    if kind is RunConfig:
+        name, case, seed, overrides, settings = parts
+        return RunConfig(name, case, seed, _frozen(overrides), _frozen(settings))
+    name, settings = parts
+    return Profile(name, _frozen(settings))
+
+
+def profile(name: str) -> Profile:
+    """Profile ``name``, checked and frozen (a ``UserError`` names the choices for an unknown one)."""
+    return Profile(name, _frozen(get_profile(name)))

@@ -34,14 +34,17 @@ def check_int(name: str, value: Any, minimum: int = 0) -> int:
 
 
 def setup(profile: str, run_dir: str = "", *, seed: int | None = None, case: int | None = None,
-          n_examples: int | None = None, **positive: int) -> tuple[dict, Path]:
-    """Check the notebook's parameters; seed python, numpy and torch; return (profile settings, run folder).
+          n_examples: int | None = None, **positive: int) -> tuple[config.Profile, Path]:
+    """Check the notebook's parameters; seed python, numpy and torch; return (the profile, run folder).
+
+    The profile (``config.Profile``, read like a dict: ``prof["predict_flips"]``) is made here, once
+    for the notebook, and makes the configurations of the runs it loads (``prof.predict_run()``).
 
     profile: one of ``config.PROFILES``. run_dir: "" = ``runs/<profile>/`` in the workspace.
     seed: a non-negative integer, used to seed everything (0 when not given). case: an
     ablation case (Section 4.2.1). n_examples and any other keyword: positive integers.
     """
-    prof = config.get_profile(profile)
+    prof = config.profile(profile)
     if case is not None and case not in config.ABLATION_CASES:
         raise UserError(f"parameter case must be one of {sorted(config.ABLATION_CASES)}, got {case!r}")
     if n_examples is not None:
@@ -49,7 +52,7 @@ def setup(profile: str, run_dir: str = "", *, seed: int | None = None, case: int
     for name, value in positive.items():
         check_int(name, value, 1)
     utils.seed_everything(check_int("seed", seed) if seed is not None else 0)
-    return prof, reproduce.resolve_run_dir(profile, run_dir)
+    return prof, reproduce.resolve_run_dir(prof, run_dir)
 
 
 def save_table(run_dir: str | os.PathLike, name: str, columns: list[str], rows: list[list[Any]], *,

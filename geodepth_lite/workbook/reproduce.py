@@ -58,6 +58,7 @@ from geodepth_lite.data.datasets import resolve_dataset
 from geodepth_lite.evaluation import study, study2
 from geodepth_lite.evaluation.tables import markdown_table
 from geodepth_lite.training import config, run_cache
+from geodepth_lite.training.config import Profile, RunConfig
 
 MARKER_DIR = ".reproduce"
 JOB_POLL_S = 0.5  # seconds between two looks at the running jobs
@@ -74,10 +75,9 @@ class NotebookFailed(JobFailed):
 # --------------------------------------------------------------------------- the contract (used by notebooks)
 
 
-def resolve_run_dir(profile: str, run_dir: str | os.PathLike = "") -> Path:
+def resolve_run_dir(prof: Profile, run_dir: str | os.PathLike = "") -> Path:
     """The notebooks' ``run_dir`` parameter: "" means ``runs/<profile>/`` in the workspace."""
-    config.get_profile(profile)
-    path = Path(run_dir).expanduser() if str(run_dir) else utils.runs_dir() / profile
+    path = Path(run_dir).expanduser() if str(run_dir) else utils.runs_dir() / prof.name
     path.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -194,7 +194,7 @@ def _is_done(run_dir: Path, nb: Path, params: dict) -> bool:
 
 MODELS_KEY = "geodepth_lite"  # notebook metadata: {"models": [spec, ...]}, the models the notebook loads
 # a spec's "settings": the training settings beyond (case, seed) of each kind of model
-SETTINGS = {"predict": run_cache.predict_settings, "real": run_cache.real_settings, "ablation": lambda profile: {}}
+SETTINGS = {"predict": Profile.predict_settings, "real": Profile.real_settings, "ablation": lambda prof: {}}
 
 
 def notebook_models(nb: Path) -> list[dict]:
@@ -202,8 +202,8 @@ def notebook_models(nb: Path) -> list[dict]:
 
     Each spec names the trained models by (case, seed): ``"case"``/``"seed"`` or ``"cases"``/
     ``"seeds"`` hold a number (or list) or the name of one of the notebook's parameters;
-    ``"settings"`` is "predict" (the profile's ``predict`` model, ``run_cache.predict_settings``),
-    "real" (its model for real frames, ``run_cache.real_settings``) or "ablation" (the profile's
+    ``"settings"`` is "predict" (the profile's ``predict`` model, ``Profile.predict_settings``),
+    "real" (its model for real frames, ``Profile.real_settings``) or "ablation" (the profile's
     own settings); ``"workers"`` optionally names the parameter
     with the number of runs trained side by side. A notebook without the key loads no model.
     """
@@ -216,57 +216,55 @@ def notebook_models(nb: Path) -> list[dict]:
     return specs
 
 
-def notebook_runs(profile: str, nb: Path, given: dict) -> tuple[list[tuple[int, int, dict]], int | None]:
-    """The models notebook ``nb`` loads with its parameters ``given`` (over its defaults), as
-    (case, seed, overrides) runs, and the worker count it asks for (None: none asked)."""
+def notebook_runs(prof: Profile, nb: Path, given: dict) -> tuple[list[RunConfig], int | None]:
+    """The models notebook ``nb`` loads with its parameters ``given`` (over its defaults), as run
+    configurations, and the worker count it asks for (None: none asked)."""
     p = {**notebook_parameters(nb), **given}
-    runs: list[tuple[int, int, dict]] = []
+    runs: list[RunConfig] = []
     workers = None
     for spec in notebook_models(nb):
         value = lambda key: p[spec[key]] if isinstance(spec.get(key), str) else spec[key]  # noqa: E731
         cases = value("cases") if "cases" in spec else [value("case")]
         seeds = value("seeds") if "seeds" in spec else [value("seed")]
-        overrides = SETTINGS[spec["settings"]](profile)
-        runs += [(int(c), int(s), dict(overrides)) for c in cases for s in seeds]
+        overrides = SETTINGS[spec["settings"]](prof)
+        runs += [prof.run(int(c), int(s), **overrides) for c in cases for s in seeds]
         if "workers" in spec:
             workers = int(value("workers")) or None
     return runs, workers
 
 
-def training_runs(profile: str, plan: list[tuple[Path, dict]]) -> tuple[list[tuple[int, int, dict]], int | None]:
+def training_runs(prof: Profile, plan: list[tuple[Path, dict]]) -> tuple[list[RunConfig], int | None]:
     """The models that the notebooks of ``plan`` ([(notebook, its parameters)]) declare
-    (``notebook_models``), as (case, seed, overrides) runs for ``run_cache.ensure_runs``, and the
+    (``notebook_models``), as run configurations for ``run_cache.ensure_runs``, and the
     worker count a notebook asks for (None: one per core). Trained together before the notebooks
     run, the longest (the ``predict`` model) overlaps the ablation's runs instead of running alone."""
-    runs: list[tuple[int, int, dict]] = []
+    runs: list[RunConfig] = []
     workers = None
     for nb, given in plan:
-        nb_runs, nb_workers = notebook_runs(profile, nb, given)
+        nb_runs, nb_workers = notebook_runs(prof, nb, given)
         runs += nb_runs
         workers = nb_workers if nb_workers is not None else workers
     unique = [r for i, r in enumerate(runs) if r not in runs[:i]]
     return unique, workers
 
 
-def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, params: dict[str, Any] | None = None,
+def reproduce(prof: Profile, *, notebooks: list[str] | None = None, params: dict[str, Any] | None = None,
               run_dir: str | os.PathLike | None = None, force: bool = False, progress: bool = True,
               dry_run: bool = False, start: Callable[[Job], Any] | None = None) -> Path:
     """Train the models the selected numbered notebooks load and run the notebooks into ``run_dir``
     (default runs/<profile>/), side by side (``plan_jobs``, ``run_jobs``), then write report.md /
     report.json there; returns the report.md path. Checks everything first. ``start``: how a job is
-    started (default: ``ProcessJob``, a process of its own)."""
-    config.get_profile(profile)
+    started (default: ``ProcessJob``, a process of its own). ``prof``: ``config.profile(name)``."""
     selected = select_notebooks(notebooks, list_notebooks())
     if not selected:
         raise FileNotFoundError(f"no numbered notebooks (NN_*.ipynb) in {notebooks_dir()}")
     per_nb = check_parameters(selected, dict(params or {}))
-    out = resolve_run_dir(profile, run_dir or "")
+    out = resolve_run_dir(prof, run_dir or "")
     plan = []
     for nb in selected:
-        p = {"profile": profile, "run_dir": str(out), **per_nb[nb]}
+        p = {"profile": prof.name, "run_dir": str(out), **per_nb[nb]}
         plan.append((nb, p, (not force) and _is_done(out, nb, p)))
-    for c, s, o in training_runs(profile, [(nb, p) for nb, p, _ in plan])[0]:
-        config.make_config(profile, c, s, **o)  # a bad case or seed is refused now, dry run or not
+    training_runs(prof, [(nb, p) for nb, p, _ in plan])  # a bad case or seed is refused now, dry run or not
     if dry_run:
         for nb, p, done in plan:
             print(f"{'skip' if done else 'run '} {nb.name} {p}")
@@ -275,36 +273,36 @@ def reproduce(profile: str = "teach", *, notebooks: list[str] | None = None, par
     for nb, _, done in plan:
         if done:
             print(f"[reproduce] {nb.name}: complete, skipped (--force reruns it)", flush=True)
-    inject = not (run_dir is None and str(out) == str(resolve_run_dir(profile, "")))
-    jobs, slots = plan_jobs(profile, plan, out, inject_run_dir=inject, progress=progress)
+    inject = not (run_dir is None and str(out) == str(resolve_run_dir(prof, "")))
+    jobs, slots = plan_jobs(prof, plan, out, inject_run_dir=inject, progress=progress)
     if jobs:
         trains = sum(j.kind == "train" for j in jobs)
         print(f"[reproduce] {trains} model(s) to train and {len(jobs) - trains} notebook(s) to run, {slots} at a "
               f"time (an interrupted run continues from its last epoch; each job's output: "
               f"{out / MARKER_DIR / 'logs'})", flush=True)
-        run_jobs(jobs, slots, start=start or functools.partial(ProcessJob, env=job_env(profile)),
+        run_jobs(jobs, slots, start=start or functools.partial(ProcessJob, env=job_env(prof)),
                  show=JobProgress(len(jobs), slots, enabled=progress))
     ran = {nb.stem for nb, _, done in plan if not done}
     for nb, _, _ in plan:
         m = out / MARKER_DIR / f"{nb.stem}.json"
         if m.exists() and (nb.stem in ran or nb.stem not in log):
             log[nb.stem] = {"seconds": round(_read_json(m).get("seconds", float("nan")), 1)}
-    return write_report(out, profile, log)
+    return write_report(out, prof.name, log)
 
 
-def job_env(profile: str) -> dict:
+def job_env(prof: Profile) -> dict:
     """The environment of each job's process: where the profile fixes the threads per run, a
     notebook's kernel gets as many (training sets its own from the configuration)."""
-    threads = config.make_config(profile)["threads"]
+    threads = prof.get("threads")
     return {"OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)} if threads else {}
 
 
-def job_slots(profile: str, workers: int | None) -> int:
+def job_slots(prof: Profile, workers: int | None) -> int:
     """Jobs at once: ``workers`` when a notebook asks for it, else the cores over the profile's
     threads per run (one where the profile does not fix them)."""
     if workers:
         return workers
-    threads = config.make_config(profile)["threads"]
+    threads = prof.get("threads")
     return max(1, (os.cpu_count() or 1) // threads) if threads else 1
 
 
@@ -315,71 +313,70 @@ def recorded_seconds(nb: Path, default: float = 60.0) -> float:
     return float(duration) if isinstance(duration, (int, float)) and duration > 0 else default
 
 
-def run_label(profile: str, case: int, seed: int, overrides: dict) -> str:
+def run_label(prof: Profile, run: RunConfig) -> str:
     """A training job's name: "case 4 seed 0 (predict model, 96 px)", "case 1 seed 2 (64 px)"."""
-    size = config.make_config(profile, case, seed, **overrides)["image_size"]
-    kind = next((k for k, f in SETTINGS.items() if k != "ablation" and overrides and f(profile) == overrides), "")
-    return f"case {case} seed {seed} ({kind + ' model, ' if kind else ''}{size} px)"
+    kind = next((k for k, f in SETTINGS.items() if k != "ablation" and run.overrides
+                 and prof.run(run.case, run.seed, **f(prof)) == run), "")
+    return f"case {run.case} seed {run.seed} ({kind + ' model, ' if kind else ''}{run['image_size']} px)"
 
 
-def plan_jobs(profile: str, plan: list[tuple[Path, dict, bool]], out: Path, *, inject_run_dir: bool,
+def plan_jobs(prof: Profile, plan: list[tuple[Path, dict, bool]], out: Path, *, inject_run_dir: bool,
               progress: bool) -> tuple[list[Job], int]:
     """The jobs of ``plan`` ([(notebook, parameters, done)]) and how many run at once: one per model
     the notebooks not done load that is not trained yet (``run_cache.train_run``), then one per
     notebook not done (``run_notebook``), needing the jobs of the models it loads. Datasets (and
     the ablation's evaluation sets) are built here first, before any job starts."""
     todo = [(nb, p) for nb, p, done in plan if not done]
-    runs, workers = training_runs(profile, todo)
+    runs, workers = training_runs(prof, todo)
     folders: dict[Path, str] = {}
     train = []
-    for c, s, o in runs:
-        folder = run_cache.checkpoint_dir(profile, c, s, **o)
-        if folder not in folders and not run_cache.is_complete(profile, c, s, **o):
-            name = run_label(profile, c, s, o)
+    for run in runs:
+        folder = run_cache.checkpoint_dir(run)
+        if folder not in folders and not run_cache.is_complete(run):
+            name = run_label(prof, run)
             folders[folder] = name if name not in folders.values() else f"{name} [{folder.name}]"
-            train.append((c, s, o, folder))
+            train.append((run, folder))
     scoring = any(spec["settings"] == "ablation" for nb, _ in todo for spec in notebook_models(nb))
-    after = prepare_training(profile, [(c, s, o) for c, s, o, _ in train], progress=progress, sets=scoring)
+    after = prepare_training(prof, [run for run, _ in train], progress=progress, sets=scoring)
     logs = out / MARKER_DIR / "logs"
-    jobs = [Job(folders[folder], functools.partial(run_cache.train_run, profile, c, s, o, after=after), (),
-                60 * run_cache.estimated_minutes(config.make_config(profile, c, s, **o)), "train",
-                logs / f"{folder.name}.txt") for c, s, o, folder in train]
+    jobs = [Job(folders[folder], functools.partial(run_cache.train_run, run, after=after), (),
+                60 * run_cache.estimated_minutes(run), "train", logs / f"{folder.name}.txt") for run, folder in train]
     for nb, p in todo:
-        wanted = [run_cache.checkpoint_dir(profile, c, s, **o) for c, s, o in notebook_runs(profile, nb, p)[0]]
+        wanted = [run_cache.checkpoint_dir(run) for run in notebook_runs(prof, nb, p)[0]]
         needs = tuple(dict.fromkeys(folders[f] for f in wanted if f in folders))
         jobs.append(Job(nb.stem, functools.partial(run_notebook, nb, p, out, inject_run_dir=inject_run_dir,
                                                    progress=False), needs, recorded_seconds(nb), "notebook",
                         logs / f"{nb.stem}.txt"))
     if jobs:
         utils.make_dir(logs)
-    return jobs, job_slots(profile, workers)
+    return jobs, job_slots(prof, workers)
 
 
-def prepare_training(profile: str, runs: list[tuple[int, int, dict]], *, progress: bool, sets: bool = False):
+def prepare_training(prof: Profile, runs: list[RunConfig], *, progress: bool, sets: bool = False):
     """Before the ``runs`` train: each one's dataset found or built, and where one is a run of the
     ablation's default subset, the evaluation sets that its training process scores it on (with
     ``sets``, in any case: notebooks that score the ablation's runs read them, and jobs running side
     by side then never build one dataset twice at once). Returns the ``after`` hook for
     ``run_cache.train_run`` (None when no run is scored)."""
-    for c, s, o in runs:
-        resolve_dataset(config.make_config(profile, c, s, **o), progress=progress)
-    scored = any(study.is_subset_run(profile, *r) for r in runs)
+    for run in runs:
+        resolve_dataset(run.as_dict(), progress=progress)
+    scored = any(study.is_subset_run(prof, run) for run in runs)
     if scored or sets:
-        study.evaluation_sets(profile, progress=progress)  # scored by the process that trains it, on these sets
-    return functools.partial(study.score_if_subset_run, profile) if scored else None
+        study.evaluation_sets(prof, progress=progress)  # scored by the process that trains it, on these sets
+    return functools.partial(study.score_if_subset_run, prof) if scored else None
 
 
-def train_models(profile: str, runs: list[tuple[int, int, dict]], workers: int | None, *, progress: bool) -> None:
+def train_models(prof: Profile, runs: list[RunConfig], workers: int | None, *, progress: bool) -> None:
     """Train the runs that are not complete yet, side by side (``run_cache.ensure_runs``)."""
-    folders = {run_cache.checkpoint_dir(profile, c, s, **o): (c, s, o) for c, s, o in runs}
-    todo = [r for r in folders.values() if not run_cache.is_complete(profile, r[0], r[1], **r[2])]
+    folders = {run_cache.checkpoint_dir(run): run for run in runs}
+    todo = [run for run in folders.values() if not run_cache.is_complete(run)]
     if not todo:
         return
     print(f"[reproduce] training {len(todo)} of the {len(folders)} models the notebooks use, side by side "
           "(an interrupted one continues from its last epoch) ...", flush=True)
     t0 = time.perf_counter()
-    after = prepare_training(profile, todo, progress=progress)
-    run_cache.ensure_runs(profile, todo, workers=workers, progress=progress, after=after)
+    after = prepare_training(prof, todo, progress=progress)
+    run_cache.ensure_runs(todo, workers=workers, progress=progress, after=after)
     print(f"[reproduce] models ready in {time.perf_counter() - t0:.0f} s", flush=True)
 
 
@@ -714,27 +711,27 @@ def add_arguments_reproduce(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true")
 
 
-def run_study(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True,
+def run_study(prof: Profile, run_dir: str | os.PathLike | None = None, *, progress: bool = True,
               which=study, name: str = "study", title: str = "the study") -> Path:
     """Train (or reuse) a study's runs, score them and write its tables into ``<run folder>/<name>/``
     (``which.write_tables``; ``which`` is :mod:`study` or :mod:`study2`); returns that folder. An
     interrupted study continues: finished runs are reused, an unfinished one resumes from its last epoch."""
-    out = resolve_run_dir(profile, run_dir or "") / name
+    out = resolve_run_dir(prof, run_dir or "") / name
     utils.check_can_create_dir(out)
     t0 = time.perf_counter()
-    print(f"[reproduce] {title}: {len(which.study_runs(profile))} runs ({profile}) ...", flush=True)
-    paths = which.train(profile, progress=progress)
+    print(f"[reproduce] {title}: {len(which.study_runs(prof))} runs ({prof.name}) ...", flush=True)
+    paths = which.train(prof, progress=progress)
     print(f"[reproduce] runs ready in {time.perf_counter() - t0:.0f} s; scoring them ...", flush=True)
-    sets = study.evaluation_sets(profile, progress=progress)
+    sets = study.evaluation_sets(prof, progress=progress)
     runs, frames = which.score(paths, sets, progress=progress)
-    folder = which.write_tables(out, runs, frames, study.score_baselines(profile, sets), study.provenance_rows(paths))
+    folder = which.write_tables(out, runs, frames, study.score_baselines(prof, sets), study.provenance_rows(paths))
     print(f"[reproduce] {title}'s tables: {folder} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
     return folder
 
 
-def run_study2(profile: str, run_dir: str | os.PathLike | None = None, *, progress: bool = True) -> Path:
+def run_study2(prof: Profile, run_dir: str | os.PathLike | None = None, *, progress: bool = True) -> Path:
     """:func:`run_study` for the second study (docs/study_plan_2.md): its 24 runs into ``<run folder>/study2/``."""
-    return run_study(profile, run_dir, progress=progress, which=study2, name="study2", title="the second study")
+    return run_study(prof, run_dir, progress=progress, which=study2, name="study2", title="the second study")
 
 
 def _study_notebook_declares(name: str) -> None:
@@ -745,13 +742,13 @@ def _study_notebook_declares(name: str) -> None:
                          "that --study2 writes")
 
 
-def reproduce_locks(profile: str, run_dir: str | os.PathLike | None = None) -> contextlib.ExitStack:
+def reproduce_locks(prof: Profile, run_dir: str | os.PathLike | None = None) -> contextlib.ExitStack:
     """The locks one ``reproduce`` holds while it trains and runs notebooks: the profile's folder
     ``runs/<profile>/`` (where its models are trained) and the run folder, if another, taken in one
     order (sorted paths), so two reproduces never hold one each and wait for the other. A busy one
     is waited for (``utils.wait_for_lock``: one line "waiting for reproduce (PID n) holding ..."),
     then this one goes on, finding the models the other trained."""
-    folders = {(utils.runs_dir() / profile).resolve(), resolve_run_dir(profile, run_dir or "").resolve()}
+    folders = {(utils.runs_dir() / prof.name).resolve(), resolve_run_dir(prof, run_dir or "").resolve()}
     stack = contextlib.ExitStack()
     try:
         for folder in sorted(folders):
@@ -769,30 +766,29 @@ def run_reproduce(args: argparse.Namespace) -> int:
         if name in params:
             raise UserError(f"-p {name} given twice")
         params[name] = parse_value(value)
+    prof = config.profile(args.profile)  # the run's profile, made once here and passed down
     if args.dry_run:
-        return _run_reproduce(args, params)
+        return _run_reproduce(args, prof, params)
     study_run = args.study or getattr(args, "study2", False)
     if getattr(args, "study2", False):  # before the first study's runs too
         _study_notebook_declares("study2_tables")
-    check_request(args.profile, ["05"] if study_run else args.notebooks, params)  # before any lock or folder
-    with reproduce_locks(args.profile, args.out):
-        return _run_reproduce(args, params)
+    check_request(prof, ["05"] if study_run else args.notebooks, params)  # before any lock or folder
+    with reproduce_locks(prof, args.out):
+        return _run_reproduce(args, prof, params)
 
 
-def check_request(profile: str, notebooks: list[str] | None, params: dict[str, Any]) -> None:
-    """What ``reproduce`` checks before it writes anything (profile, notebooks, parameters, the
-    models' cases and seeds), without making a folder: refused requests take no lock either."""
-    config.get_profile(profile)
+def check_request(prof: Profile, notebooks: list[str] | None, params: dict[str, Any]) -> None:
+    """What ``reproduce`` checks before it writes anything (notebooks, parameters, the models' cases
+    and seeds), without making a folder: refused requests take no lock either."""
     selected = select_notebooks(notebooks, list_notebooks())
     if not selected:
         raise FileNotFoundError(f"no numbered notebooks (NN_*.ipynb) in {notebooks_dir()}")
     per_nb = check_parameters(selected, dict(params))
-    plan = [(nb, {"profile": profile, "run_dir": "", **per_nb[nb]}) for nb in selected]
-    for c, s, o in training_runs(profile, plan)[0]:
-        config.make_config(profile, c, s, **o)
+    plan = [(nb, {"profile": prof.name, "run_dir": "", **per_nb[nb]}) for nb in selected]
+    training_runs(prof, plan)  # each model's configuration made, so a bad case or seed is refused
 
 
-def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
+def _run_reproduce(args: argparse.Namespace, prof: Profile, params: dict[str, Any]) -> int:
     t0 = time.perf_counter()
     studies = [(flag, which, fn) for flag, which, fn in (("study", study, run_study), ("study2", study2, run_study2))
                if getattr(args, flag, False)]
@@ -800,16 +796,16 @@ def _run_reproduce(args: argparse.Namespace, params: dict[str, Any]) -> int:
         raise UserError(f"--{studies[0][0]} runs notebook 05 on the study's tables: leave out --notebooks")
     for flag, which, fn in studies:  # the study's tables first, then notebook 05 reads them
         if args.dry_run:
-            runs = which.study_runs(args.profile)
-            todo = sum(not run_cache.is_complete(args.profile, c, s, **o) for _, c, s, o in runs)
+            runs = which.study_runs(prof)
+            todo = sum(not run_cache.is_complete(run) for *_, run in runs)
             print(f"{flag}: {len(runs)} runs ({todo} to train), scored into "
-                  f"{resolve_run_dir(args.profile, args.out or '') / flag}")
+                  f"{resolve_run_dir(prof, args.out or '') / flag}")
         else:
-            params[f"{flag}_tables"] = str(fn(args.profile, args.out, progress=not args.no_progress))
+            params[f"{flag}_tables"] = str(fn(prof, args.out, progress=not args.no_progress))
     if studies:
         args.notebooks, args.force = ["05"], True
     try:
-        report = reproduce(args.profile, notebooks=args.notebooks, params=params, run_dir=args.out,
+        report = reproduce(prof, notebooks=args.notebooks, params=params, run_dir=args.out,
                            force=args.force, progress=not args.no_progress, dry_run=args.dry_run)
     except JobFailed as exc:
         print(f"error: {exc}", file=sys.stderr)
