@@ -130,7 +130,7 @@ def fake_prediction(gt: torch.Tensor, seed: int = 0) -> torch.Tensor:
 
 def sdf_step(pred0, gt, K, grid, method, cache=None):
     pred = pred0.clone().requires_grad_()
-    losses.sdf_loss(pred, gt, K, grid, method=method, cache=cache).backward()
+    losses.sdf_loss(pred, gt, K, sdf.SDFOptions(grid=grid, method=method, cache=cache)).backward()
 
 
 class _GivenNearest:
@@ -154,31 +154,33 @@ def run_compare(gt, K, pred0, grid, repeats, dev, method) -> dict:
     g3 = (grid,) * 3
     ids = [("bench", i) for i in range(gt.shape[0])]
     c_ref, c_new = sdf.GTFieldCache(), sdf.GTFieldCache()
-    f0 = sdf.sdf_fields_batched(pred0, gt, K, g3, method=method, cache=c_new, frame_ids=ids)  # fills c_new
+    f0 = sdf.sdf_fields_batched(pred0, gt, K, sdf.SDFOptions(grid=g3, method=method, cache=c_new),
+                                frame_ids=ids)  # fills c_new
     nearest = sdf.nearest_indices_grid(sdf.camera.backproject(pred0, K), (gt > 0).reshape(gt.shape[0], -1),
                                        f0["grid"], method)
     given = _GivenNearest()
 
-    def step(fn, **kw):
+    def step(fn, cache, **kw):
         p = pred0.clone().requires_grad_()
-        fn(p, gt, K, g3, method=method, **kw).backward()
+        fn(p, gt, K, sdf.SDFOptions(grid=g3, method=method, cache=cache), **kw).backward()
 
     def ref_given():
         sdf.nearest_indices_many = given
         try:
-            step(losses.sdf_loss_reference, cache=c_ref)
+            step(losses.sdf_loss_reference, c_ref)
         finally:
             sdf.nearest_indices_many = _SEARCH_MANY
 
     def new_given():
         p = pred0.clone().requires_grad_()
-        f = sdf.sdf_fields_batched(p, gt, K, g3, method=method, cache=c_new, frame_ids=ids, nearest=nearest)
+        f = sdf.sdf_fields_batched(p, gt, K, sdf.SDFOptions(grid=g3, method=method, cache=c_new), frame_ids=ids,
+                                   nearest=nearest)
         losses.sdf_loss_from_fields(f, p).backward()
 
-    runs = {"ref": lambda: step(losses.sdf_loss_reference, cache=None),
-            "new": lambda: step(losses.sdf_loss, cache=None),
-            "ref_cached": lambda: step(losses.sdf_loss_reference, cache=c_ref),
-            "new_cached": lambda: step(losses.sdf_loss, cache=c_new, frame_ids=ids),
+    runs = {"ref": lambda: step(losses.sdf_loss_reference, None),
+            "new": lambda: step(losses.sdf_loss, None),
+            "ref_cached": lambda: step(losses.sdf_loss_reference, c_ref),
+            "new_cached": lambda: step(losses.sdf_loss, c_new, frame_ids=ids),
             "ref_given": ref_given, "new_given": new_given}
     runs["ref_cached"]()  # fills c_ref
     ref_given()  # records the per-image search's answers
@@ -227,7 +229,7 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
     res = {"device": str(dev), "batch": batch, "size": size, "grid": grid, "repeats": repeats,
            "index_method": index, "bf_images": bf_images, "torch_threads": torch.get_num_threads()}
     cache = sdf.GTFieldCache()
-    # total_loss reads sdf.GT_FIELD_CACHE (sdf_loss's default argument, bound when losses is imported):
+    # total_loss reads sdf.GT_FIELD_CACHE (the default SDFOptions' cache, bound when sdf is imported):
     # rebinding the name would not reach it, so the uncached step switches that object off instead
     gt_cache = sdf.GT_FIELD_CACHE
     model = opt = None
@@ -241,7 +243,7 @@ def run(batch=20, size=320, grid=32, repeats=3, bf_images=1, device="auto", trai
         try:
             model.train()
             p = model(image)
-            loss, _ = losses.total_loss(p, gt, image, K, lambdas=(1.0, 1.0, 1.0), sdf_grid=g3)
+            loss, _ = losses.total_loss(p, gt, image, K, losses.LossSpec(sdf=sdf.SDFOptions(grid=g3)))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

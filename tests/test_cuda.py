@@ -62,7 +62,7 @@ def test_autocast_and_grad_scaler_train_one_step():
     hook.remove()
     # the convolutions run in the low precision; the depth head's exp is one of autocast's float32 ops
     assert conv_dtypes == [low] and pred.dtype == torch.float32
-    loss, terms = losses.total_loss(pred.float(), d, img, Kd, sdf_grid=(8, 8, 8))
+    loss, terms = losses.total_loss(pred.float(), d, img, Kd, losses.LossSpec(sdf=sdf.SDFOptions(grid=(8, 8, 8))))
     assert all(np.isfinite(v) for v in terms.values()) and terms["sdf"] > 0
     opt.zero_grad()
     scaler.scale(loss).backward()
@@ -84,8 +84,8 @@ def test_device_search_on_cuda_matches_kdtree(kind):
     assert np.array_equal(got.cpu().numpy(), want)
     # the loss on CUDA equals the loss from cKDTree's indices on the CPU, to float32 rounding
     pred = d * 1.07
-    a = float(losses.sdf_loss(pred, d, K, 16, cache=None))
-    b = float(losses.sdf_loss(pred.cpu(), d.cpu(), K.cpu(), 16, cache=None))
+    a = float(losses.sdf_loss(pred, d, K, sdf.SDFOptions(grid=16, cache=None)))
+    b = float(losses.sdf_loss(pred.cpu(), d.cpu(), K.cpu(), sdf.SDFOptions(grid=16, cache=None)))
     assert a == pytest.approx(b, rel=1e-5)
     assert a != pytest.approx(b * 1.01, rel=1e-5)  # the tolerance can fail
 
@@ -171,12 +171,12 @@ def test_ground_truth_fields_are_cached_on_the_gpu():
     d = d.cuda()
     K = torch.from_numpy(analytic.intrinsics(64)).float().cuda()
     cache = sdf.GTFieldCache()
-    first = float(losses.sdf_loss(d * 1.05, d, K, 8, cache=cache))
-    again = float(losses.sdf_loss(d * 1.05, d, K, 8, cache=cache))
+    first = float(losses.sdf_loss(d * 1.05, d, K, sdf.SDFOptions(grid=8, cache=cache)))
+    again = float(losses.sdf_loss(d * 1.05, d, K, sdf.SDFOptions(grid=8, cache=cache)))
     assert (cache.misses, cache.hits) == (3, 3) and first == again
     assert all(item[2].device.type == "cuda" for item in cache._d.values())  # kept where computed
     # the same frames' keys on the CPU: a CPU search finds the same fields
-    cpu = float(losses.sdf_loss(d.cpu() * 1.05, d.cpu(), K.cpu(), 8, cache=None))
+    cpu = float(losses.sdf_loss(d.cpu() * 1.05, d.cpu(), K.cpu(), sdf.SDFOptions(grid=8, cache=None)))
     assert first == pytest.approx(cpu, rel=1e-5)
 
 
@@ -193,7 +193,7 @@ def test_the_batched_search_and_loss_on_cuda_match_the_cpu_reference():
     mask[..., :4, :] = False
     pred = d * 1.05
     S = camera.backproject(pred, K)
-    q = sdf.sdf_fields_batched(pred, d, K, 16, mask)["grid"]
+    q = sdf.sdf_fields_batched(pred, d, K, sdf.SDFOptions(grid=16, cache=None), mask=mask)["grid"]
     valid = mask.reshape(6, -1)
     cpu = nearest_indices_grid(S, valid, q, "kdtree")
     gpu = nearest_indices_grid(S.cuda(), valid.cuda(), q.cuda(), "device")
@@ -202,7 +202,7 @@ def test_the_batched_search_and_loss_on_cuda_match_the_cpu_reference():
     for dev in ("cpu", "cuda"):
         p = pred.clone().to(dev).requires_grad_()
         fn = losses.sdf_loss_reference if dev == "cpu" else losses.sdf_loss
-        loss = fn(p, d.to(dev), K.to(dev), 16, mask.to(dev), cache=None)
+        loss = fn(p, d.to(dev), K.to(dev), sdf.SDFOptions(grid=16, cache=None), mask.to(dev))
         loss.backward()
         out[dev] = (loss.detach().cpu(), p.grad.cpu())
     assert torch.allclose(out["cuda"][0], out["cpu"][0], rtol=1e-5, atol=0)

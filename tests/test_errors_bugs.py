@@ -83,6 +83,8 @@ def test_a_plain_value_error_is_a_bug_wherever_it_is_raised():
     (lambda: losses.group_weights([1.0, -1.0, 0.0]), "non-negative"),
     (lambda: sdf.resolve_method("bogus", torch.device("cpu")), "unknown nearest-neighbour method"),
     (lambda: sdf.check_sdf_options("view", "sphere"), "sdf sampling"),
+    (lambda: sdf.SDFOptions(sampling="sphere"), "sdf sampling"),
+    (lambda: losses.LossSpec(depth_term="l2"), "depth_term"),
     (lambda: reproduce.select_notebooks(["99"], [Path("00_intro.ipynb")]), "no notebook '99'"),
 ])
 def test_the_settings_a_user_gives_raise_user_errors(call, words):
@@ -92,5 +94,5 @@ def test_the_settings_a_user_gives_raise_user_errors(call, words):
         call()
     assert cli.is_user_error(exc.value)
     with pytest.raises(ValueError, match="B x 1 x H x W") as internal:
-        sdf.sdf_fields_batched(torch.ones(2, 2), torch.ones(2, 2), torch.eye(3), 4)
+        sdf.sdf_fields_batched(torch.ones(2, 2), torch.ones(2, 2), torch.eye(3), sdf.SDFOptions(grid=4))
     assert not isinstance(internal.value, UserError) and not cli.is_user_error(internal.value)

@@ -134,8 +134,9 @@ SHORTCUTS = {  # exercise -> answers that avoid the skill (the first is the one 
         return {key: float(np.mean([f[key] for f in per_frame])) for key in per_frame[0]}
         """,)],
     "04-3": [("""
-        return losses.total_loss(pred, gt, image, K, lambdas=lambdas, sdf_grid=sdf_grid, depth_term="silog",
-                                 border_weight=2.0)[0]
+        spec = losses.LossSpec(lambdas=lambdas, depth_term="silog", border_weight=2.0,
+                               sdf=losses.SDFOptions(grid=sdf_grid))
+        return losses.total_loss(pred, gt, image, K, spec)[0]
         """,)],
     "05-1": [("""
         from geodepth_lite.evaluation import ablation
@@ -273,7 +274,8 @@ WRONG = {  # exercise -> a plausible mistake that the visible check rejects
     "04-3": ("""  # the border weight forgotten
         group1 = losses.silog_depth_loss(pred, gt) + losses.smoothness_loss(pred, image)
         group2 = losses.gradient_loss(pred, gt) + losses.normal_loss(pred, gt)
-        return lambda1 * group1 + lambda2 * group2 + lambda3 * losses.sdf_loss(pred, gt, K, grid=sdf_grid)
+        return lambda1 * group1 + lambda2 * group2 + lambda3 * losses.sdf_loss(pred, gt, K,
+                                                                               losses.SDFOptions(grid=sdf_grid))
         """,),
     "04-4": ("""  # the perfect prediction: better in both metrics
         pred = gt.copy()

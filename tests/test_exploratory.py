@@ -42,8 +42,8 @@ def _brute_terms(cfg: dict, model, ds) -> dict:
             b = inference.collate([ds[j] for j in range(i, min(i + cfg["batch_size"], len(ds)))])
             with torch.no_grad():
                 pred = model(b["image"]).float()
-            term = losses.sdf_loss(pred, b["depth"], b["K"], grid=(g, g, g), mask=b.get("valid"), cache=None,
-                                   sampling=sampling)
+            options = losses.SDFOptions(grid=(g, g, g), cache=None, sampling=sampling)
+            term = losses.sdf_loss(pred, b["depth"], b["K"], options, mask=b.get("valid"))
             total, n = total + float(term) * len(pred), n + len(pred)
         out[sampling] = total / n
     return out

@@ -8,6 +8,8 @@ import torch
 
 from geodepth_lite.core import camera, sdf
 from geodepth_lite.core import losses as L
+from geodepth_lite.core.errors import UserError
+from geodepth_lite.core.losses import LossSpec, SDFOptions
 
 K32 = camera.intrinsics(32)
 
@@ -33,9 +35,9 @@ def test_every_loss_is_zero_for_identical_inputs():
     assert L.depth_loss(d, d.clone()) == 0
     assert L.gradient_loss(d, d.clone()) == 0
     assert L.normal_loss(d, d.clone()) < 1e-15  # 1 - cos(0) up to rounding
-    assert L.sdf_loss(d, d.clone(), K, grid=8) == 0
+    assert L.sdf_loss(d, d.clone(), K, SDFOptions(grid=8)) == 0
     assert L.smoothness_loss(plane(3.0, 2, 16, 16), img) == 0  # a constant depth has no gradient
-    loss, terms = L.total_loss(d, d.clone(), img, K, sdf_grid=8)
+    loss, terms = L.total_loss(d, d.clone(), img, K, LossSpec(sdf=SDFOptions(grid=8)))
     assert terms["depth"] == terms["grad"] == terms["sdf"] == 0 and terms["normal"] < 1e-15
     assert math.isclose(terms["total"], terms["smooth"]) and math.isclose(float(loss), terms["total"])
 
@@ -77,7 +79,7 @@ def test_smoothness_loss_known_value_and_edge_weighting():
 # ----------------------------------------------------------------------------- SDF
 def test_sdf_of_fronto_parallel_planes_grows_one_for_one_with_offset():
     gt = plane(2.0)
-    losses_at = {dz: float(L.sdf_loss(plane(2.0 + dz), gt, K32, grid=8)) for dz in (0.5, 1.0, 1.5)}
+    losses_at = {dz: float(L.sdf_loss(plane(2.0 + dz), gt, K32, SDFOptions(grid=8))) for dz in (0.5, 1.0, 1.5)}
     # each loss is the offset plus a small pixel-sampling constant
     assert abs(losses_at[1.0] - losses_at[0.5] - 0.5) < 0.01
     assert abs(losses_at[1.5] - losses_at[1.0] - 0.5) < 0.01
@@ -150,8 +152,8 @@ def test_signed_and_unsigned_fields_give_different_losses():
     K[0, 2], K[1, 2] = 7.3, 6.6  # off-centre: no exact distance ties
     gt = step_depth()  # a step: the grid spans both sides of each half of the surface
     pred = plane(2.01, 1, 16, 16)  # a flat wall halfway between
-    signed = float(L.sdf_loss(pred, gt, K, grid=6))
-    unsigned = float(L.sdf_loss(pred, gt, K, grid=6, signed=False))
+    signed = float(L.sdf_loss(pred, gt, K, SDFOptions(grid=6)))
+    unsigned = float(L.sdf_loss(pred, gt, K, SDFOptions(grid=6, signed=False)))
     assert math.isclose(signed, reference_sdf_loss(pred, gt, K, 6), rel_tol=1e-9)
     assert math.isclose(unsigned, reference_sdf_loss(pred, gt, K, 6, signed=False), rel_tol=1e-9)
     assert signed > unsigned + 0.1  # points between the surfaces: the signs disagree
@@ -208,18 +210,18 @@ def test_sdf_loss_between_step_edges_follows_the_view_sign():
     pred = step_depth(near=1.4, far=2.5)
     pred[..., :, 5:8] = 2.5  # the edge moved left by three columns
     for method in ("kdtree", "chunked", "device"):
-        view = float(L.sdf_loss(pred, gt, K, grid=6, method=method, cache=None))
-        old = float(L.sdf_loss(pred, gt, K, grid=6, method=method, cache=None, sign_rule="nearest"))
+        view = float(L.sdf_loss(pred, gt, K, SDFOptions(grid=6, method=method, cache=None)))
+        old = float(L.sdf_loss(pred, gt, K, SDFOptions(grid=6, method=method, cache=None, sign_rule="nearest")))
         assert math.isclose(view, reference_sdf_loss(pred, gt, K, 6), rel_tol=1e-9)
         assert math.isclose(old, reference_sdf_loss(pred, gt, K, 6, sign="nearest"), rel_tol=1e-9)
         assert abs(view - old) > 0.05
     # the two rules key different cached ground-truth fields
     cache = sdf.GTFieldCache()
-    L.sdf_loss(pred, gt, K, grid=6, cache=cache)
-    L.sdf_loss(pred, gt, K, grid=6, cache=cache, sign_rule="nearest")
+    L.sdf_loss(pred, gt, K, SDFOptions(grid=6, cache=cache))
+    L.sdf_loss(pred, gt, K, SDFOptions(grid=6, cache=cache, sign_rule="nearest"))
     assert (cache.misses, cache.hits, len(cache)) == (2, 0, 2)
     with pytest.raises(ValueError, match="sign_rule"):
-        L.sdf_loss(pred, gt, K, grid=6, sign_rule="camera")
+        SDFOptions(grid=6, sign_rule="camera")
 
 
 def test_sdf_loss_matches_reference_on_random_smooth_surfaces():
@@ -227,7 +229,7 @@ def test_sdf_loss_matches_reference_on_random_smooth_surfaces():
     gt = smooth_depth(2, 12, 12, seed=1).reshape(2, 1, 12, 12)
     pred = smooth_depth(2, 12, 12, seed=2).reshape(2, 1, 12, 12) * 1.1
     for method in ("kdtree", "chunked", "device"):
-        got = float(L.sdf_loss(pred, gt, K, grid=5, method=method, cache=None))
+        got = float(L.sdf_loss(pred, gt, K, SDFOptions(grid=5, method=method, cache=None)))
         assert math.isclose(got, reference_sdf_loss(pred, gt, K, 5), rel_tol=1e-9)
 
 
@@ -253,7 +255,7 @@ def test_sdf_gradients_reach_pred_through_nearest_points():
     K = camera.intrinsics(16)
     gt = plane(2.0, 1, 16, 16)
     pred = plane(2.5, 1, 16, 16).requires_grad_()
-    L.sdf_loss(pred, gt, K, grid=6).backward()
+    L.sdf_loss(pred, gt, K, SDFOptions(grid=6)).backward()
     # moving the whole prediction towards the ground truth lowers the loss
     assert pred.grad.sum() > 0 and torch.isfinite(pred.grad).all()
 
@@ -272,8 +274,8 @@ def test_gradcheck_every_loss(name):
         "smooth": lambda p: L.smoothness_loss(p, img),
         "grad": lambda p: L.gradient_loss(p, gt),
         "normal": lambda p: L.normal_loss(p, gt),
-        "sdf": lambda p: L.sdf_loss(p, gt, K, grid=3),
-        "total": lambda p: L.total_loss(p, gt, img, K, lambdas=(1.0, 0.5, 2.0), sdf_grid=3)[0],
+        "sdf": lambda p: L.sdf_loss(p, gt, K, SDFOptions(grid=3)),
+        "total": lambda p: L.total_loss(p, gt, img, K, LossSpec(lambdas=(1.0, 0.5, 2.0), sdf=SDFOptions(grid=3)))[0],
     }
     assert torch.autograd.gradcheck(fns[name], (pred,), eps=1e-6, atol=1e-6)
 
@@ -290,7 +292,7 @@ def test_invalid_ground_truth_is_masked_and_never_nan():
     pred = (gt * 1.05).requires_grad_()
     img = torch.rand(2, 3, 16, 16, dtype=torch.float64)
     K = camera.intrinsics(16)
-    loss, terms = L.total_loss(pred, bad, img, K, sdf_grid=6)
+    loss, terms = L.total_loss(pred, bad, img, K, LossSpec(sdf=SDFOptions(grid=6)))
     loss.backward()
     assert all(math.isfinite(v) for v in terms.values())
     assert torch.isfinite(pred.grad).all()
@@ -298,11 +300,12 @@ def test_invalid_ground_truth_is_masked_and_never_nan():
     # masking the bad pixels by hand gives the same values
     for fn in (L.depth_loss, L.gradient_loss, L.normal_loss):
         assert math.isclose(float(fn(pred, bad)), float(fn(pred, gt, good)), rel_tol=1e-12)
-    assert math.isclose(float(L.sdf_loss(pred, bad, K, 6)), float(L.sdf_loss(pred, gt, K, 6, mask=good)), rel_tol=1e-12)
+    assert math.isclose(float(L.sdf_loss(pred, bad, K, SDFOptions(grid=6))),
+                        float(L.sdf_loss(pred, gt, K, SDFOptions(grid=6), mask=good)), rel_tol=1e-12)
     # nothing valid at all: zero, finite, differentiable
     empty = torch.full_like(gt, float("nan"))
     pred2 = gt.clone().requires_grad_()
-    loss, terms = L.total_loss(pred2, empty, img, K, lambdas=(1, 1, 1), sdf_grid=6)
+    loss, terms = L.total_loss(pred2, empty, img, K, LossSpec(lambdas=(1, 1, 1), sdf=SDFOptions(grid=6)))
     loss.backward()
     assert terms["depth"] == terms["grad"] == terms["normal"] == terms["sdf"] == 0.0
     assert torch.isfinite(pred2.grad).all()
@@ -313,15 +316,15 @@ def test_total_loss_weights_and_skips():
     pred = smooth_depth(1, 16, 16, seed=5).reshape(1, 1, 16, 16)
     img = torch.rand(1, 3, 16, 16, dtype=torch.float64)
     K = camera.intrinsics(16)
-    _, t = L.total_loss(pred, gt, img, K, lambdas=(1, 1, 1), sdf_grid=6)
-    loss, t2 = L.total_loss(pred, gt, img, K, lambdas=(2.0, 0.0, 0.5), sdf_grid=6)
+    _, t = L.total_loss(pred, gt, img, K, LossSpec(lambdas=(1, 1, 1), sdf=SDFOptions(grid=6)))
+    loss, t2 = L.total_loss(pred, gt, img, K, LossSpec(lambdas=(2.0, 0.0, 0.5), sdf=SDFOptions(grid=6)))
     assert t2["grad"] == t2["normal"] == 0.0  # skipped
     expected = 2.0 * (t["depth"] + t["smooth"]) + 0.5 * t["sdf"]
     assert math.isclose(t2["total"], expected, rel_tol=1e-12) and math.isclose(float(loss), expected, rel_tol=1e-12)
     with pytest.raises(ValueError, match="lambdas"):
-        L.total_loss(pred, gt, img, K, lambdas=(1, 1))
+        LossSpec(lambdas=(1, 1))
     with pytest.raises(ValueError, match="sdf grid"):
-        L.sdf_loss(pred, gt, K, grid=1)
+        SDFOptions(grid=1)
     with pytest.raises(ValueError, match="same shape"):
         L.depth_loss(pred, gt[..., :8])
     with pytest.raises(ValueError, match="mask"):
@@ -336,7 +339,7 @@ def test_ground_truth_field_cache_returns_the_same_loss_and_gradient():
 
     def run(c):
         p = pred0.clone().requires_grad_()
-        loss = L.sdf_loss(p, gt, K, grid=6, cache=c)
+        loss = L.sdf_loss(p, gt, K, SDFOptions(grid=6, cache=c))
         loss.backward()
         return float(loss.detach()), p.grad
 
@@ -349,7 +352,7 @@ def test_ground_truth_field_cache_returns_the_same_loss_and_gradient():
     # a different frame (or grid) is a different entry; a full cache drops the oldest
     cache.max_bytes = 3 * (6**3 * 8 + 64)
     run(cache)
-    L.sdf_loss(pred0, gt + 0.5, K, grid=6, cache=cache)
+    L.sdf_loss(pred0, gt + 0.5, K, SDFOptions(grid=6, cache=cache))
     assert len(cache) == 3
     cache.max_bytes = 0
     assert cache.get("anything") is None
@@ -376,7 +379,7 @@ def test_log_and_scale_invariant_depth_terms_known_values():
     per = [float(L.silog_depth_loss((3 * gt)[i:i + 1], gt[i:i + 1])) for i in (0, 2)]
     assert float(L.silog_depth_loss(3 * gt, gt2)) == pytest.approx(np.mean(per), rel=1e-9)
     with pytest.raises(ValueError, match="depth_term"):
-        L.total_loss(gt, gt, torch.rand(3, 3, 6, 7), torch.eye(3), depth_term="l2")
+        LossSpec(depth_term="l2")
 
 
 def test_term_gradient_norms_known_values():
@@ -384,7 +387,7 @@ def test_term_gradient_norms_known_values():
     gt = torch.randint(4, 12, (2, 1, 5, 4)).float() / 4  # dyadic: the offset's differences are exact
     pred = gt + 0.25
     K = torch.tensor([[4.0, 0, 2.0], [0, 4.0, 2.5], [0, 0, 1]])
-    norms = L.term_gradient_norms(pred, gt, torch.rand(2, 3, 5, 4), K, sdf_grid=3)
+    norms = L.term_gradient_norms(pred, gt, torch.rand(2, 3, 5, 4), K, LossSpec(sdf=SDFOptions(grid=3)))
     assert set(norms) == {"depth", "smooth", "grad", "normal", "sdf"}
     assert norms["depth"] == pytest.approx(1 / np.sqrt(40), rel=1e-6)
     assert norms["grad"] == pytest.approx(0.0, abs=1e-7)  # an offset has the ground truth's gradients
@@ -440,11 +443,91 @@ def test_border_weight_pulls_harder_on_border_errors():
         pred = torch.where(where, gt * math.e ** 0.1, gt)
         plain = float(L.log_depth_loss(pred, gt))
         _, terms = L.total_loss(pred, gt, torch.rand(1, 3, 20, 20, dtype=torch.float64), camera.intrinsics(20),
-                                lambdas=(1.0, 0.0, 0.0), depth_term="log_l1", border_weight=4.0)
+                                LossSpec(lambdas=(1.0, 0.0, 0.0), depth_term="log_l1", border_weight=4.0))
         assert (terms["depth"] > plain) == more
     w = L.border_weight_map(20, 20, 4.0)[0, 0].double()
     expected = 0.1 * float(w[ring[0, 0]].sum() / w.sum())  # hand value for the ring case
     pred = torch.where(ring, gt * math.e ** 0.1, gt)
     _, terms = L.total_loss(pred, gt, torch.rand(1, 3, 20, 20, dtype=torch.float64), camera.intrinsics(20),
-                            lambdas=(1.0, 0.0, 0.0), depth_term="log_l1", border_weight=4.0)
+                            LossSpec(lambdas=(1.0, 0.0, 0.0), depth_term="log_l1", border_weight=4.0))
     assert terms["depth"] == pytest.approx(expected, rel=1e-6)
+
+
+# ----------------------------------------------------------------------------- the loss settings as one object
+def recipe_inputs():
+    """Two 8 x 10 frames in float64: ground truth, a prediction 0.8-1.2 times it, an image, K."""
+    g = torch.Generator().manual_seed(2024)
+    gt = 1.0 + 3.0 * torch.rand(2, 1, 8, 10, generator=g, dtype=torch.float64)
+    pred = gt * (0.8 + 0.4 * torch.rand(2, 1, 8, 10, generator=g, dtype=torch.float64))
+    img = torch.rand(2, 3, 8, 10, generator=g, dtype=torch.float64)
+    return pred, gt, img, torch.as_tensor(camera.intrinsics(10, 8))
+
+
+# total_loss(pred, gt, img, K) of recipe_inputs() before the settings became LossSpec (the twelve-argument
+# total_loss at its defaults), and with lambdas=(1.0, 0.5, 0.1), sdf_grid=(4, 5, 6), depth_term="silog",
+# border_weight=2.0, sdf_sampling="frustum", sdf_sign="masked"; as float.hex, every bit of the float64.
+# The totals check by hand: (0.23937 + 1.40427) + (0.68765 + 0.05331) + 0.38991 = 2.77450, and
+# 1 (0.11210 + 1.40427) + 0.5 (0.68765 + 0.05331) + 0.1 (0.14715) = 1.90157.
+RECIPE_BEFORE = {
+    "paper": {"depth": "0x1.ea386da3ab8a6p-3", "smooth": "0x1.677e52317f62ep+0", "grad": "0x1.6013f9d60e0acp-1",
+              "normal": "0x1.b4b7103869394p-5", "sdf": "0x1.8f4362b52f3cfp-2", "total": "0x1.6322f70005795p+1"},
+    "options": {"depth": "0x1.cb2e656dde8cfp-4", "smooth": "0x1.677e52317f62ep+0", "grad": "0x1.6013f9d60e0acp-1",
+                "normal": "0x1.b4b7103869394p-5", "sdf": "0x1.2d5c1c5a7228ap-3", "total": "0x1.e6cd6d331713cp+0"},
+}
+RECIPE_SPECS = {
+    "paper": LossSpec(),
+    "options": LossSpec(lambdas=(1.0, 0.5, 0.1), depth_term="silog", border_weight=2.0,
+                        sdf=SDFOptions(grid=(4, 5, 6), sampling="frustum", sign_rule="masked")),
+}
+
+
+@pytest.mark.parametrize("name", sorted(RECIPE_SPECS))
+def test_loss_spec_gives_the_numbers_of_the_former_arguments(name):
+    """``LossSpec()`` is the paper's recipe: the value the former default call gave, and the options the
+    former keywords chose, term by term. Tolerance: 1e-12 relative; on the machine where the values were
+    recorded they are equal bit for bit (an other CPU may sum a reduction in another order)."""
+    torch.set_num_threads(1)
+    pred, gt, img, K = recipe_inputs()
+    loss, terms = L.total_loss(pred, gt, img, K, RECIPE_SPECS[name])
+    want = {k: float.fromhex(v) for k, v in RECIPE_BEFORE[name].items()}
+    assert terms.keys() == want.keys()
+    for k, v in want.items():
+        assert math.isclose(terms[k], v, rel_tol=1e-12, abs_tol=0.0), k
+    assert float(loss) == terms["total"]
+    if name == "paper":
+        assert math.isclose(want["total"], sum(want[k] for k in L.term_names()), rel_tol=1e-15)
+
+
+def test_loss_spec_and_sdf_options_check_their_values():
+    """The defaults are the paper's; a bad value raises the UserError naming it when the settings are made;
+    a function given something else than the settings object says what it takes."""
+    assert LossSpec() == LossSpec(lambdas=[1.0, 1.0, 1.0], depth_term="l1", border_weight=0.0, sdf=SDFOptions())
+    assert SDFOptions() == SDFOptions(grid=32, sampling="bbox", sign_rule="view", method="auto", signed=True,
+                                      cache=sdf.GT_FIELD_CACHE)
+    assert SDFOptions(grid=8).grid == (8, 8, 8) and LossSpec(lambdas=[1, 0, 2]).lambdas == (1, 0, 2)
+    for make, words in ((lambda: LossSpec(depth_term="l2"), "depth_term must be one of l1, log_l1, silog"),
+                        (lambda: LossSpec(border_weight=-1.0), "border weight"),
+                        (lambda: LossSpec(lambdas={"lambda9": 1.0}), "unknown loss weight group"),
+                        (lambda: LossSpec(lambdas=(1.0, -1.0, 0.0)), "non-negative"),
+                        (lambda: SDFOptions(grid=(4, 4)), "sdf grid"),
+                        (lambda: SDFOptions(sampling="cone"), "sdf sampling"),
+                        (lambda: SDFOptions(sign_rule="nearst"), "sign_rule"),
+                        (lambda: SDFOptions(method="octree"), "unknown nearest-neighbour method")):
+        with pytest.raises(UserError, match=words):
+            make()
+    pred, gt, img, K = recipe_inputs()
+    with pytest.raises(TypeError, match="SDFOptions"):
+        L.sdf_loss(pred, gt, K, 8)
+    with pytest.raises(TypeError, match="LossSpec"):
+        L.total_loss(pred, gt, img, K, (1.0, 1.0, 1.0))
+    with pytest.raises(TypeError):
+        L.LossInputs(gt, img, K)  # keywords only
+
+
+def test_term_gradient_norms_follow_the_weights_of_the_spec():
+    """A group whose weight is zero is neither evaluated nor reported, as in total_loss."""
+    pred, gt, img, K = recipe_inputs()
+    every = L.term_gradient_norms(pred, gt, img, K, LossSpec(sdf=SDFOptions(grid=4)))
+    some = L.term_gradient_norms(pred, gt, img, K, LossSpec(lambdas=(1.0, 0.0, 2.0), sdf=SDFOptions(grid=4)))
+    assert list(every) == list(L.term_names()) and list(some) == ["depth", "smooth", "sdf"]
+    assert some == {k: every[k] for k in some}

@@ -86,7 +86,7 @@ def test_the_losses_see_depth_in_the_configured_unit():
     _, terms2 = train.compute_losses(pred, batch, unit2)
     assert terms2["depth"] == pytest.approx(terms1["depth"] / 2, rel=1e-6)  # L1: linear in the unit
     assert terms2["smooth"] == pytest.approx(terms1["smooth"] / 4, rel=1e-5)  # squared differences
-    _, direct = losses.total_loss(pred / 2, gt / 2, batch["image"], batch["K"], lambdas=(1, 0, 0))
+    _, direct = losses.total_loss(pred / 2, gt / 2, batch["image"], batch["K"], losses.LossSpec(lambdas=(1, 0, 0)))
     assert terms2["total"] == pytest.approx(direct["total"], rel=1e-6)
 
 

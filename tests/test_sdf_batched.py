@@ -12,6 +12,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from geodepth_lite.core import camera, sdf
 from geodepth_lite.core import losses as L
+from geodepth_lite.core.sdf import SDFOptions
 from geodepth_lite.data import analytic
 
 SYNC_OPS = {"aten._local_scalar_dense", "aten.item", "aten.is_nonzero", "aten.nonzero", "aten.nonzero_static"}
@@ -105,10 +106,9 @@ def test_batched_loss_and_gradient_equal_the_per_image_ones(sign_rule, sampling)
     gt, K = views(4, 20)
     pred0 = prediction(gt)
     for (name, mask), grid in itertools.product(masks(gt).items(), (5, (4, 6, 7))):
-        ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, grid, mask, cache=None, sign_rule=sign_rule,
-                            sampling=sampling)
-        new = loss_and_grad(L.sdf_loss, pred0, gt, K, grid, mask, cache=None, sign_rule=sign_rule,
-                            sampling=sampling)
+        options = SDFOptions(grid=grid, cache=None, sign_rule=sign_rule, sampling=sampling)
+        ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, options, mask)
+        new = loss_and_grad(L.sdf_loss, pred0, gt, K, options, mask)
         if sign_rule == "masked" or name == "empty frame":
             assert_close(ref, new)
         else:
@@ -125,10 +125,11 @@ def test_batched_loss_equals_the_per_image_one_with_the_ground_truth_cache(keyed
     for sign_rule, sampling in itertools.product(("view", "masked"), ("bbox", "frustum")):
         c_ref, c_new = sdf.GTFieldCache(), sdf.GTFieldCache()
         for _ in range(2):  # misses (fields computed and stored), then hits
-            ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 6, mask, cache=c_ref, sign_rule=sign_rule,
-                                sampling=sampling)
-            new = loss_and_grad(L.sdf_loss, pred0, gt, K, 6, mask, cache=c_new, sign_rule=sign_rule,
-                                sampling=sampling, frame_ids=ids)
+            ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K,
+                                SDFOptions(grid=6, cache=c_ref, sign_rule=sign_rule, sampling=sampling), mask)
+            new = loss_and_grad(L.sdf_loss, pred0, gt, K,
+                                SDFOptions(grid=6, cache=c_new, sign_rule=sign_rule, sampling=sampling), mask,
+                                frame_ids=ids)
             (assert_same if sign_rule == "view" else assert_close)(ref, new)
         assert (c_new.misses, c_new.hits, len(c_new)) == (c_ref.misses, c_ref.hits, len(c_ref)) == (3, 3, 3)
 
@@ -142,15 +143,15 @@ def test_the_checks_reject_a_loss_right_but_for_rounding_and_a_wrong_gradient():
         gt, K = views(4, 20, seed)
         pred0 = prediction(gt, seed + 1)
         mask = masks(gt)["empty frame"]
-        ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 5, mask, cache=None)
-        padded = loss_and_grad(L.sdf_loss, pred0, gt, K, 5, mask, cache=None)
+        ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, SDFOptions(grid=5, cache=None), mask)
+        padded = loss_and_grad(L.sdf_loss, pred0, gt, K, SDFOptions(grid=5, cache=None), mask)
         if not torch.equal(ref[0], padded[0]):
             break
     assert not torch.equal(ref[0], padded[0]), "no batch of 40 shows the rounding difference"
     with pytest.raises(AssertionError, match="loss"):
         assert_same(ref, padded)
     assert_close(ref, padded)
-    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 9, cache=None)
+    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, SDFOptions(grid=9, cache=None))
 
     def one_off(p, *a, **k):
         B = p.shape[0]
@@ -160,7 +161,7 @@ def test_the_checks_reject_a_loss_right_but_for_rounding_and_a_wrong_gradient():
         return L.sdf_loss_from_fields(sdf.sdf_fields_batched(p, *a, nearest=near, **k), p)
 
     with pytest.raises(AssertionError, match="gradient"):
-        assert_close(ref, loss_and_grad(one_off, pred0, gt, K, 9, cache=None))
+        assert_close(ref, loss_and_grad(one_off, pred0, gt, K, SDFOptions(grid=9, cache=None)))
 
 
 def test_nearest_indices_grid_finds_the_per_image_search_s_points():
@@ -186,18 +187,18 @@ def count_batched_loss(B: int = 20, size: int = 32, grid: int = 8, sign_rule: st
     gt, K = views(B, size)
     pred0 = prediction(gt)
     cache, ids = sdf.GTFieldCache(), [("train", i) for i in range(B)]
+    options = SDFOptions(grid=grid, cache=cache, sign_rule=sign_rule)
     if reference:
-        L.sdf_loss_reference(pred0, gt, K, grid, cache=cache, sign_rule=sign_rule)  # fills the cache
+        L.sdf_loss_reference(pred0, gt, K, options)  # fills the cache
     else:
-        f = sdf.sdf_fields_batched(pred0, gt, K, grid, cache=cache, frame_ids=ids, sign_rule=sign_rule)
+        f = sdf.sdf_fields_batched(pred0, gt, K, options, frame_ids=ids)
         nearest = sdf.nearest_indices_grid(camera.backproject(pred0, K), (gt > 0).reshape(B, -1), f["grid"])
     p = pred0.clone().requires_grad_()
     with OpCounter() as fwd:
         if reference:
-            loss = L.sdf_loss_reference(p, gt, K, grid, cache=cache, sign_rule=sign_rule)
+            loss = L.sdf_loss_reference(p, gt, K, options)
         else:
-            f = sdf.sdf_fields_batched(p, gt, K, grid, cache=cache, frame_ids=ids, sign_rule=sign_rule,
-                                       nearest=nearest)
+            f = sdf.sdf_fields_batched(p, gt, K, options, frame_ids=ids, nearest=nearest)
             loss = L.sdf_loss_from_fields(f, p)
     with OpCounter() as bwd:
         loss.backward()
@@ -238,8 +239,9 @@ def test_bit_for_bit_at_the_paper_s_grid_and_batch(sampling):
     """20 frames (lumen, wall, close-up), the 32^3 grid, at 32 px: the sums are as long as the paper's."""
     gt, K = views(20, 32, seed=9)
     pred0 = prediction(gt, seed=3)
-    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 32, cache=None, sampling=sampling)
-    assert_same(ref, loss_and_grad(L.sdf_loss, pred0, gt, K, 32, cache=None, sampling=sampling))
+    options = SDFOptions(grid=32, cache=None, sampling=sampling)
+    ref = loss_and_grad(L.sdf_loss_reference, pred0, gt, K, options)
+    assert_same(ref, loss_and_grad(L.sdf_loss, pred0, gt, K, options))
 
 
 @pytest.mark.parametrize("sampling", ["bbox", "frustum"])
@@ -247,8 +249,10 @@ def test_bit_for_bit_unsigned_and_in_float64(sampling):
     gt, K = views(4, 20)
     pred0 = prediction(gt)
     for kw in ({"signed": False}, {"method": "device"}):
-        assert_same(loss_and_grad(L.sdf_loss_reference, pred0, gt, K, 6, cache=None, sampling=sampling, **kw),
-                    loss_and_grad(L.sdf_loss, pred0, gt, K, 6, cache=None, sampling=sampling, **kw))
+        options = SDFOptions(grid=6, cache=None, sampling=sampling, **kw)
+        assert_same(loss_and_grad(L.sdf_loss_reference, pred0, gt, K, options),
+                    loss_and_grad(L.sdf_loss, pred0, gt, K, options))
     g64, p64, K64 = gt.double(), pred0.double(), K.double()
-    assert_same(loss_and_grad(L.sdf_loss_reference, p64, g64, K64, 6, cache=None, sampling=sampling),
-                loss_and_grad(L.sdf_loss, p64, g64, K64, 6, cache=None, sampling=sampling))
+    options = SDFOptions(grid=6, cache=None, sampling=sampling)
+    assert_same(loss_and_grad(L.sdf_loss_reference, p64, g64, K64, options),
+                loss_and_grad(L.sdf_loss, p64, g64, K64, options))

@@ -12,6 +12,7 @@ import torch
 
 from geodepth_lite.core import camera, sdf
 from geodepth_lite.core import losses as L
+from geodepth_lite.core.losses import LossSpec, SDFOptions
 from geodepth_lite.training import config, train
 
 H, W = 12, 16
@@ -105,7 +106,7 @@ def check_frustum_samples(q: torch.Tensor, K, h: int, w: int, z_near: float, z_f
 def test_frustum_samples_are_pixels_times_log_spaced_depths():
     gt = tilted_plane(55.0)  # depths 2.07 .. 10.0
     r = (4, 3, 5)
-    f = sdf.sdf_fields(gt * 1.1, gt, K_NARROW, r, sampling="frustum")[0]
+    f = sdf.sdf_fields(gt * 1.1, gt, K_NARROW, SDFOptions(grid=r, sampling="frustum", cache=None))[0]
     zn, zf = float(gt.min()), float(gt.max())
     check_frustum_samples(f["grid"], K_NARROW, H, W, zn, zf, r)
     assert torch.equal(f["grid"], sdf.frustum_points(torch.as_tensor(K_NARROW), H, W, gt.min(), gt.max(), r))
@@ -118,7 +119,7 @@ def test_frustum_samples_are_pixels_times_log_spaced_depths():
     wrong = wrong / wrong[..., 2:] * lin[:, None]  # same rays, linear depths
     with pytest.raises(AssertionError, match="log-spaced"):
         check_frustum_samples(wrong.reshape(-1, 3), K_NARROW, H, W, zn, zf, r)
-    box = sdf.sdf_fields(gt * 1.1, gt, K_NARROW, r)[0]["grid"]
+    box = sdf.sdf_fields(gt * 1.1, gt, K_NARROW, SDFOptions(grid=r, cache=None))[0]["grid"]
     with pytest.raises(AssertionError):
         check_frustum_samples(box, K_NARROW, H, W, zn, zf, r)
     with pytest.raises(ValueError, match="z_near"):
@@ -148,7 +149,7 @@ def test_frustum_view_sign_against_a_fronto_parallel_plane():
     d = 4.0
     pred = torch.full_like(gt, d)
     r = (5, 4, 6)
-    f = sdf.sdf_fields(pred, gt, K_NARROW, r, sampling="frustum", sign_rule="masked")[0]
+    f = sdf.sdf_fields(pred, gt, K_NARROW, SDFOptions(grid=r, sampling="frustum", sign_rule="masked", cache=None))[0]
     assert bool(f["known"].all())  # the view rule applies at every sample: nothing is left out
     q = f["grid"]
     want = expected_plane_field(q, d, K_NARROW, H, W)
@@ -159,10 +160,12 @@ def test_frustum_view_sign_against_a_fronto_parallel_plane():
     assert (f["pred"][~front] <= d - q[~front, 2] + 1e-12).all()  # |phi| >= q_z - d beyond the plane
     assert (f["pred"] > 0).any() and (f["pred"] < 0).any()  # samples on both sides of the plane
     # the same samples under the view sign, and the check catches a field without the sign
-    assert torch.equal(sdf.sdf_fields(pred, gt, K_NARROW, r, sampling="frustum")[0]["pred"], f["pred"])
-    unsigned = sdf.sdf_fields(pred, gt, K_NARROW, r, sampling="frustum", signed=False)[0]["pred"]
+    view = SDFOptions(grid=r, sampling="frustum", cache=None)
+    assert torch.equal(sdf.sdf_fields(pred, gt, K_NARROW, view)[0]["pred"], f["pred"])
+    unsigned = sdf.sdf_fields(pred, gt, K_NARROW, SDFOptions(grid=r, sampling="frustum", signed=False,
+                                                             cache=None))[0]["pred"]
     assert not torch.allclose(unsigned, want, rtol=1e-12, atol=1e-12)
-    assert math.isclose(float(L.sdf_loss(pred, gt, K_NARROW, r, sampling="frustum", cache=None)),
+    assert math.isclose(float(L.sdf_loss(pred, gt, K_NARROW, SDFOptions(grid=r, sampling="frustum", cache=None))),
                         reference_sdf_loss(pred, gt, K_NARROW, r, "frustum"), rel_tol=1e-9)
 
 
@@ -186,7 +189,7 @@ def test_tilted_wall_falls_back_under_bbox_but_never_under_frustum(theta):
     assert float(fr) == 1.0 == reference_coverage(gt, K_NARROW, r, "frustum")
     # the masked sign keeps exactly the covered samples (the ground truth's field; the prediction's
     # is valid wherever the ground truth is)
-    f = sdf.sdf_fields(gt * 1.1, gt, K_NARROW, r, sign_rule="masked")[0]
+    f = sdf.sdf_fields(gt * 1.1, gt, K_NARROW, SDFOptions(grid=r, sign_rule="masked", cache=None))[0]
     assert math.isclose(float(f["known"].double().mean()), float(box), rel_tol=1e-12)
 
 
@@ -208,12 +211,12 @@ def test_masked_loss_is_the_mean_over_the_samples_the_view_rule_signs():
     gt = torch.cat([tilted_plane(55.0), tilted_plane(-40.0, c=3.0)])  # (2, 1, H, W)
     pred = torch.cat([gt[:1] * 1.1, gt[1:] * 0.93 + 0.05])
     r = 6
-    masked = float(L.sdf_loss(pred, gt, K_NARROW, r, sign_rule="masked", cache=None))
-    view = float(L.sdf_loss(pred, gt, K_NARROW, r, cache=None))
+    masked = float(L.sdf_loss(pred, gt, K_NARROW, SDFOptions(grid=r, sign_rule="masked", cache=None)))
+    view = float(L.sdf_loss(pred, gt, K_NARROW, SDFOptions(grid=r, cache=None)))
     assert math.isclose(masked, reference_sdf_loss(pred, gt, K_NARROW, (r,) * 3, sign="masked"), rel_tol=1e-9)
     assert math.isclose(view, reference_sdf_loss(pred, gt, K_NARROW, (r,) * 3), rel_tol=1e-9)
     # per image: the view loss splits into the kept samples' sum and the left-out ones'
-    fields = sdf.sdf_fields(pred, gt, K_NARROW, r, sign_rule="masked")
+    fields = sdf.sdf_fields(pred, gt, K_NARROW, SDFOptions(grid=r, sign_rule="masked", cache=None))
     per_image = []
     for f in fields:
         err = (f["pred"] - f["gt"]).abs()
@@ -231,20 +234,20 @@ def test_masked_loss_ignores_what_only_left_out_samples_see():
     gt = tilted_plane(55.0)
     pred = (gt * 1.1).detach()
     r = 6
-    f = sdf.sdf_fields(pred, gt, K_NARROW, r, sign_rule="masked")[0]
+    f = sdf.sdf_fields(pred, gt, K_NARROW, SDFOptions(grid=r, sign_rule="masked", cache=None))[0]
     nearest = sdf.nearest_indices(camera.backproject(pred, K_NARROW)[0], f["grid"])  # (M,) pixel of each sample
     only_out = torch.tensor(sorted(set(nearest[~f["known"]].tolist()) - set(nearest[f["known"]].tolist())))
     assert len(only_out) > 0
     moved = pred.clone().reshape(-1)
     moved[only_out] *= 1.02
     moved = moved.reshape(pred.shape)
-    loss = {rule: [float(L.sdf_loss(p, gt, K_NARROW, r, sign_rule=rule, cache=None)) for p in (pred, moved)]
-            for rule in ("masked", "view")}
+    loss = {rule: [float(L.sdf_loss(p, gt, K_NARROW, SDFOptions(grid=r, sign_rule=rule, cache=None)))
+                   for p in (pred, moved)] for rule in ("masked", "view")}
     assert loss["masked"][0] == loss["masked"][1]
     assert abs(loss["view"][0] - loss["view"][1]) > 1e-3
     for rule, zero in (("masked", True), ("view", False)):
         p = pred.clone().requires_grad_()
-        L.sdf_loss(p, gt, K_NARROW, r, sign_rule=rule, cache=None).backward()
+        L.sdf_loss(p, gt, K_NARROW, SDFOptions(grid=r, sign_rule=rule, cache=None)).backward()
         assert (float(p.grad.reshape(-1)[only_out].abs().max()) == 0.0) == zero
 
 
@@ -257,17 +260,18 @@ def test_an_image_without_signed_samples_contributes_nothing():
     r = (4, 3, 3)
     pred = (gt * 1.1).detach()
     assert float(sdf.view_rule_coverage(gt, K_NARROW, r, mask=mask, sampling="frustum")[1]) == 0.0
-    alone = float(L.sdf_loss(pred[:1], gt[:1], K_NARROW, r, sampling="frustum", sign_rule="masked", cache=None))
+    masked = SDFOptions(grid=r, sampling="frustum", sign_rule="masked", cache=None)
+    alone = float(L.sdf_loss(pred[:1], gt[:1], K_NARROW, masked))
     p = pred.clone()
     p[1] *= 1.7  # any prediction for the second image
     p.requires_grad_()
-    both = L.sdf_loss(p, gt, K_NARROW, r, mask=mask, sampling="frustum", sign_rule="masked", cache=None)
+    both = L.sdf_loss(p, gt, K_NARROW, masked, mask=mask)
     both.backward()
     assert float(both.detach()) == alone and float(p.grad[1].abs().max()) == 0.0
     assert math.isclose(alone, reference_sdf_loss(pred, gt, K_NARROW, r, "frustum", "masked", mask), rel_tol=1e-9)
     # nothing signed anywhere: 0, finite, connected to pred
     q = pred[1:].clone().requires_grad_()
-    none = L.sdf_loss(q, gt[1:], K_NARROW, r, mask=mask[1:], sampling="frustum", sign_rule="masked", cache=None)
+    none = L.sdf_loss(q, gt[1:], K_NARROW, masked, mask=mask[1:])
     none.backward()
     assert float(none.detach()) == 0.0 and torch.isfinite(q.grad).all()
 
@@ -287,7 +291,7 @@ def test_default_options_give_bit_identical_losses_and_gradients(seed):
     out = []
     for kw in ({}, {"sampling": "bbox", "sign_rule": "view"}):
         p = pred.clone().requires_grad_()
-        loss = L.sdf_loss(p, gt, K, 5, cache=None, **kw)
+        loss = L.sdf_loss(p, gt, K, SDFOptions(grid=5, cache=None, **kw))
         loss.backward()
         out.append((loss.detach(), p.grad))
     assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
@@ -295,19 +299,21 @@ def test_default_options_give_bit_identical_losses_and_gradients(seed):
     assert math.isclose(float(out[0][0]), reference_sdf_loss(pred, gt, K, (5,) * 3, valid=gt > 0), rel_tol=1e-9)
     # ... which the other options are not (the reference can tell them apart)
     for kw in ({"sampling": "frustum"}, {"sign_rule": "masked"}):
-        assert not math.isclose(float(L.sdf_loss(pred, gt, K, 5, cache=None, **kw)), float(out[0][0]), rel_tol=1e-6)
-    a, ta = L.total_loss(pred, gt, img, K, sdf_grid=5)
-    b, tb = L.total_loss(pred, gt, img, K, sdf_grid=5, sdf_sampling="bbox", sdf_sign="view")
+        other = float(L.sdf_loss(pred, gt, K, SDFOptions(grid=5, cache=None, **kw)))
+        assert not math.isclose(other, float(out[0][0]), rel_tol=1e-6)
+    a, ta = L.total_loss(pred, gt, img, K, LossSpec(sdf=SDFOptions(grid=5)))
+    b, tb = L.total_loss(pred, gt, img, K, LossSpec(sdf=SDFOptions(grid=5, sampling="bbox", sign_rule="view")))
     assert torch.equal(a, b) and ta == tb
-    assert L.term_gradient_norms(pred, gt, img, K, sdf_grid=5) == L.term_gradient_norms(
-        pred, gt, img, K, sdf_grid=5, sdf_sampling="bbox", sdf_sign="view")
+    assert L.term_gradient_norms(pred, gt, img, K, LossSpec(sdf=SDFOptions(grid=5))) == L.term_gradient_norms(
+        pred, gt, img, K, LossSpec(sdf=SDFOptions(grid=5, sampling="bbox", sign_rule="view")))
 
 
 @pytest.mark.parametrize("sampling, sign", [("frustum", "view"), ("bbox", "masked"), ("frustum", "masked")])
 def test_options_match_the_reference_on_random_maps(sampling, sign):
     pred, gt, _, K = random_maps(3)
     for method in ("kdtree", "chunked", "device"):
-        got = float(L.sdf_loss(pred, gt, K, (4, 5, 3), method=method, cache=None, sign_rule=sign, sampling=sampling))
+        options = SDFOptions(grid=(4, 5, 3), sampling=sampling, sign_rule=sign, method=method, cache=None)
+        got = float(L.sdf_loss(pred, gt, K, options))
         assert math.isclose(got, reference_sdf_loss(pred, gt, K, (4, 5, 3), sampling, sign, gt > 0), rel_tol=1e-9)
 
 
@@ -315,17 +321,19 @@ def test_options_match_the_reference_on_random_maps(sampling, sign):
 def test_cached_fields_never_mix_samplings():
     pred, gt, _, K = random_maps(4)
     cache = sdf.GTFieldCache()
-    box = L.sdf_loss(pred, gt, K, 5, cache=cache)
-    fr = L.sdf_loss(pred, gt, K, 5, cache=cache, sampling="frustum")
+    box = L.sdf_loss(pred, gt, K, SDFOptions(grid=5, cache=cache))
+    fr = L.sdf_loss(pred, gt, K, SDFOptions(grid=5, sampling="frustum", cache=cache))
     assert (cache.misses, cache.hits, len(cache)) == (6, 0, 6)  # 3 frames x 2 samplings
     assert float(fr) != float(box)
-    assert torch.equal(L.sdf_loss(pred, gt, K, 5, cache=cache, sampling="frustum"), fr)  # hits, same value
-    assert torch.equal(fr, L.sdf_loss(pred, gt, K, 5, cache=None, sampling="frustum"))
+    assert torch.equal(L.sdf_loss(pred, gt, K, SDFOptions(grid=5, sampling="frustum", cache=cache)),
+                       fr)  # hits, same value
+    assert torch.equal(fr, L.sdf_loss(pred, gt, K, SDFOptions(grid=5, sampling="frustum", cache=None)))
     # the masked rule's fields are the view rule's: shared, and the loss is the uncached one
-    masked = L.sdf_loss(pred, gt, K, 5, cache=cache, sampling="frustum", sign_rule="masked")
+    masked = L.sdf_loss(pred, gt, K, SDFOptions(grid=5, sampling="frustum", sign_rule="masked", cache=cache))
     assert (cache.hits, len(cache)) == (6, 6)
-    assert torch.equal(masked, L.sdf_loss(pred, gt, K, 5, cache=None, sampling="frustum", sign_rule="masked"))
-    keys = {sdf.GTFieldCache.key(gt[0], gt[0] > 0, torch.as_tensor(K), (5, 5, 5), True, "view", s)
+    assert torch.equal(masked, L.sdf_loss(pred, gt, K, SDFOptions(grid=5, sampling="frustum", sign_rule="masked",
+                                                                 cache=None)))
+    keys = {sdf.GTFieldCache.key(gt[0], gt[0] > 0, torch.as_tensor(K), SDFOptions(grid=5, sampling=s))
             for s in sdf.SDF_SAMPLINGS}
     assert len(keys) == len(sdf.SDF_SAMPLINGS)
 
@@ -341,11 +349,11 @@ def test_config_accepts_the_options_and_rejects_other_values():
         config.make_config("smoke", sdf_sign="nearest")
     with pytest.raises(ValueError, match="sdf_sign"):
         config.validate_config({**cfg, "sdf_sign": None})
-    pred, gt, img, K = random_maps(5)
+    # the loss's own settings are checked when they are made, whether or not the term is computed
     with pytest.raises(ValueError, match="sign_rule"):
-        L.total_loss(pred, gt, img, K, lambdas=(1, 0, 0), sdf_sign="nearst")  # checked even when not computed
+        LossSpec(lambdas=(1, 0, 0), sdf=SDFOptions(sign_rule="nearst"))
     with pytest.raises(ValueError, match="sampling"):
-        L.term_gradient_norms(pred, gt, img, K, sdf_sampling="cone")
+        SDFOptions(sampling="cone")
 
 
 @pytest.mark.parametrize("key, other", [("sdf_sampling", "frustum"), ("sdf_sign", "masked")])
@@ -362,6 +370,16 @@ def test_the_options_at_their_defaults_keep_config_hashes(key, other):
     assert config.config_hash(config.make_config("teach", 4, 0, lambdas=[1.0, 1.0, 0.01])) == "769350e4"
 
 
+def test_one_adapter_makes_a_configuration_s_loss_settings():
+    """config.loss_spec: the paper profile's Case 4 is the paper's recipe, LossSpec(); each loss key of a
+    configuration lands in its field."""
+    assert config.loss_spec(config.make_config("paper", 4, 0)) == LossSpec()
+    cfg = config.make_config("teach", 3, 1, sdf_sampling="frustum", sdf_sign="masked", border_weight=2.0)
+    assert config.loss_spec(cfg) == LossSpec(lambdas=(1.0, 0.0, 0.01), depth_term="silog", border_weight=2.0,
+                                             sdf=SDFOptions(grid=8, sampling="frustum", sign_rule="masked"))
+    assert config.loss_spec(config.make_config("smoke", 1, 0)).lambdas == (1.0, 0.0, 0.0)  # Case 1: lambda1 alone
+
+
 def test_training_passes_the_options_to_the_sdf_term():
     pred, gt, img, K = random_maps(6, B=2, h=16, w=16, dtype=torch.float32)
     batch = {"depth": gt, "image": img, "K": torch.as_tensor(K).float()}
@@ -371,12 +389,12 @@ def test_training_passes_the_options_to_the_sdf_term():
         for sign in ("view", "masked"):
             cfg = config.make_config("smoke", 3, 0, sdf_sampling=sampling, sdf_sign=sign)
             got[sampling, sign] = train.compute_losses(pred, batch, cfg)[1]["sdf"]
-            want = L.sdf_loss(pred, gt, batch["K"], 8, sign_rule=sign, sampling=sampling)
+            want = L.sdf_loss(pred, gt, batch["K"], SDFOptions(grid=8, sampling=sampling, sign_rule=sign))
             assert got[sampling, sign] == float(want)
             norms = train.term_gradient_norms(pred, batch, cfg)  # Case 3: lambda2 = 0, so no grad or normal
             assert sorted(norms) == ["depth", "sdf", "smooth"]
-            assert norms == L.term_gradient_norms(pred, gt, img, batch["K"], sdf_grid=(8, 8, 8), depth_term="l1",
-                                                  sdf_sampling=sampling, sdf_sign=sign,
-                                                  terms=("depth", "smooth", "sdf"))
+            spec = LossSpec(lambdas=cfg["lambdas"], depth_term="l1",
+                            sdf=SDFOptions(grid=(8, 8, 8), sampling=sampling, sign_rule=sign))
+            assert norms == L.term_gradient_norms(pred, gt, img, batch["K"], spec)
     assert got["bbox", "view"] == train.compute_losses(pred, batch, base)[1]["sdf"]
     assert len(set(got.values())) == 4

@@ -389,11 +389,13 @@ def test_a_sixth_loss_term_is_one_table_entry(monkeypatch, smoke_root, tmp_path)
     ramp = 2.0 + 0.5 * torch.arange(8.0).expand(1, 1, 8, 8)
     K = torch.tensor([[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]])
     image = torch.full((1, 3, 8, 8), 0.5)
-    loss, terms = losses.total_loss(ramp, ramp, image, K, lambdas={"lambda1": 1.0, "lambda4": 0.25})
+    loss, terms = losses.total_loss(ramp, ramp, image, K, losses.LossSpec(lambdas={"lambda1": 1.0, "lambda4": 0.25}))
     assert terms["tv"] == pytest.approx(0.5) and terms["depth"] == 0.0 and terms["sdf"] == 0.0
     assert float(loss) == pytest.approx(terms["smooth"] + 0.25 * 0.5)
     with pytest.raises(ValueError, match="lambdas must be 4"):
-        losses.total_loss(ramp, ramp, image, K, lambdas=(1.0, 0.0, 0.0))
+        losses.LossSpec(lambdas=(1.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="lambdas must be 4"):
+        losses.total_loss(ramp, ramp, image, K)  # the default spec, made before the fourth group
     with pytest.raises(ValueError, match="unknown loss weight group 'lambda9'"):
         config.make_config("smoke", 1, 0, lambdas={"lambda9": 1.0})
     cfg = config.make_config("smoke", 1, 0, dataset=str(smoke_root), image_size=32,

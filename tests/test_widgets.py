@@ -225,7 +225,8 @@ def test_loss_report_searches_the_ground_truth_field_once(monkeypatch):
     rep2 = widgets.loss_report(widgets.perturb(gt, scale=1.1), gt, image, K, grid=5)
     assert len(searches) == 3  # the prediction only: the ground truth's field is cached
     t = lambda a: torch.as_tensor(a)[None, None]  # noqa: E731
-    assert math.isclose(rep["sdf"], float(losses.sdf_loss(t(pred), t(gt), torch.as_tensor(K), (5, 5, 5))),
+    options = losses.SDFOptions(grid=(5, 5, 5))
+    assert math.isclose(rep["sdf"], float(losses.sdf_loss(t(pred), t(gt), torch.as_tensor(K), options)),
                         rel_tol=1e-12)
     assert rep2["sdf"] > 0
 

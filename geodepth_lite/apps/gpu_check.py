@@ -228,7 +228,7 @@ def bench_search(dev, batch: int, size: int, grid: int, repeats: int) -> dict:
 
     def sdf_step():
         p = pred0.clone().requires_grad_()
-        losses.sdf_loss(p, depth, Kb, grid, cache=None).backward()
+        losses.sdf_loss(p, depth, Kb, sdf.SDFOptions(grid=grid, cache=None)).backward()
 
     res["sdf_loss_batch_s"] = _median_time(sdf_step, dev, repeats)
     net = DepthNet().to(dev).train()

@@ -16,7 +16,11 @@ a difference is valid when both of its pixels are valid.
 
 The SDF term (:func:`sdf_loss`) is built on :mod:`geodepth_lite.core.sdf`: the exact nearest-point
 search, the signed fields with their sign rule (the paper's view rule by default), where the
-samples lie (the paper's bounding-box grid by default) and the cache of ground-truth fields.
+samples lie (the paper's bounding-box grid by default) and the cache of ground-truth fields, all
+chosen by one :class:`geodepth_lite.core.sdf.SDFOptions`.
+
+The settings of L_total beside the batch (the weights, the depth term, its border weight and the
+SDF options) are one :class:`LossSpec`; ``LossSpec()`` is the paper's recipe.
 """
 
 from __future__ import annotations
@@ -31,11 +35,8 @@ import torch
 from geodepth_lite.core.errors import UserError
 
 from .sdf import (  # the SDF machinery; valid_mask and check_depths are shared with it
-    DEFAULT_SDF_GRID,
-    GT_FIELD_CACHE,
-    GTFieldCache,
+    SDFOptions,
     check_depths,
-    check_sdf_options,
     sdf_fields,
     sdf_fields_batched,
     valid_mask,
@@ -222,12 +223,12 @@ def normal_loss(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None 
 
 
 # ----------------------------------------------------------------------------- SDF loss
-def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-             cache: GTFieldCache | None = GT_FIELD_CACHE, sign_rule: str = "view",
-             sampling: str = "bbox", frame_ids=None) -> torch.Tensor:
+def sdf_loss(pred, gt, K, options: SDFOptions = SDFOptions(), mask=None, frame_ids=None) -> torch.Tensor:
     """L_sdf: mean over the r_x r_y r_z grid of |phi(X_ijk, S_pred) - phi(X_ijk, S_gt)| (Sec. 3.C, Eq. 10).
 
-    The fields come from :mod:`geodepth_lite.core.sdf`. Both depth maps are back-projected with K
+    The fields come from :mod:`geodepth_lite.core.sdf`, built as ``options`` says
+    (:class:`geodepth_lite.core.sdf.SDFOptions`, whose fields are named below; ``SDFOptions()`` is the
+    paper's term). Both depth maps are back-projected with K
     (valid pixels only); the grid spans the ground truth's 3D bounding box [X_lb, X_ub]
     (:func:`geodepth_lite.core.sdf.grid_points`); phi is the exact nearest distance, signed by the
     paper's view rule (``sign_rule="view"``): grid point q projected with K to its nearest
@@ -255,7 +256,7 @@ def sdf_loss(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto"
 
     Explained with its equation in notebook 03, section 5 (the grid, the sign rule, L_SDF).
     """
-    f = sdf_fields_batched(pred, gt, K, grid, mask, method, signed, cache, sign_rule, sampling, frame_ids)
+    f = sdf_fields_batched(pred, gt, K, options, mask, frame_ids)
     return sdf_loss_from_fields(f, pred)
 
 
@@ -286,14 +287,12 @@ def sdf_loss_from_fields(f: dict, pred: torch.Tensor) -> torch.Tensor:
     return front.sum() / (h.sum() * err.shape[1]).clamp_min(1).to(err.dtype)
 
 
-def sdf_loss_reference(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-                        cache: GTFieldCache | None = None, sign_rule: str = "view",
-                        sampling: str = "bbox") -> torch.Tensor:
+def sdf_loss_reference(pred, gt, K, options: SDFOptions, mask=None) -> torch.Tensor:
     """:func:`sdf_loss` image by image from :func:`geodepth_lite.core.sdf.sdf_fields` (the former code, kept as the
-    reference the batched loss must equal bit for bit, and as the benchmark's baseline)."""
-    fields = [f for f in sdf_fields(pred, gt, K, grid, mask, method, signed, cache, sign_rule, sampling)
-              if f is not None]
-    if sign_rule == "masked":
+    reference the batched loss must equal bit for bit, and as the benchmark's baseline); ground-truth fields
+    are keyed by content in ``options.cache``."""
+    fields = [f for f in sdf_fields(pred, gt, K, options, mask) if f is not None]
+    if options.sign_rule == "masked":
         per_image = [(f["pred"] - f["gt"]).abs()[f["known"]].mean() for f in fields if bool(f["known"].any())]
         return torch.stack(per_image).mean() if per_image else pred.sum() * 0.0
     if not fields:
@@ -302,25 +301,10 @@ def sdf_loss_reference(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: st
 
 
 # ----------------------------------------------------------------------------- the loss table
-@dataclass(frozen=True)
-class LossInputs:
-    """What a loss term may read besides the prediction (one training batch)."""
-
-    gt: torch.Tensor                      # (B, 1, H, W) ground-truth depth
-    image: torch.Tensor                   # (B, 3, H, W) in [0, 1]
-    K: torch.Tensor                       # (B, 3, 3) or (3, 3) pixels
-    mask: torch.Tensor | None = None      # (B, 1, H, W) bool or None
-    sdf_grid: tuple = DEFAULT_SDF_GRID    # r_x, r_y, r_z of the SDF sample grid
-    depth_term: str = "l1"                # the depth term's variant (DEPTH_TERMS)
-    border_weight: float = 0.0            # beta of border_weight_map in the depth term; 0 = all pixels alike
-    sdf_sampling: str = "bbox"            # where the SDF samples lie (sdf.SDF_SAMPLINGS)
-    sdf_sign: str = "view"                # the SDF sign rule (sdf.SIGN_RULES)
-    frame_ids: tuple | None = None        # one hashable id per frame keying cached ground-truth fields (None: content)
-
-
 def _depth_term(p: torch.Tensor, x: LossInputs) -> torch.Tensor:
-    weight = border_weight_map(*p.shape[-2:], x.border_weight, p) if x.border_weight else None
-    return DEPTH_TERMS[x.depth_term](p, x.gt, x.mask, weight=weight)
+    spec = x.spec
+    weight = border_weight_map(*p.shape[-2:], spec.border_weight, p) if spec.border_weight else None
+    return DEPTH_TERMS[spec.depth_term](p, x.gt, x.mask, weight=weight)
 
 
 @dataclass(frozen=True)
@@ -341,8 +325,7 @@ LOSS_TERMS: dict[str, LossTerm] = {
     "smooth": LossTerm(lambda p, x: smoothness_loss(p, x.image), "lambda1", "Eq. 2"),
     "grad": LossTerm(lambda p, x: gradient_loss(p, x.gt, x.mask), "lambda2", "Eq. 3"),
     "normal": LossTerm(lambda p, x: normal_loss(p, x.gt, x.mask), "lambda2", "Eq. 4"),
-    "sdf": LossTerm(lambda p, x: sdf_loss(p, x.gt, x.K, x.sdf_grid, x.mask, sign_rule=x.sdf_sign,
-                                          sampling=x.sdf_sampling, frame_ids=x.frame_ids), "lambda3", "Eq. 10"),
+    "sdf": LossTerm(lambda p, x: sdf_loss(p, x.gt, x.K, x.spec.sdf, x.mask, x.frame_ids), "lambda3", "Eq. 10"),
 }
 
 
@@ -376,30 +359,75 @@ def group_weights(lambdas) -> dict[str, float]:
     return weights
 
 
-def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=DEFAULT_SDF_GRID,
-               depth_term: str = "l1", border_weight: float = 0.0, sdf_sampling: str = "bbox",
-               sdf_sign: str = "view", frame_ids=None):
+@dataclass(frozen=True)
+class LossSpec:
+    """The settings of L_total beside the batch: the weight of each group, the depth term's variant, its
+    border weight and the SDF term's options. ``LossSpec()`` is the paper's recipe (Sec. 3.C, Eq. 11).
+
+    ``lambdas``: the groups' weights by name or in ``group_names()`` order (:func:`group_weights`; the
+    paper's (1, 1, 1) by default; a list is kept as a tuple). ``depth_term``: "l1" (the paper's Eq. 1),
+    "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`). ``border_weight``: beta of
+    :func:`border_weight_map` in the depth term (0: every pixel alike, the paper). ``sdf``: the SDF term's
+    :class:`geodepth_lite.core.sdf.SDFOptions` (the paper's grid, sampling and sign rule by default).
+    A value out of range raises the UserError that names it, here.
+    """
+
+    lambdas: tuple | dict = (1.0, 1.0, 1.0)
+    depth_term: str = "l1"
+    border_weight: float = 0.0
+    sdf: SDFOptions = SDFOptions()
+
+    def __post_init__(self):
+        if self.depth_term not in DEPTH_TERMS:
+            raise UserError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {self.depth_term!r}")
+        if not self.border_weight >= 0:
+            raise UserError(f"border weight must be a non-negative number, got {self.border_weight!r}")
+        if not isinstance(self.sdf, SDFOptions):
+            raise TypeError(f"sdf must be an SDFOptions (e.g. SDFOptions(grid=8)), got {self.sdf!r}")
+        if not isinstance(self.lambdas, dict):
+            object.__setattr__(self, "lambdas", tuple(self.lambdas))
+        group_weights(self.lambdas)
+
+
+@dataclass(frozen=True, kw_only=True)
+class LossInputs:
+    """What a loss term may read besides the prediction: one batch and the loss settings, given by keyword
+    (``LossInputs(gt=gt, image=image, K=K, spec=LossSpec())``)."""
+
+    gt: torch.Tensor                      # (B, 1, H, W) ground-truth depth
+    image: torch.Tensor                   # (B, 3, H, W) in [0, 1]
+    K: torch.Tensor                       # (B, 3, 3) or (3, 3) pixels
+    mask: torch.Tensor | None = None      # (B, 1, H, W) bool or None
+    frame_ids: tuple | None = None        # one hashable id per frame keying cached ground-truth fields (None: content)
+    spec: LossSpec = LossSpec()           # the weights, the depth term, its border weight, the SDF options
+
+    def __post_init__(self):
+        if self.frame_ids is not None:
+            object.__setattr__(self, "frame_ids", tuple(self.frame_ids))
+
+
+def _spec(spec) -> LossSpec:
+    """``spec`` itself, or a TypeError saying what the loss functions take instead."""
+    if not isinstance(spec, LossSpec):
+        raise TypeError(f"the loss settings must be a LossSpec (e.g. LossSpec(lambdas=(1, 0, 0))), got {spec!r}")
+    return spec
+
+
+def total_loss(pred, gt, image, K, spec: LossSpec = LossSpec(), mask=None, frame_ids=None):
     """L_total: each group's weight times the sum of its terms (``LOSS_TERMS``; Sec. 3.C, Eq. 11).
 
     Returns (loss, terms): ``loss`` a scalar tensor for backward; ``terms`` a dict of floats with
     one key per term (unweighted) and "total" (weighted). A zero weight skips computing its
-    group's terms, which are then reported as 0.0. The ablation cases of Sec. 4.2.1 are weight
-    settings (``config.ABLATION_CASES``). ``lambdas``: see :func:`group_weights`. ``depth_term``:
-    "l1" (the paper's Eq. 1), "log_l1" (:func:`log_depth_loss`) or "silog" (:func:`silog_depth_loss`).
-    ``border_weight``: beta of :func:`border_weight_map` in the depth term (0: every pixel alike, the paper).
-    ``sdf_sampling``, ``sdf_sign``: the SDF term's ``sampling`` and ``sign_rule`` (:func:`sdf_loss`;
-    "bbox" and "view" are the paper's). ``frame_ids``: one hashable id per frame, whose ground truth is
-    the same whenever the id is (no augmentation), to key the SDF term's cached ground-truth fields
-    without reading the frames (:func:`sdf_loss`); None keys them by content.
+    group's terms, which are then reported as 0.0. ``spec``: the weights, the depth term, its border
+    weight and the SDF term's options (:class:`LossSpec`; the paper's recipe by default). The ablation
+    cases of Sec. 4.2.1 are weight settings (``config.ABLATION_CASES``). ``frame_ids``: one hashable id
+    per frame, whose ground truth is the same whenever the id is (no augmentation), to key the SDF term's
+    cached ground-truth fields without reading the frames (:func:`sdf_loss`); None keys them by content.
 
     Explained with its equation in notebook 04, "What the network minimises" (Eq. 11).
     """
-    if depth_term not in DEPTH_TERMS:
-        raise UserError(f"depth_term must be one of {', '.join(DEPTH_TERMS)}, got {depth_term!r}")
-    check_sdf_options(sdf_sign, sdf_sampling)
-    weights = group_weights(lambdas)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,
-                        None if frame_ids is None else tuple(frame_ids))
+    weights = group_weights(_spec(spec).lambdas)
+    inputs = LossInputs(gt=gt, image=image, K=K, mask=mask, frame_ids=frame_ids, spec=spec)
     zero = pred.sum() * 0.0
     t = {name: (term.fn(pred, inputs) if weights[term.group] else zero) for name, term in LOSS_TERMS.items()}
     loss = None
@@ -412,23 +440,23 @@ def total_loss(pred, gt, image, K, lambdas=(1.0, 1.0, 1.0), mask=None, sdf_grid=
     return loss, terms
 
 
-def term_gradient_norms(pred, gt, image, K, mask=None, sdf_grid=DEFAULT_SDF_GRID, depth_term: str = "l1",
-                        terms=None, border_weight: float = 0.0, sdf_sampling: str = "bbox",
-                        sdf_sign: str = "view", frame_ids=None) -> dict[str, float]:
+def term_gradient_norms(pred, gt, image, K, spec: LossSpec = LossSpec(), mask=None,
+                        frame_ids=None) -> dict[str, float]:
     """||dL_term / dD_pred||_2 of each unweighted term at the network's output (a loss-balancing diagnostic).
 
     The network sees the losses only through this gradient on its output depth map, so the
     ratio of two norms says how strongly each term pulls on the prediction at a given lambda:
     a term whose gradient is 10x the depth term's dominates the update at lambda = 1.
-    ``pred`` is detached here (nothing reaches the network); returns {term: norm} for ``terms``
-    (default: every term of ``LOSS_TERMS``). The other arguments as in :func:`total_loss`.
+    ``pred`` is detached here (nothing reaches the network); returns {term: norm} for the terms that
+    :func:`total_loss` evaluates under ``spec``, those whose group's weight is not zero (with the paper's
+    weights, every term of ``LOSS_TERMS``). The other arguments as in :func:`total_loss`.
     """
-    check_sdf_options(sdf_sign, sdf_sampling)
+    weights = group_weights(_spec(spec).lambdas)
     p = pred.detach().float().clone().requires_grad_(True)
-    inputs = LossInputs(gt, image, K, mask, sdf_grid, depth_term, border_weight, sdf_sampling, sdf_sign,
-                        None if frame_ids is None else tuple(frame_ids))
+    inputs = LossInputs(gt=gt, image=image, K=K, mask=mask, frame_ids=frame_ids, spec=spec)
     out = {}
-    for name in term_names() if terms is None else terms:
-        (g,) = torch.autograd.grad(LOSS_TERMS[name].fn(p, inputs), p, allow_unused=True)
-        out[name] = 0.0 if g is None else float(g.norm())
+    for name, term in LOSS_TERMS.items():
+        if weights[term.group]:
+            (g,) = torch.autograd.grad(term.fn(p, inputs), p, allow_unused=True)
+            out[name] = 0.0 if g is None else float(g.norm())
     return out

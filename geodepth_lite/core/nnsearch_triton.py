@@ -63,8 +63,12 @@ def parse_tile(text: str) -> tuple[int, int, int, int, int]:
         vals = ()
     if len(vals) == 4:
         vals = (*vals, 0)
-    ok = len(vals) == 5 and all(v > 0 and v & (v - 1) == 0 for v in vals[:4]) and vals[4] in (0, 1)
-    if not ok or not all(8 <= v <= 256 for v in vals[:3]) or vals[3] > 16:
+    ok = len(vals) == 5
+    if ok:
+        bq, bp, cb, warps, mode = vals
+        ok = (all(v > 0 and v & (v - 1) == 0 for v in (bq, bp, cb, warps)) and mode in (0, 1)
+              and all(8 <= v <= 256 for v in (bq, bp, cb)) and warps <= 16)
+    if not ok:
         raise UserError(f"{TILE_ENV} must be 'BQ,BP,CB,WARPS[,MODE]': powers of two in 8-256, 8-256, 8-256, 1-16, "
                          f"and MODE 0 or 1, got {text!r}")
     return vals

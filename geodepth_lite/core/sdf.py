@@ -27,6 +27,9 @@ This module holds what that term is built from, in three layers:
 - cache: ground-truth fields, which do not depend on the network, kept per frame
   (:class:`GTFieldCache`, :data:`GT_FIELD_CACHE`).
 
+What the term takes beside the tensors (grid, sampling, sign rule, search, signed, cache) is one
+:class:`SDFOptions`; ``SDFOptions()`` is the paper's term.
+
 It also holds the depth-map input checks (:func:`check_depths`, :func:`valid_mask`) that
 :mod:`geodepth_lite.core.losses` shares: that module imports this one, not the other way round.
 
@@ -59,6 +62,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -148,12 +152,16 @@ def nearest_indices_chunked(points: torch.Tensor, queries: torch.Tensor, chunk_e
 NN_METHODS = ("auto", "kdtree", "device", "triton", "chunked", "brute_mm")
 
 
+def _check_method(method: str) -> None:
+    if method not in NN_METHODS:
+        raise UserError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
+
+
 def resolve_method(method: str, device: torch.device) -> str:
     """The search a ``method`` runs for tensors on ``device``: "auto" is "kdtree" for CPU tensors (the
     committed results' search), "triton" (:mod:`geodepth_lite.core.nnsearch_triton`) for CUDA tensors where
     Triton is installed, and "device" (:mod:`geodepth_lite.core.nnsearch`) for any other device."""
-    if method not in NN_METHODS:
-        raise UserError(f"unknown nearest-neighbour method {method!r}: use {', '.join(map(repr, NN_METHODS))}")
+    _check_method(method)
     kind = torch.device(device).type
     if method == "auto":
         if kind == "cpu":
@@ -396,7 +404,7 @@ class GTFieldCache:
 
     Keys (:func:`sdf_fields_batched`): the frame's content by default, or the frame's identity where
     the caller names it (``frame_ids``: training without augmentation names the dataset, split,
-    size and index, :func:`geodepth_lite.train.batch_frame_ids`). Augmentation (flips, crops, the
+    size and index, :func:`geodepth_lite.training.train.batch_frame_ids`). Augmentation (flips, crops, the
     field-of-view border) changes a frame's ground truth from one epoch to the next, and train and
     validation frames share indices, so an index alone could return another map's field. Hashing
     the content costs a copy of the depth map to the host and a BLAKE2b over it (400 KiB at
@@ -411,14 +419,15 @@ class GTFieldCache:
         self.hits = self.misses = 0
 
     @staticmethod
-    def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, grid, signed: bool,
-            sign_rule: str = "view", sampling: str = "bbox") -> str:
+    def key(gt_b: torch.Tensor, valid_b: torch.Tensor, K_b: torch.Tensor, options: SDFOptions) -> str:
+        """The content key of one frame's field: a hash of its depth, validity and K, and the options'
+        :meth:`SDFOptions.cache_tag`."""
         h = hashlib.blake2b(digest_size=20)
         for t in (gt_b, valid_b, K_b):
             t = t.detach().cpu().contiguous()
             h.update(str((t.dtype, tuple(t.shape))).encode())
             h.update(t.numpy().tobytes())
-        h.update(repr((tuple(grid), bool(signed), SIGN_RULES[sign_rule], SDF_SAMPLINGS[sampling])).encode())
+        h.update(repr(options.cache_tag()).encode())
         return h.hexdigest()
 
     def get(self, key: str):
@@ -456,8 +465,50 @@ class GTFieldCache:
     def __len__(self) -> int:
         return len(self._d)
 
+    def __repr__(self) -> str:
+        return f"GTFieldCache(max_bytes={self.max_bytes}, fields={len(self)})"
 
-GT_FIELD_CACHE = GTFieldCache()  # used by losses.sdf_loss / losses.total_loss unless cache=None is passed
+
+GT_FIELD_CACHE = GTFieldCache()  # the cache of SDFOptions() (so of losses.sdf_loss, losses.total_loss by default)
+
+
+# ----------------------------------------------------------------------------- options
+@dataclass(frozen=True)
+class SDFOptions:
+    """How the SDF term is built, beside the tensors: the sample grid, where the samples lie, the sign
+    rule, the nearest-point search, signed or not, and the cache of ground-truth fields.
+
+    ``SDFOptions()`` is the paper's term: ``grid`` r_x x r_y x r_z = 32^3 samples (one int means
+    the same on every axis; kept as three ints), ``sampling="bbox"`` (Eq. 9's box, :data:`SDF_SAMPLINGS`),
+    ``sign_rule="view"`` (:data:`SIGN_RULES`), ``method="auto"`` (the exact search of
+    :func:`resolve_method`, :data:`NN_METHODS`), ``signed=True`` (False: the unsigned variant, for
+    comparison) and ``cache=GT_FIELD_CACHE`` (ground-truth fields reused per frame, :class:`GTFieldCache`;
+    None searches them every time). A value out of range raises the UserError that names it, here.
+    """
+
+    grid: tuple[int, int, int] = DEFAULT_SDF_GRID
+    sampling: str = "bbox"
+    sign_rule: str = "view"
+    method: str = "auto"
+    signed: bool = True
+    cache: GTFieldCache | None = GT_FIELD_CACHE
+
+    def __post_init__(self):
+        object.__setattr__(self, "grid", _grid_shape(self.grid))
+        check_sdf_options(self.sign_rule, self.sampling)
+        _check_method(self.method)
+
+    def cache_tag(self) -> tuple:
+        """What keys a cached ground-truth field beside the frame: the grid, ``signed`` and the tags of the
+        sign rule and the sampling (:data:`SIGN_RULES`, :data:`SDF_SAMPLINGS`)."""
+        return (self.grid, bool(self.signed), SIGN_RULES[self.sign_rule], SDF_SAMPLINGS[self.sampling])
+
+
+def _options(options) -> SDFOptions:
+    """``options`` itself, or a TypeError saying what the SDF functions take instead."""
+    if not isinstance(options, SDFOptions):
+        raise TypeError(f"the SDF options must be an SDFOptions (e.g. SDFOptions(grid=8)), got {options!r}")
+    return options
 
 
 # ----------------------------------------------------------------------------- fields of a batch
@@ -471,22 +522,22 @@ def _batch_inputs(gt: torch.Tensor, K, mask, B: int):
     return valid, gt_safe, Kt.expand(B, 3, 3)  # ..., (B, 3, 3)
 
 
-def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-               cache: GTFieldCache | None = None, sign_rule: str = "view", sampling: str = "bbox"):
-    """Per image: the sample grid and the signed fields of prediction and ground truth.
+def sdf_fields(pred, gt, K, options: SDFOptions, mask=None):
+    """Per image: the sample grid and the signed fields of prediction and ground truth, under ``options``
+    (:class:`SDFOptions`: the grid, sampling, sign rule, search, signed or not, cache).
 
     Returns a list (one entry per image; None when the image has no valid pixel) of dicts
     {"grid": M x 3, "lower", "upper": 3-vectors, "pred": M, "gt": M}, M = r_x r_y r_z; fields are
     ordered as :func:`grid_points` (reshape to r_x x r_y x r_z). Each field is
     :func:`signed_distance` of one surface, the depth map back-projected with K at the ground
-    truth's valid pixels, at the samples of ``sampling``: "bbox" (default, the paper's Eq. 9) the
+    truth's valid pixels, at the samples of ``options.sampling``: "bbox" (default, the paper's Eq. 9) the
     grid over the ground truth's bounding box [lower, upper]; "frustum" :func:`frustum_points`
     between the ground truth's nearest and farthest valid depth (lower, upper: the samples' box).
     The prediction's field is differentiable in ``pred``, the ground truth's is not. With a
-    ``cache`` (:class:`GTFieldCache`), ground-truth fields already computed for an identical frame
+    ``options.cache`` (:class:`GTFieldCache`), ground-truth fields already computed for an identical frame
     (and sampling, sign rule, grid) are reused.
 
-    Sign (``sign_rule``, no gradient): "view" (default, the paper's) projects each grid point
+    Sign (``options.sign_rule``, no gradient): "view" (default, the paper's) projects each grid point
     with K to its nearest pixel and compares q_z with each map's own depth there: the
     prediction's field uses ``pred``, the ground truth's ``gt`` (+1 where q_z < D, -1 where
     q_z > D, 0 on it), both at the ground truth's valid pixels (where ``pred`` is also finite and
@@ -496,31 +547,32 @@ def sdf_fields(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "aut
     "masked": the fields of "view", and each dict also holds "known" (M bool): where the view
     rule applies in both fields (what :func:`geodepth_lite.core.losses.sdf_loss` keeps).
     """
-    check_sdf_options(sign_rule, sampling)
+    o = _options(options)
     check_depths(pred, gt)
     B = pred.shape[0]
     valid, gt_safe, Kb = _batch_inputs(gt, K, mask, B)  # (B, 1, H, W) bool, (B, 1, H, W), (B, 3, 3)
-    shape = _grid_shape(grid)
-    view = signed and sign_rule in ("view", "masked")  # else no depth map is passed: the nearest-point sign
+    view = o.signed and o.sign_rule in ("view", "masked")  # else no depth map is passed: the nearest-point sign
     S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
     S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
-    todo = _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling)
+    todo = _image_inputs(S_pred, S_gt, gt, valid, Kb, o)
     out: list = [None] * B
     # every search of the batch at once: the predictions' fields, then the ground truths' not cached
     pairs = [(t.pred_pts, t.q) for t in todo] + [(t.gt_pts, t.q) for t in todo if t.hit is None]
-    found = iter(nearest_indices_many(pairs, method))
+    found = iter(nearest_indices_many(pairs, o.method))
     idx_pred = [next(found) for _ in todo]
-    for (b, p_pts, g_pts, q, lower, upper, hit, key), ip in zip(todo, idx_pred):
-        phi_pred = _phi(p_pts, q, ip, signed, pred[b, 0].detach() if view else None, Kb[b], valid[b, 0])  # (M,)
-        if hit is not None:
-            phi_gt = hit[2].to(phi_pred)  # (M,)
+    for t, ip in zip(todo, idx_pred):
+        b = t.b
+        phi_pred = _phi(t.pred_pts, t.q, ip, o.signed, pred[b, 0].detach() if view else None, Kb[b],
+                        valid[b, 0])  # (M,)
+        if t.hit is not None:
+            phi_gt = t.hit[2].to(phi_pred)  # (M,) the cached (lower, upper, field)'s field
         else:
-            phi_gt = _phi(g_pts, q, next(found), signed, gt_safe[b, 0] if view else None, Kb[b],
+            phi_gt = _phi(t.gt_pts, t.q, next(found), o.signed, gt_safe[b, 0] if view else None, Kb[b],
                           valid[b, 0]).to(phi_pred)  # (M,)
-            if key is not None:
-                cache.put(key, lower, upper, phi_gt)
-        out[b] = {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt}
-    if sign_rule == "masked":
+            if t.key is not None:
+                o.cache.put(t.key, t.lower, t.upper, phi_gt)
+        out[b] = {"grid": t.q, "lower": t.lower, "upper": t.upper, "pred": phi_pred, "gt": phi_gt}
+    if o.sign_rule == "masked":
         _mark_known(out, pred, gt_safe, Kb, valid)
     return out
 
@@ -539,9 +591,10 @@ class _ImageInputs(NamedTuple):
     key: object
 
 
-def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, sampling) -> list[_ImageInputs]:
+def _image_inputs(S_pred, S_gt, gt, valid, Kb, options: SDFOptions) -> list[_ImageInputs]:
     """Per image of :func:`sdf_fields` with a valid pixel, its :class:`_ImageInputs`."""
     todo = []
+    cache = options.cache
     if cache is not None and cache.max_bytes > 0 and gt.device.type != "cpu":
         # one copy of the batch to the host for the keys, not three per image (each a device sync)
         gt, valid_h, K_h = gt.detach().cpu(), valid.cpu(), Kb.cpu()
@@ -554,10 +607,11 @@ def _image_inputs(S_pred, S_gt, gt, valid, Kb, shape, signed, cache, sign_rule, 
         sel = None if bool(vb.all()) else vb.nonzero().squeeze(1)  # (N,) valid pixels; None: all (no gather)
         key = None
         if cache is not None and cache.max_bytes > 0:
-            key = GTFieldCache.key(gt[b], valid_h[b], K_h[b], shape, signed, sign_rule, sampling)
+            key = GTFieldCache.key(gt[b], valid_h[b], K_h[b], options)
         hit = cache.get(key) if key is not None else None
         g_pts = S_gt[b] if sel is None else S_gt[b, sel]  # (N, 3)
-        q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), shape, sampling, hit)  # (M, 3), (3,), (3,)
+        q, lower, upper = _samples(g_pts, Kb[b], tuple(valid[b, 0].shape), options.grid, options.sampling,
+                                   hit)  # (M, 3), (3,), (3,)
         todo.append(_ImageInputs(b, S_pred[b] if sel is None else S_pred[b, sel], g_pts, q, lower, upper, hit, key))
     return todo
 
@@ -667,14 +721,15 @@ def _masked_box(S: torch.Tensor, valid: torch.Tensor, has: torch.Tensor):
     return torch.where(has[:, None], lower, zero), torch.where(has[:, None], upper, zero)
 
 
-def _batch_samples(S_gt, valid, has, Kb, hw, shape, sampling: str, hit=None):
+def _batch_samples(S_gt, valid, has, Kb, hw, options: SDFOptions, hit=None):
     """Every image's SDF samples at once: (q B x M x 3, lower B x 3, upper B x 3), as :func:`_samples`
-    gives them image by image (the same operations, so the same values). ``hit``: cached
-    (lower, upper) boxes, B x 3 each, which the "bbox" grid reuses."""
+    gives them image by image (the same operations, so the same values), on ``options.grid`` at
+    ``options.sampling``. ``hit``: cached (lower, upper) boxes, B x 3 each, which the "bbox" grid reuses."""
+    shape = options.grid
     rx, ry, rz = shape
     dtype, dev = S_gt.dtype, S_gt.device
     B = S_gt.shape[0]
-    if sampling == "frustum":
+    if options.sampling == "frustum":
         z_near, z_far = _masked_box(S_gt[..., 2:], valid, has)  # (B, 1) each
         z_near = torch.where(has[:, None], z_near, torch.ones_like(z_near))  # an image without points: 1..1
         z_far = torch.where(has[:, None], z_far, torch.ones_like(z_far))
@@ -703,25 +758,24 @@ def _phi_batched(points, queries, idx, signed: bool, view) -> torch.Tensor:
     return _signed_from_nearest(nearest, queries, signed, view)  # (B, M)
 
 
-def _cache_keys(cache, frame_ids, gt, valid, Kb, shape, signed, sign_rule, sampling):
-    """One key per image for ``cache``: (the frame's id, the options) where ``frame_ids`` is given (nothing
-    read from the device), else the content hash of :meth:`GTFieldCache.key`; None without a cache."""
+def _cache_keys(options: SDFOptions, frame_ids, gt, valid, Kb):
+    """One key per image for ``options.cache``: (the frame's id, the options' tag) where ``frame_ids`` is given
+    (nothing read from the device), else the content hash of :meth:`GTFieldCache.key`; None without a cache."""
+    cache = options.cache
     if cache is None or cache.max_bytes <= 0:
         return None
-    options = (tuple(shape), bool(signed), SIGN_RULES[sign_rule], SDF_SAMPLINGS[sampling])
     if frame_ids is not None:
         if len(frame_ids) != gt.shape[0]:
             raise ValueError(f"frame_ids must name the {gt.shape[0]} frames of the batch, got {len(frame_ids)}")
-        return [("frame", fid, options) for fid in frame_ids]
+        return [("frame", fid, options.cache_tag()) for fid in frame_ids]
     if gt.device.type != "cpu":  # one copy of the batch to the host, not three per image
         gt, valid, Kb = gt.detach().cpu(), valid.cpu(), Kb.cpu()
-    return [GTFieldCache.key(gt[b], valid[b], Kb[b], shape, signed, sign_rule, sampling) for b in range(gt.shape[0])]
+    return [GTFieldCache.key(gt[b], valid[b], Kb[b], options) for b in range(gt.shape[0])]
 
 
-def sdf_fields_batched(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: str = "auto", signed: bool = True,
-                       cache: GTFieldCache | None = None, sign_rule: str = "view", sampling: str = "bbox",
-                       frame_ids=None, nearest=None) -> dict:
-    """The fields of :func:`sdf_fields` for the whole batch at once, as fixed-shape tensors.
+def sdf_fields_batched(pred, gt, K, options: SDFOptions, mask=None, frame_ids=None, nearest=None) -> dict:
+    """The fields of :func:`sdf_fields` for the whole batch at once, as fixed-shape tensors (``options``:
+    :class:`SDFOptions`).
 
     Returns {"grid": B x M x 3, "lower", "upper": B x 3, "pred", "gt": B x M, "has": B bool (the
     image has a valid pixel; the other rows hold no field)} and, for ``sign_rule="masked"``,
@@ -731,41 +785,41 @@ def sdf_fields_batched(pred, gt, K, grid=DEFAULT_SDF_GRID, mask=None, method: st
     device: no per-image loop, no test of a tensor's value on the host.
 
     ``frame_ids``: one hashable id per image (e.g. the dataset's split and frame index) that keys the
-    ``cache`` where the frame's ground truth is the same whenever the id is (no augmentation);
+    ``options.cache`` where the frame's ground truth is the same whenever the id is (no augmentation);
     None keys it by content. The ground-truth fields come from the cache when every frame hits,
     else all are computed and the missing ones stored. ``nearest``: the prediction's nearest-point
     indices (B x M, from :func:`nearest_indices_grid`), to skip its search (tests, benchmarks).
     """
-    check_sdf_options(sign_rule, sampling)
+    o = _options(options)
     check_depths(pred, gt)
     B, _, H, W = pred.shape
     valid, gt_safe, Kb = _batch_inputs(gt, K, mask, B)  # (B, 1, H, W) bool, (B, 1, H, W), (B, 3, 3)
-    shape = _grid_shape(grid)
-    view = signed and sign_rule in ("view", "masked")
+    view = o.signed and o.sign_rule in ("view", "masked")
     S_pred = camera.backproject(pred, K)  # (B, H*W, 3), differentiable in pred
     S_gt = camera.backproject(gt_safe, K).detach()  # (B, H*W, 3)
     vflat = valid.reshape(B, H * W)
     has = vflat.any(1)  # (B,)
-    keys = _cache_keys(cache, frame_ids, gt, valid, Kb, shape, signed, sign_rule, sampling)
-    hits = [cache.get(k) for k in keys] if keys is not None else None
+    keys = _cache_keys(o, frame_ids, gt, valid, Kb)
+    hits = [o.cache.get(k) for k in keys] if keys is not None else None
     hit = None
     if hits is not None and all(h is not None for h in hits):
         hit = tuple(torch.stack([h[i] for h in hits]) for i in range(3))  # (B, 3), (B, 3), (B, M)
-    q, lower, upper = _batch_samples(S_gt, vflat, has, Kb, (H, W), shape, sampling, hit)
+    q, lower, upper = _batch_samples(S_gt, vflat, has, Kb, (H, W), o, hit)
     if nearest is None:
-        nearest = nearest_indices_grid(S_pred, vflat, q, method)  # (B, M)
+        nearest = nearest_indices_grid(S_pred, vflat, q, o.method)  # (B, M)
     v_pred = _view_sign(q, pred[:, 0].detach(), Kb, valid[:, 0]) if view else None
-    phi_pred = _phi_batched(S_pred, q, nearest, signed, v_pred)  # (B, M)
+    phi_pred = _phi_batched(S_pred, q, nearest, o.signed, v_pred)  # (B, M)
     if hit is not None:
         phi_gt = hit[2].to(phi_pred)
     else:
         v_gt = _view_sign(q, gt_safe[:, 0], Kb, valid[:, 0]) if view else None
-        phi_gt = _phi_batched(S_gt, q, nearest_indices_grid(S_gt, vflat, q, method), signed, v_gt).to(phi_pred)
+        phi_gt = _phi_batched(S_gt, q, nearest_indices_grid(S_gt, vflat, q, o.method), o.signed,
+                              v_gt).to(phi_pred)
         for b, h in enumerate(hits or ()):  # rows of frames without a valid pixel too: they are never read
             if h is None:
-                cache.put(keys[b], lower[b].clone(), upper[b].clone(), phi_gt[b].clone())
+                o.cache.put(keys[b], lower[b].clone(), upper[b].clone(), phi_gt[b].clone())
     out = {"grid": q, "lower": lower, "upper": upper, "pred": phi_pred, "gt": phi_gt, "has": has}
-    if sign_rule == "masked":
+    if o.sign_rule == "masked":
         out["known"] = v_pred[1] & v_gt[1] if hit is None else (
             v_pred[1] & _view_sign(q, gt_safe[:, 0], Kb, valid[:, 0])[1])
     return out

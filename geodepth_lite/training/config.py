@@ -21,9 +21,9 @@ from typing import Any, Mapping
 import numpy as np
 
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.core.losses import DEPTH_TERMS, group_weights
+from geodepth_lite.core.losses import DEPTH_TERMS, LossSpec, group_weights
 from geodepth_lite.core.model import PADDINGS, check_depth_range
-from geodepth_lite.core.sdf import SDF_SAMPLINGS
+from geodepth_lite.core.sdf import SDF_SAMPLINGS, SDFOptions
 from geodepth_lite.data.augment import AUGMENTS
 
 PROFILES: dict[str, dict] = {
@@ -323,6 +323,16 @@ def _check_data(cfg: dict) -> None:
         cfg["encoder_weights"] = str(cfg["encoder_weights"])
         if not Path(cfg["encoder_weights"]).is_file():
             raise FileNotFoundError(f"encoder_weights: no such file {cfg['encoder_weights']}")
+
+
+def loss_spec(cfg: dict) -> LossSpec:
+    """The loss settings of a training configuration (``make_config``): its weights, depth term, border
+    weight, and the SDF term's grid (``sdf_grid`` samples per axis), sampling and sign rule; the search and
+    the cache of ground-truth fields are :class:`SDFOptions`' defaults. The one place a configuration
+    becomes :class:`LossSpec`."""
+    g = cfg["sdf_grid"]
+    return LossSpec(lambdas=cfg["lambdas"], depth_term=cfg["depth_term"], border_weight=cfg["border_weight"],
+                    sdf=SDFOptions(grid=(g, g, g), sampling=cfg["sdf_sampling"], sign_rule=cfg["sdf_sign"]))
 
 
 def config_identity(cfg: dict) -> dict:

@@ -81,13 +81,11 @@ def in_depth_unit(pred: torch.Tensor, depth: torch.Tensor, cfg: dict) -> tuple[t
 
 def compute_losses(pred: torch.Tensor, batch: dict, cfg: dict, frame_ids=None):
     """(weighted total, {term: value}) of ``losses.total_loss`` for a batch, in float32, in the
-    configuration's depth unit (``in_depth_unit``). ``frame_ids``: see :func:`batch_frame_ids`."""
-    g = cfg["sdf_grid"]
+    configuration's depth unit (``in_depth_unit``), with its loss settings (``config.loss_spec``).
+    ``frame_ids``: see :func:`batch_frame_ids`."""
     pred, depth = in_depth_unit(pred.float(), batch["depth"], cfg)
-    return losses.total_loss(pred, depth, batch["image"], batch["K"], lambdas=cfg["lambdas"],
-                             mask=batch.get("valid"), sdf_grid=(g, g, g), depth_term=cfg["depth_term"],
-                             border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
-                             sdf_sign=cfg["sdf_sign"], frame_ids=frame_ids)
+    return losses.total_loss(pred, depth, batch["image"], batch["K"], config.loss_spec(cfg),
+                             mask=batch.get("valid"), frame_ids=frame_ids)
 
 
 def frame_space(root, split: str, image_size) -> tuple:
@@ -108,22 +106,13 @@ def batch_frame_ids(batch: dict, space: tuple | None) -> list | None:
     return [(*space, int(i)) for i in (index.tolist() if isinstance(index, torch.Tensor) else index)]
 
 
-def weighted_terms(cfg: dict) -> tuple[str, ...]:
-    """The loss terms whose group has a non-zero weight in ``cfg["lambdas"]`` (the ones training evaluates)."""
-    weights = losses.group_weights(cfg["lambdas"])
-    return tuple(name for name, term in losses.LOSS_TERMS.items() if weights[term.group])
-
-
 def term_gradient_norms(pred: torch.Tensor, batch: dict, cfg: dict, frame_ids=None) -> dict[str, float]:
     """The gradient norm at the network output of each weighted loss term (logged once per epoch, on
     the first batch); a term whose weight is zero is not evaluated, and its ``gradnorm_`` column is
-    absent from the log."""
-    g = cfg["sdf_grid"]
+    absent from the log. The loss settings are the configuration's (``config.loss_spec``)."""
     pred, depth = in_depth_unit(pred, batch["depth"], cfg)
-    return losses.term_gradient_norms(pred, depth, batch["image"], batch["K"], mask=batch.get("valid"),
-                                      sdf_grid=(g, g, g), depth_term=cfg["depth_term"], terms=weighted_terms(cfg),
-                                      border_weight=cfg["border_weight"], sdf_sampling=cfg["sdf_sampling"],
-                                      sdf_sign=cfg["sdf_sign"], frame_ids=frame_ids)
+    return losses.term_gradient_norms(pred, depth, batch["image"], batch["K"], config.loss_spec(cfg),
+                                      mask=batch.get("valid"), frame_ids=frame_ids)
 
 
 @torch.no_grad()

@@ -118,7 +118,7 @@ def loss_report(pred: np.ndarray, gt: np.ndarray, image: np.ndarray, K, grid: in
 
     image: H x W x 3 or 3 x H x W in [0, 1]. Also returns the SDF fields on the r^3 grid
     ("sdf_gt", "sdf_pred", shape r x r x r, axes x, y, z) and the grid bounds. The ground
-    truth's field comes from ``losses.GT_FIELD_CACHE`` after the first call for a frame, so a
+    truth's field comes from ``geodepth_lite.core.sdf.GT_FIELD_CACHE`` after the first call for a frame, so a
     call searches the prediction's field only, once (the SDF loss is the mean of the fields'
     difference, as :func:`geodepth_lite.core.losses.sdf_loss` computes it).
     """
@@ -127,9 +127,11 @@ def loss_report(pred: np.ndarray, gt: np.ndarray, image: np.ndarray, K, grid: in
         image = image.transpose(2, 0, 1)
     p, g, img = _t(pred), _t(gt), torch.as_tensor(image)[None]
     H, W = gt.shape
-    r = (grid,) * 3 if isinstance(grid, int) else tuple(grid)
-    inputs = losses.LossInputs(g, img, torch.as_tensor(np.asarray(K, dtype=np.float64)), None, r)
-    fields = losses.sdf_fields(p, g, K, grid=grid, cache=losses.GT_FIELD_CACHE)[0]
+    options = losses.SDFOptions(grid=grid)  # the paper's term on this grid, the ground truth's field cached
+    r = options.grid
+    inputs = losses.LossInputs(gt=g, image=img, K=torch.as_tensor(np.asarray(K, dtype=np.float64)),
+                               spec=losses.LossSpec(sdf=options))
+    fields = losses.sdf_fields(p, g, K, options)[0]
     out = {name: float(term.fn(p, inputs)) for name, term in losses.LOSS_TERMS.items()  # every term, by name
            if name != "sdf"}  # the SDF term from the fields below: one nearest-point search, not two
     out["sdf"] = float((torch.stack([fields["pred"]]) - torch.stack([fields["gt"]])).abs().mean())
