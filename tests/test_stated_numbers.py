@@ -390,3 +390,54 @@ def test_the_test_run_after_reproduce_is_stated_from_its_record():
 
     assert missing(rec) == []
     assert missing(dict(rec, slowest_notebook_cell={"test": "x", "s": 61.0})) == ["evaluation, 61.0 s"]
+
+
+PRECISION_RECORDS = ("step_precision_cpu.json", "step_precision_bf16_cpu.json", "step_precision_avx512bf16_cpu.json")
+
+
+def precision_problems(rec: dict, text: str) -> list[str]:
+    """The step-precision tables of docs/timings.md against one ``bench_step_precision`` record: each
+    variant's median step in ms and ratio to float32 on one row, the first step's loss shift, and for
+    a record of equal step counts, the per-repetition range and median of the ratios."""
+    import statistics
+
+    text, problems = flat(text), []
+    for name, v in rec["variants"].items():
+        row = f"| {v['median_s'] * 1e3:.1f} | {v['ratio']:.2f} |"
+        if row not in text:
+            problems.append(f"{name}: docs/timings.md has no row {row!r}")
+        if name == "fp32":
+            continue
+        shift = f"{v['loss_rel_diff']:.1e}"
+        if f"{shift} relative" not in text and f"{shift.replace('e-0', 'e-')} relative" not in text:
+            problems.append(f"{name}: the loss shift {shift} is not stated")
+        if len(set(rec["steps"].values())) == 1:
+            r = v["paired_ratios"]
+            reps = (f"{min(r):.2f}-{max(r):.2f}, median {statistics.median(r):.2f} "
+                    f"({rec['repeats']} repetitions of {rec['steps'][name]} steps)")
+            if reps not in text:
+                problems.append(f"{name}: the per-repetition ratios {reps!r} are not stated")
+    return problems
+
+
+@pytest.mark.parametrize("name", PRECISION_RECORDS)
+def test_the_precision_tables_are_stated_from_their_records(name):
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / name).read_text())
+    assert precision_problems(rec, TIMINGS.read_text(encoding="utf-8")) == []
+
+
+def test_the_precision_check_can_fail():
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / PRECISION_RECORDS[-1]).read_text())
+    text = TIMINGS.read_text(encoding="utf-8")
+    bf16 = dict(rec["variants"]["bf16+channels_last"])
+    slower = dict(bf16, median_s=bf16["median_s"] * 1.3, ratio=bf16["ratio"] * 1.3,
+                  paired_ratios=[x * 1.3 for x in bf16["paired_ratios"]])
+    problems = precision_problems(dict(rec, variants={"bf16+channels_last": slower}), text)
+    assert len(problems) == 2, problems  # the row and the per-repetition ratios; the loss shift is unchanged
+    moved = dict(bf16, loss_rel_diff=bf16["loss_rel_diff"] * 3)
+    assert precision_problems(dict(rec, variants={"bf16+channels_last": moved}), text) == [
+        f"bf16+channels_last: the loss shift {moved['loss_rel_diff']:.1e} is not stated"]
