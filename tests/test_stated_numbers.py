@@ -306,6 +306,9 @@ def cold_run_problems(rec: dict, timings: str, readme: str) -> list[str]:
     """The cold test run's figures in docs/timings.md and the README against its record."""
     figures = [f"{rec['pytest_s'] / 60:.1f} min", f"({rec['pytest_s']:.0f} s)", f"{rec['ci_run_s'] / 60:.1f} min",
                f"{rec['passed']} passed, {rec['skipped']} skipped"]
+    if "slowest" in rec:  # the two slowest tests and the slowest notebook cell, as the row gives them
+        figures += [f"{t['s']:.1f} s" for t in rec["slowest"][:2]]
+        figures.append(f"slowest notebook cell under nbval {rec['slowest_notebook_cell']['s']:.1f} s")
     problems = [f"docs/timings.md does not state {f!r}" for f in figures if f not in flat(timings)]
     if f"{rec['pytest_s'] / 60:.1f} min cold" not in flat(readme):
         problems.append(f"the README does not state '{rec['pytest_s'] / 60:.1f} min cold'")
@@ -328,6 +331,10 @@ def test_the_cold_run_check_can_fail():
     problems = cold_run_problems(longer, TIMINGS.read_text(encoding="utf-8"), README.read_text(encoding="utf-8"))
     assert f"docs/timings.md does not state '{longer['pytest_s'] / 60:.1f} min'" in problems
     assert f"the README does not state '{longer['pytest_s'] / 60:.1f} min cold'" in problems
+    cell = dict(rec["slowest_notebook_cell"], s=rec["slowest_notebook_cell"]["s"] + 5)
+    assert cold_run_problems(dict(rec, slowest_notebook_cell=cell), TIMINGS.read_text(encoding="utf-8"),
+                             README.read_text(encoding="utf-8")) == [
+        f"docs/timings.md does not state 'slowest notebook cell under nbval {cell['s']:.1f} s'"]
 
 
 def reproduce_run_problems(rec: dict, timings: str, readme: str) -> list[str]:
@@ -385,11 +392,14 @@ def test_the_test_run_after_reproduce_is_stated_from_its_record():
         figures = [f"{r['pytest_s'] / 60:.1f} min ({r['pytest_s']:.0f} s)",
                    f"{r['passed']} passed, {r['failed']} failed",
                    f"median {r['load_1min_median']:.2f} ({r['load_1min_min']:.2f}-{r['load_1min_max']:.2f})",
-                   f"evaluation, {r['slowest_notebook_cell']['s']:.1f} s"]
+                   f"`{r['slowest_notebook_cell']['test']}`", f"{r['slowest_notebook_cell']['s']:.1f} s;"]
         return [f for f in figures if f not in text]
 
     assert missing(rec) == []
-    assert missing(dict(rec, slowest_notebook_cell={"test": "x", "s": 61.0})) == ["evaluation, 61.0 s"]
+    cell = dict(rec["slowest_notebook_cell"], s=61.0)
+    assert missing(dict(rec, slowest_notebook_cell=cell)) == ["61.0 s;"]
+    other = dict(rec["slowest_notebook_cell"], test="notebooks/06_generalization.ipynb::Cell 3")
+    assert missing(dict(rec, slowest_notebook_cell=other)) == ["`notebooks/06_generalization.ipynb::Cell 3`"]
 
 
 PRECISION_RECORDS = ("step_precision_cpu.json", "step_precision_bf16_cpu.json", "step_precision_avx512bf16_cpu.json")
