@@ -451,3 +451,24 @@ def test_the_precision_check_can_fail():
     moved = dict(bf16, loss_rel_diff=bf16["loss_rel_diff"] * 3)
     assert precision_problems(dict(rec, variants={"bf16+channels_last": moved}), text) == [
         f"bf16+channels_last: the loss shift {moved['loss_rel_diff']:.1e} is not stated"]
+
+
+def levers_problems(rec: dict, text: str) -> list[str]:
+    """The smoke side-by-side table of docs/timings.md against ``benchmarks/reproduce_levers_smoke.json``."""
+    w = {k: rec[f"{k}_wall_s"] for k in "AB"}
+    r = rec["wall_ratio_A_over_B"]
+    figures = [f"| {w[k]['median']:.1f} s ({w[k]['min']:.1f}-{w[k]['max']:.1f}) | {rec[f'{k}_cpu_s']['median']:.1f} s |"
+               for k in "BA"]
+    figures.append(f"| {r['median']:.3f} ({r['min']:.3f}-{r['max']:.3f}) | {rec['cpu_ratio_A_over_B']['median']:.3f} |")
+    figures.append(f"{rec['runs']} runs each")
+    return [f for f in figures if f not in flat(text)]
+
+
+def test_the_levers_table_is_stated_from_its_record():
+    import json
+
+    rec = json.loads((ROOT / "benchmarks" / "reproduce_levers_smoke.json").read_text())
+    text = TIMINGS.read_text(encoding="utf-8")
+    assert levers_problems(rec, text) == []
+    slower = dict(rec, A_wall_s=dict(rec["A_wall_s"], median=rec["B_wall_s"]["median"]))  # no gain after all
+    assert len(levers_problems(slower, text)) == 1
