@@ -10,13 +10,11 @@ import re
 import shutil
 import tempfile
 import time
-import warnings
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 import torch
-from PIL import Image
 
 from geodepth_lite.core.errors import UserError
 
@@ -431,30 +429,6 @@ def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int | None = 2)
     write_bytes_atomic(path, (json.dumps(obj, indent=indent, sort_keys=False) + "\n").encode())
 
 
-def read_npy(path: str | os.PathLike) -> np.ndarray:
-    """A numeric array from a ``.npy`` file (never unpickled); a :class:`FileProblem` naming the file otherwise."""
-    try:
-        with open(path, "rb") as f:
-            if f.read(6) != b"\x93NUMPY":
-                raise FileProblem(f"cannot read {path}: not a .npy file (no NumPy header)", path)
-            f.seek(0)
-            check_npy_header(f, path)  # bounded before the array is read
-        a = np.load(path, allow_pickle=False)
-    except FileProblem:
-        raise
-    except (OSError, ValueError, EOFError) as exc:  # missing, truncated, or pickled objects
-        if isinstance(exc, OSError):
-            reason = os_reason(exc)
-        elif "allow_pickle" in str(exc) or "pickle" in str(exc).lower():
-            reason = "it holds pickled Python objects, never loaded (a depth file holds numbers only)"
-        else:
-            reason = f"damaged .npy file ({exc})"
-        raise FileProblem(f"cannot read {path}: {reason}", path) from exc
-    if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
-        raise FileProblem(f"cannot read {path}: not a numeric array", path)
-    return a
-
-
 def package_parent() -> Path:
     """The folder that holds the ``geodepth_lite`` package: a checkout's root, or where it is installed."""
     return Path(__file__).resolve().parent.parent
@@ -499,114 +473,3 @@ def data_dir() -> Path:
 
 def runs_dir() -> Path:
     return workspace() / "runs"
-
-
-# --------------------------------------------------------------------------- bounds on files from elsewhere
-MAX_PIXELS = 50_000_000  # an image (frame, mask, depth map) is refused above this many pixels, before decoding
-# PIL warns on opening an image over 89 megapixels; every reader here refuses it first, in one line
-warnings.filterwarnings("ignore", category=Image.DecompressionBombWarning)
-
-
-def check_pixels(width: int, height: int, path: str | os.PathLike, what: str = "image",
-                 max_pixels: int | None = None) -> None:
-    """A :class:`FileProblem` naming ``path`` when ``width`` x ``height`` is over ``max_pixels``
-    (default ``MAX_PIXELS``): decoding it would take more memory than an image should."""
-    cap = MAX_PIXELS if max_pixels is None else int(max_pixels)
-    if width * height > cap:
-        raise FileProblem(f"cannot read {what} {path}: {width} x {height} pixels is over the limit of {cap} "
-                          f"pixels ({cap / 1e6:g} megapixels), refused before decoding", path)
-
-
-def image_header_size(path: str | os.PathLike) -> tuple[int, int] | None:
-    """(width, height) from an image file's header, without decoding its pixels; None when PIL cannot
-    identify it (its reader then says what is wrong). Images past PIL's own bomb limit are refused."""
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except Image.DecompressionBombError as exc:
-        raise FileProblem(f"cannot read {path}: {exc}", path) from exc
-    except (OSError, ValueError, SyntaxError):  # not an image PIL knows, or a damaged header
-        return None
-
-
-def check_image_file(path: str | os.PathLike, what: str = "image", max_pixels: int | None = None) -> None:
-    """:func:`check_pixels` from the file's header, before anything decodes it."""
-    size = image_header_size(path)
-    if size is not None:
-        check_pixels(*size, path, what, max_pixels)
-
-
-MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file (data_manifests/*.json, a dataset's manifest.json), at most
-MAX_DATASET_FILE_BYTES = 2**30  # a file a dataset names (frame, depth map, frames.jsonl, checksummed file)
-
-
-def inside_folder(root: str | os.PathLike, rel: str) -> Path | None:
-    """``root / rel`` when ``rel`` is a relative path that stays inside ``root`` (no absolute path,
-    no ``..``, no symbolic link leading out) and names a regular file; else None."""
-    if not isinstance(rel, str) or not rel or "\0" in rel:
-        return None
-    parts = Path(rel).parts
-    if Path(rel).is_absolute() or ".." in parts or rel.startswith(("/", "\\")):
-        return None
-    base = Path(root).resolve()
-    try:
-        target = (base / rel).resolve()
-    except (OSError, RuntimeError):  # a symlink loop
-        return None
-    if target != base and base not in target.parents:
-        return None
-    return Path(root) / rel if target.is_file() else None
-
-
-def dataset_file(root: str | os.PathLike, rel: str, what: str, source: str | os.PathLike) -> Path:
-    """The file ``rel`` that ``source`` (a file of dataset folder ``root``) names, checked to be a
-    regular file inside ``root`` of at most ``MAX_DATASET_FILE_BYTES``; a FileProblem naming both otherwise."""
-    path = inside_folder(root, rel)
-    if path is None:
-        shown = rel if isinstance(rel, str) else repr(rel)
-        if not isinstance(rel, str) or not rel:
-            reason = f"its {what} path is {shown!s}, not a file name"
-        elif Path(rel).is_absolute() or ".." in Path(rel).parts:
-            reason = f"its {what} path {shown} leads outside the dataset folder {root}"
-        elif (Path(root) / rel).exists() and not (Path(root) / rel).resolve().is_relative_to(Path(root).resolve()):
-            reason = f"its {what} path {shown} is a link leading outside the dataset folder {root}"
-        elif (Path(root) / rel).exists():
-            reason = f"its {what} path {shown} is not a regular file"
-        else:
-            raise FileNotFoundError(f"{what} file named by {source} not found: {Path(root) / rel}")
-        raise FileProblem(f"cannot use {source}: {reason}", source)
-    size = path.stat().st_size
-    if size > MAX_DATASET_FILE_BYTES:
-        raise FileProblem(f"cannot read {path}: {size} bytes, over the limit of {MAX_DATASET_FILE_BYTES} bytes "
-                          "for one file of a dataset", path)
-    return path
-
-
-def check_npy_header(f, path: str | os.PathLike) -> None:
-    """From an open ``.npy`` file (at its start), check the header before any array is read: plain
-    numbers, and as many bytes as its shape and dtype say, at most ``MAX_DATASET_FILE_BYTES``."""
-    try:
-        version = np.lib.format.read_magic(f)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(f, max_header_size=10_000)
-        else:
-            shape, _, dtype = np.lib.format.read_array_header_2_0(f, max_header_size=10_000)
-    except (ValueError, OSError, SyntaxError, TypeError) as exc:
-        raise FileProblem(f"cannot read {path}: damaged .npy header ({' '.join(str(exc).split())[:120]})",
-                          path) from exc
-    if dtype.hasobject:
-        raise FileProblem(f"cannot read {path}: it holds pickled Python objects, never loaded (a depth file holds "
-                          "numbers only)", path)
-    if dtype.kind not in "fiub":
-        raise FileProblem(f"cannot read {path}: its dtype is {dtype}, not plain numbers", path)
-    count = 1
-    for n in shape:
-        count *= int(n)
-    need = count * dtype.itemsize
-    have = os.fstat(f.fileno()).st_size - f.tell()
-    if need > MAX_DATASET_FILE_BYTES:
-        raise FileProblem(f"cannot read {path}: its header claims {need} bytes of data (shape {shape}), over the "
-                          f"limit of {MAX_DATASET_FILE_BYTES} bytes for one file of a dataset", path)
-    if need != have:
-        raise FileProblem(f"cannot read {path}: its header claims {need} bytes of data (shape {shape}) but "
-                          f"{have} follow (a damaged or cut-short file)", path)

@@ -27,7 +27,7 @@ from conftest import one_line_error, save_untrained_checkpoint
 from numpy._core.multiarray import _reconstruct
 
 from geodepth_lite import cli, utils
-from geodepth_lite.data import datasets, fov, frames, images, integrity
+from geodepth_lite.data import bounds, datasets, fov, frames, images, integrity
 from geodepth_lite.data import manifest as mf
 from geodepth_lite.data.datasets import base
 from geodepth_lite.training import checkpoint
@@ -343,7 +343,7 @@ def bomb(tmp_path_factory) -> Path:
 def test_the_bomb_is_a_real_image_of_that_size(bomb):
     """What the tests below refuse is a valid 144-megapixel PNG, small on disk."""
     assert bomb.stat().st_size < 1_000_000
-    assert utils.image_header_size(bomb) == (12000, 12000)
+    assert bounds.image_header_size(bomb) == (12000, 12000)
     from PIL import Image
     with Image.open(_png_of_side(bomb.parent / "small.png", 40)) as im:  # the same writer decodes
         assert im.size == (40, 40) and not np.asarray(im).any()
@@ -429,4 +429,4 @@ def test_the_pickled_depth_refusal_still_names_objects(tmp_path):
     path = tmp_path / "d.npy"
     np.save(path, np.array([1.0, None], dtype=object), allow_pickle=True)
     with pytest.raises(utils.FileProblem, match="pickled Python objects, never loaded"):
-        utils.read_npy(path)
+        bounds.read_npy(path)

@@ -335,7 +335,7 @@ def test_kept_predictions_of_another_shape_or_with_nan_are_not_trusted(run, sets
     run_scores.kept_predictor(run, ds, "none")
     key = run_scores.prediction_key(run, ds, "none")
     depth_file, digest_file = run_scores.predictions_paths(run, key)
-    depth = run_scores.utils.read_npy(depth_file)
+    depth = run_scores.bounds.read_npy(depth_file)
     run_scores._write_kept(depth_file, depth[:-1])  # one frame short
     with pytest.warns(UserWarning, match="not float32"):
         run_scores.kept_predictor(run, ds, "none")

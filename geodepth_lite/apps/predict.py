@@ -61,7 +61,7 @@ from tqdm.auto import tqdm
 
 from geodepth_lite import utils
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.data import fov
+from geodepth_lite.data import bounds, fov
 from geodepth_lite.data.frames import (
     DEFAULT_FOV_DEG,
     MASK_CHOICES,
@@ -101,7 +101,7 @@ class PredictOptions:
     flips: str = "hv"
     mask: str = "auto"
     panel: str = "depth"
-    max_pixels: int = utils.MAX_PIXELS
+    max_pixels: int = bounds.MAX_PIXELS
     progress: bool = True
 
     def __post_init__(self):
@@ -250,9 +250,9 @@ def add_arguments_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--panel", choices=tuple(PANELS), default="depth",
                         help="a side-by-side <name>_panel.png per frame: depth (default: frame | depth with its "
                         "colour bar), prior (and the shading prior 1/sqrt(brightness) beside them) or none")
-    parser.add_argument("--max-pixels", type=int, default=utils.MAX_PIXELS,
+    parser.add_argument("--max-pixels", type=int, default=bounds.MAX_PIXELS,
                         help="refuse an image, mask or video frame of more pixels than this, read from its "
-                             f"header before decoding (default {utils.MAX_PIXELS})")
+                             f"header before decoding (default {bounds.MAX_PIXELS})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -28,7 +28,8 @@ from PIL import Image, UnidentifiedImageError
 from scipy import ndimage
 
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.utils import FileProblem, check_pixels, os_reason
+from geodepth_lite.data.bounds import check_pixels
+from geodepth_lite.utils import FileProblem, os_reason
 
 # --------------------------------------------------------------------------- detection thresholds
 DARK_MAX = 32  # 0-255: a pixel whose brightest channel is at most this is black (sensor black + JPEG noise < ~20)

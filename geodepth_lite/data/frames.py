@@ -22,6 +22,7 @@ import yaml
 from PIL import Image
 
 from geodepth_lite import utils
+from geodepth_lite.data import bounds
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.data import fov
@@ -148,7 +149,7 @@ def check_frame_size(width: int, height: int, what: str, path: Path) -> None:
 def read_frame(path: Path, max_pixels: int | None = None) -> np.ndarray:
     """H x W x 3 uint8 of an image file (``images.read_rgb``: 16-bit scaled to 8); a FileProblem
     naming the file if it cannot be decoded, is too small (``check_frame_size``) or too large (over
-    ``max_pixels``, default ``utils.MAX_PIXELS``, checked from its header before decoding)."""
+    ``max_pixels``, default ``bounds.MAX_PIXELS``, checked from its header before decoding)."""
     return read_rgb(path, max_pixels, check_size=lambda width, height: check_frame_size(width, height, "image", path))
 
 
@@ -215,7 +216,7 @@ def video_size(path: Path, max_pixels: int | None = None) -> tuple[int, int]:
     except Exception as exc:  # noqa: BLE001 - ffmpeg's errors come in many types; the message says why
         raise FileProblem(video_error(path, 0, exc), path) from exc
     check_frame_size(width, height, "video", path)
-    utils.check_pixels(width, height, path, "video", max_pixels)
+    bounds.check_pixels(width, height, path, "video", max_pixels)
     return width, height
 
 

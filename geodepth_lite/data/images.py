@@ -15,7 +15,8 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
-from geodepth_lite.utils import FileProblem, check_pixels, os_reason
+from geodepth_lite.data.bounds import check_pixels
+from geodepth_lite.utils import FileProblem, os_reason
 
 
 def _scaled_gray(a: np.ndarray, full_scale: float) -> np.ndarray:
@@ -60,7 +61,7 @@ def image_reason(exc: BaseException) -> str:
 def read_rgb(path: str | os.PathLike, max_pixels: int | None = None,
              check_size: Callable[[int, int], None] | None = None) -> np.ndarray:
     """H x W x 3 uint8 of an image file (``to_rgb8``); a FileProblem naming the file if it cannot
-    be decoded or is over ``max_pixels`` (default ``utils.MAX_PIXELS``, from its header before
+    be decoded or is over ``max_pixels`` (default ``bounds.MAX_PIXELS``, from its header before
     decoding). ``check_size(width, height)``, where given, is called on the header's size first."""
     try:
         with Image.open(path) as im:

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.utils import MAX_DATASET_FILE_BYTES, MAX_MANIFEST_BYTES, FileProblem, dataset_file, inside_folder, os_reason, write_bytes_atomic
+from geodepth_lite.data.bounds import MAX_DATASET_FILE_BYTES, MAX_MANIFEST_BYTES, dataset_file, inside_folder
+from geodepth_lite.utils import FileProblem, os_reason, write_bytes_atomic
 
 MAX_SPLIT_FRAMES = 10_000_000  # frames of one split, at most (as manifest's check of 'splits')
 MAX_CHECKSUMS_BYTES = 2**30  # checksums.sha256, at most

@@ -23,7 +23,8 @@ from geodepth_lite.data import render as rd
 from geodepth_lite.data import tube as tb
 from geodepth_lite.core import camera as cam
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.utils import MAX_MANIFEST_BYTES, MAX_PIXELS, FileProblem, manifests_dir, os_reason
+from geodepth_lite.data.bounds import MAX_MANIFEST_BYTES, MAX_PIXELS
+from geodepth_lite.utils import FileProblem, manifests_dir, os_reason
 
 GENERATOR_VERSION = 3  # bump whenever the same manifest would render different files (synth.py)
 SPLITS = ("train", "val", "test")
@@ -329,7 +330,7 @@ def _check_finite(field: str, value, depth: int = 0) -> None:
 
 
 # What one render may take: a tube mesh of at most MAX_MESH_VERTICES points (about
-# MESH_BYTES_PER_VERTEX each while it is built and traced), frames of at most utils.MAX_PIXELS.
+# MESH_BYTES_PER_VERTEX each while it is built and traced), frames of at most bounds.MAX_PIXELS.
 MAX_MESH_VERTICES = 4_000_000  # the shipped manifests' tubes have 20 000 to 60 000
 MESH_BYTES_PER_VERTEX = 400
 MAX_JSON_DEPTH = 64  # nesting of a manifest or a frames.jsonl record (the schema needs 4)

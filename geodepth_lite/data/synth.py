@@ -53,7 +53,8 @@ from geodepth_lite.data import render as rd
 from geodepth_lite.data import render_torch as rt
 from geodepth_lite.data import tube as tb
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.utils import FileProblem, data_dir, make_dir, os_reason, read_npy, remove_stale_temps, write_bytes_atomic, write_json_atomic
+from geodepth_lite.data.bounds import read_npy
+from geodepth_lite.utils import FileProblem, data_dir, make_dir, os_reason, remove_stale_temps, write_bytes_atomic, write_json_atomic
 
 LUMEN_RADII = 4.0  # a pixel deeper than this many lumen radii sees down the lumen (frames.jsonl "lumen_share")
 RENDERERS = ("vtk", "torch", "auto")  # synth --renderer; auto: vtk when it can be imported, else torch

@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 
 from geodepth_lite import utils
 from geodepth_lite.core import metrics, model
-from geodepth_lite.data import integrity
+from geodepth_lite.data import bounds, integrity
 from geodepth_lite.evaluation import evaluate
 from geodepth_lite.training import checkpoint, inference
 
@@ -237,7 +237,7 @@ def _read_bounded(file: Path, shape: tuple[int, ...], dtype: np.dtype) -> np.nda
     if size > need + NPY_HEADER_MAX:
         raise ScoresFileError(f"{file}: {size} bytes, more than {shape} {np.dtype(dtype)} take")
     try:
-        a = utils.read_npy(file)
+        a = bounds.read_npy(file)
     except utils.FileProblem as exc:
         raise ScoresFileError(str(exc)) from None
     if a.shape != shape or a.dtype != np.dtype(dtype):

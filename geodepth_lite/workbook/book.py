@@ -62,6 +62,7 @@ from pygments.util import ClassNotFound
 
 from geodepth_lite import utils
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.data import bounds
 from geodepth_lite.views import recon
 from geodepth_lite.workbook import book_reader, course, exercises
 from geodepth_lite.workbook.exercises import HIDDEN_MARKERS, NOTEBOOK_DIR, SOLUTION_MARKERS, git_tracked
@@ -1229,7 +1230,7 @@ class Site:
         self.usage: dict[tuple[str, str], list[tuple[str, str]]] = {}  # (module, symbol) -> [(page, title)]
 
     def public_text(self, path: str) -> str:
-        src = utils.inside_folder(self.build / "public", path.lstrip("/"))
+        src = bounds.inside_folder(self.build / "public", path.lstrip("/"))
         if src is None or not src.is_file() or src.stat().st_size > MAX_PAGE_JSON_BYTES:
             return ""
         return src.read_text(encoding="utf-8", errors="replace")
@@ -1248,7 +1249,7 @@ class Site:
                 utils.make_dir(target.parent)
                 write_file(target, raw)
             return f"{STATIC}/img/{path}"
-        src = utils.inside_folder(self.build / "public", path) if path else None
+        src = bounds.inside_folder(self.build / "public", path) if path else None
         if src is None or not src.is_file():
             return None
         target = self.dest / STATIC / "img" / src.name

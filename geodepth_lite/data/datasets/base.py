@@ -18,6 +18,7 @@ from PIL import Image
 from torch.utils.data import Dataset
 
 from geodepth_lite import utils
+from geodepth_lite.data import bounds
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.data.images import read_rgb
 from geodepth_lite.data.datasets.synthetic import resize_frame
@@ -26,7 +27,7 @@ from geodepth_lite.data.datasets.synthetic import resize_frame
 # =========================================================================== reading pixels
 def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
     """A PNG's values divided by its dtype's maximum (8- or 16-bit), as float64 H x W."""
-    utils.check_image_file(path, "depth map")  # over utils.MAX_PIXELS: refused from the header
+    bounds.check_image_file(path, "depth map")  # over bounds.MAX_PIXELS: refused from the header
     import imageio.v3 as iio  # public datasets' files only: training and gpu-check need no imageio
 
     arr = np.asarray(iio.imread(path))
@@ -41,7 +42,7 @@ def read_png_unit(path: Path, channel: int | None = None) -> np.ndarray:
 
 def read_png_raw(path: Path) -> np.ndarray:
     """A PNG's stored values (channel 0 of a multi-channel image), in its own dtype."""
-    utils.check_image_file(path, "depth map")  # over utils.MAX_PIXELS: refused from the header
+    bounds.check_image_file(path, "depth map")  # over bounds.MAX_PIXELS: refused from the header
     import imageio.v3 as iio  # public datasets' files only: training and gpu-check need no imageio
 
     arr = np.asarray(iio.imread(path))

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from geodepth_lite import utils
+from geodepth_lite.data import bounds
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.data.datasets.base import PublicDepthDataset, numbered, pair_images_with_depths
@@ -80,7 +81,7 @@ class C3VDDataset(PublicDepthDataset):
         with tifffile.TiffFile(str(path)) as tif:  # its size from the header, before decoding
             shape = tif.pages[0].shape if tif.pages else ()
         if len(shape) >= 2:
-            utils.check_pixels(int(shape[1]), int(shape[0]), path, "depth map")
+            bounds.check_pixels(int(shape[1]), int(shape[0]), path, "depth map")
         raw = np.asarray(tifffile.imread(str(path)))
         if raw.ndim == 3:
             raw = raw[..., 0]

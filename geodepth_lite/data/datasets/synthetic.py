@@ -31,7 +31,8 @@ from geodepth_lite.core import camera as cam
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.data.images import read_rgb
 from geodepth_lite.data.integrity import read_frames
-from geodepth_lite.utils import FileProblem, read_npy
+from geodepth_lite.data.bounds import read_npy
+from geodepth_lite.utils import FileProblem
 
 
 def resize_image(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
