@@ -15,10 +15,10 @@ import time
 import torch
 
 from geodepth_lite.data import appearance as ap
+from geodepth_lite.data import images, synth
 from geodepth_lite.data import manifest as mf
 from geodepth_lite.data import render as rd
 from geodepth_lite.data import render_torch as rt
-from geodepth_lite.data import synth
 from geodepth_lite.data import tube as tb
 
 
@@ -57,8 +57,8 @@ def time_scene(m: dict, scene: dict, renderer: rt.TorchRenderer, vtk=None) -> di
     t["appearance"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     for rgb, depth in zip(finals, depths):
-        synth.encode_png(rgb)
-        synth.encode_npy(depth)
+        images.encode_png(rgb, compress_level=1)  # as synth writes a frame
+        images.encode_npy(depth)
     t["encode"] = time.perf_counter() - t0
     if vtk is not None:  # the same frames by VTK, one at a time (its scene set-up not counted)
         vtk.set_tube(tube, texture)

@@ -191,6 +191,24 @@ def remove_stale_temps(folder: str | os.PathLike, recursive: bool = False, locke
     return len(stale)
 
 
+def _temp_beside(path: Path) -> Path:
+    """A new empty temporary file beside ``path`` (``temp_prefix``), with the permissions a plain
+    ``open()`` would give (the umask applies); a :class:`FileProblem` naming ``path`` if it cannot be made."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=".tmp", dir=path.parent)
+        os.fchmod(fd, file_mode())  # mkstemp creates 0600 whatever the umask
+        os.close(fd)
+    except OSError as exc:
+        raise FileProblem(f"cannot write {path}: {os_reason(exc)}", path) from exc
+    return Path(tmp)
+
+
+def _flush(tmp: Path) -> None:
+    with open(tmp, "rb+") as f:
+        os.fsync(f.fileno())
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
@@ -202,18 +220,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     naming ``path``.
     """
     path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=".tmp", dir=path.parent)
-        os.fchmod(fd, file_mode())  # mkstemp creates 0600 whatever the umask
-        os.close(fd)
-    except OSError as exc:
-        raise FileProblem(f"cannot write {path}: {os_reason(exc)}", path) from exc
-    tmp_path = Path(tmp)
+    tmp_path = _temp_beside(path)
     try:
         yield tmp_path
-        with open(tmp_path, "rb+") as f:
-            os.fsync(f.fileno())
+        _flush(tmp_path)
         os.replace(tmp_path, path)
         fsync_dir(path.parent)
     except FileProblem:
@@ -224,6 +234,47 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             if tmp_path.exists():
                 tmp_path.unlink()
+
+
+def write_files_atomic(files: dict[Path, bytes]) -> None:
+    """Write several files as one set ({path: its bytes}), all or none.
+
+    Every file is first written to a temporary file beside it and flushed (``atomic_path``'s way);
+    only when all are on disk are they renamed onto their names, in the order given. A failure
+    before the renames (a full disk, say) changes no file of the set. One during them removes every
+    file of the set that can be removed, those an earlier writer left under these names too (they
+    would no longer match the ones renamed), and no temporary file stays. Raises a
+    :class:`FileProblem` naming the file that failed.
+    """
+    staged: list[tuple[Path, Path]] = []
+    renaming = False
+    try:
+        for path, data in files.items():
+            path = Path(path)
+            staged.append((_temp_beside(path), path))
+            try:
+                staged[-1][0].write_bytes(data)
+                _flush(staged[-1][0])
+            except OSError as exc:
+                raise FileProblem(f"cannot write {path}: {os_reason(exc)}", path) from exc
+        renaming = True
+        for tmp, path in staged:
+            try:
+                os.replace(tmp, path)
+            except OSError as exc:
+                raise FileProblem(f"cannot write {path}: {os_reason(exc)}", path) from exc
+        for folder in dict.fromkeys(path.parent for _, path in staged):
+            fsync_dir(folder)
+    except BaseException:
+        if renaming:
+            for _, path in staged:
+                with contextlib.suppress(OSError):
+                    path.unlink(missing_ok=True)
+        raise
+    finally:
+        for tmp, _ in staged:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
 
 
 def make_dir(path: str | os.PathLike) -> Path:

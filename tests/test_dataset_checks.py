@@ -4,12 +4,14 @@ the checksum check before train and evaluate (and --no-verify)."""
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import save_untrained_checkpoint
 
 from geodepth_lite import cli
 from geodepth_lite.data import integrity, synth
 from geodepth_lite.data import manifest as mf
+from geodepth_lite.data.images import encode_npy
 from geodepth_lite.training import config
 from geodepth_lite.utils import FileProblem
 
@@ -31,26 +33,29 @@ def interrupted(tmp_path, monkeypatch):
     """scenario_smoke generated into tmp_path/ds and killed part-way (in the middle of the val split)."""
     m = mf.load_manifest("scenario_smoke")
     calls = {"n": 0}
-    real = synth.write_bytes_atomic
+    real = synth.write_files_atomic
 
-    def dying_writer(path, data):
+    def dying_writer(files):
         calls["n"] += 1
-        if calls["n"] == 31:  # train: 12 x (depth, rgb) + frames.jsonl = 25 writes; then val's depth 2, rgb 2 dies
+        if calls["n"] == 15:  # a frame's two files are one write: train's 12 frames, val's 0 and 1, then val 2 dies
             raise KeyboardInterrupt
-        real(path, data)
+        real(files)
 
-    monkeypatch.setattr(synth, "write_bytes_atomic", dying_writer)
+    monkeypatch.setattr(synth, "write_files_atomic", dying_writer)
     with pytest.raises(KeyboardInterrupt):
         synth.generate(m, tmp_path / "ds", progress=False)
-    monkeypatch.setattr(synth, "write_bytes_atomic", real)
+    monkeypatch.setattr(synth, "write_files_atomic", real)
     return m, tmp_path / "ds"
 
 
 def test_verify_and_synth_report_an_interrupted_dataset(interrupted, capsys):
     m, root = interrupted
     have = {split: _complete_frames(root, split) for split in m["splits"]}
-    assert 0 < sum(have.values()) < sum(m["splits"].values())
-    assert (root / "val" / "depth" / f"{have['val']:06d}.npy").exists()  # a half frame: not counted
+    assert 0 < sum(have.values()) < sum(m["splits"].values()) and have["val"] == 2
+    half = root / "val" / "depth" / f"{have['val']:06d}.npy"
+    assert not half.exists()  # the interrupted frame left neither of its files
+    half.write_bytes(encode_npy(np.zeros((4, 4))))  # a half frame, as a kill between the two renames leaves
+    assert _complete_frames(root, "val") == have["val"]  # not counted
     assert cli.main(["verify", str(root)]) == 1
     out = capsys.readouterr().out
     assert "incomplete:" in out and "run synth again" in out

@@ -9,6 +9,7 @@ reads ./pyproject.toml, ``.notes.tmp`` deleted, and tracebacks instead of one ``
 Every hostile file is built here.
 """
 
+import errno
 import functools
 import hashlib
 import io
@@ -406,6 +407,66 @@ def test_only_a_gone_writers_temporary_files_are_stale(tmp_path):
         assert tmp.name.startswith(f".geodepth-{os.getpid()}-f.txt.") and tmp.name.endswith(".tmp")
         tmp.write_text("done")
     assert (tmp_path / "f.txt").read_text() == "done"
+
+
+
+def _set_write_problems(writer, folder: Path, monkeypatch) -> list[str]:
+    """What goes wrong when ``writer`` writes the set {a, b, c} over an earlier set: once with the disk
+    full at the second file's flush, once with a folder in the way of the third file's name (Linux:
+    the flushed file is told by its name in /proc)."""
+    problems = []
+    folder.mkdir()
+    old = {folder / n: f"old {n}".encode() for n in "abc"}
+    new = {path: f"new {path.name}".encode() for path in old}
+    for path, data in old.items():
+        path.write_bytes(data)
+    real_fsync = os.fsync
+
+    def full_at_b(fd):  # the disk fills while the second file's data is flushed
+        if os.readlink(f"/proc/self/fd/{fd}").startswith(str(folder / utils.temp_prefix("b"))):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real_fsync(fd)
+
+    monkeypatch.setattr(utils.os, "fsync", full_at_b)
+    try:
+        writer(new)
+        problems.append("a full disk raised nothing")
+    except utils.FileProblem as exc:
+        if exc.path != folder / "b":
+            problems.append(f"the full disk named {exc.path}")
+    monkeypatch.setattr(utils.os, "fsync", real_fsync)
+    if {p: p.read_bytes() for p in old} != old:
+        problems.append("a full disk changed the earlier set")
+    (folder / "c").unlink()
+    (folder / "c").mkdir()  # in the way of the last rename
+    try:
+        writer(new)
+        problems.append("a folder in the way raised nothing")
+    except utils.FileProblem as exc:
+        if exc.path != folder / "c":
+            problems.append(f"the folder in the way named {exc.path}")
+    if sorted(os.listdir(folder)) != ["c"]:
+        problems.append(f"a failed rename left {sorted(os.listdir(folder))}")
+    return problems
+
+
+def test_a_set_of_files_is_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    files = {tmp_path / "ok" / n: n.encode() * 3 for n in ("x.npy", "x.png", "x.ply")}
+    utils.write_files_atomic(files)
+    assert {p: p.read_bytes() for p in files} == files and sorted(os.listdir(tmp_path / "ok")) == sorted(
+        p.name for p in files)
+    assert _set_write_problems(utils.write_files_atomic, tmp_path / "set", monkeypatch) == []
+
+
+def test_the_set_check_catches_files_written_one_by_one(tmp_path, monkeypatch):
+    """Each file atomic on its own (the former way) is not a set: the full disk leaves a new ``a`` beside
+    the old ``b`` and ``c``, and the folder in the way leaves the new ``a`` and ``b``."""
+    def one_by_one(files):
+        for path, data in files.items():
+            utils.write_bytes_atomic(path, data)
+
+    assert _set_write_problems(one_by_one, tmp_path / "set", monkeypatch) == [
+        "a full disk changed the earlier set", "a failed rename left ['a', 'b', 'c']"]
 
 
 # --------------------------------------------------------------------------- 5. one line, not a traceback

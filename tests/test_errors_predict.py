@@ -163,26 +163,40 @@ def test_all_frames_written_exits_0_with_no_error_line(tmp_path, ckpt, capsys):
     assert errors == [] and _last_line(stdout) == f"2 frame(s) written to {tmp_path / 'out'}"
 
 
-def test_a_frame_that_fails_after_its_first_file_leaves_none_of_its_files(tmp_path, ckpt, capsys, monkeypatch):
+def test_a_frame_whose_outputs_cannot_be_made_writes_none_and_keeps_an_earlier_file(tmp_path, ckpt, capsys,
+                                                                                    monkeypatch):
     src = _folder(tmp_path / "in", {"a.png": _frame(20, 24, 0), "b.png": _frame(20, 24, 1), "c.png": _frame(8, 8)})
     out = tmp_path / "out"
     out.mkdir()
-    (out / "b.ply").write_text("an earlier run's b.ply: it would no longer match b's depth")
-    real_save_ply = recon.save_ply
+    (out / "b.ply").write_text("an earlier run's b.ply")
+    real_ply_bytes, calls = recon.ply_bytes, []
 
-    def save_ply(poly, path, binary=True):
-        if Path(path).name == "b.ply":
+    def ply_bytes(poly, binary=True):  # frames go in name order: the second is b's
+        calls.append(1)
+        if len(calls) == 2:
             raise ValueError("mesh went wrong")
-        return real_save_ply(poly, path, binary)
+        return real_ply_bytes(poly, binary)
 
-    monkeypatch.setattr(recon, "save_ply", save_ply)
+    monkeypatch.setattr(recon, "ply_bytes", ply_bytes)
     assert _run(ckpt, src, out) == 2
     errors, stdout = _errors(capsys)
     assert errors == ["error: cannot write the outputs of b: ValueError: mesh went wrong"]
-    assert _outputs(out, "b") == []  # b_depth.npy and b_depth.png were written, then removed
+    assert _outputs(out, "b") == ["b.ply"] and (out / "b.ply").read_text() == "an earlier run's b.ply"  # untouched
     assert _outputs(out, "a") == ["a.ply", "a_depth.npy", "a_depth.png", "a_panel.png"]
     assert _outputs(out, "c") == ["c.ply", "c_depth.npy", "c_depth.png", "c_panel.png"]  # the frame after it ran
     assert "2 frame(s) written" in stdout and not list(out.glob(utils.TEMP_GLOB))
+
+
+def test_a_frame_whose_file_cannot_be_renamed_leaves_none_of_its_files(tmp_path, ckpt, capsys):
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24, 0)})
+    out = tmp_path / "out"
+    (out / "a_panel.png").mkdir(parents=True)  # a folder in the way of the third file's rename
+    (out / "a.ply").write_text("an earlier run's a.ply: it would no longer match a's depth")
+    assert _run(ckpt, src, out) == 2
+    errors, _ = _errors(capsys)
+    assert len(errors) == 1 and errors[0].startswith(f"error: cannot write {out / 'a_panel.png'}: "), errors
+    assert _outputs(out, "a") == ["a_panel.png"] and (out / "a_panel.png").is_dir()  # the two renamed: removed
+    assert not list(out.glob(utils.TEMP_GLOB))
 
 
 def test_a_file_that_cannot_be_written_is_named_and_the_others_go_on(tmp_path, ckpt, capsys):

@@ -117,18 +117,18 @@ def test_interrupted_generation_resumes_to_the_same_bytes(tmp_path, monkeypatch)
     m = _tiny()
     reference = _files(synth.generate(m, tmp_path / "ref", progress=False))
     calls = {"n": 0}
-    real = synth.write_bytes_atomic
+    real = synth.write_files_atomic
 
-    def dying_writer(path, data):
+    def dying_writer(files):
         calls["n"] += 1
-        if calls["n"] == 7:
-            raise KeyboardInterrupt  # as if killed in the middle of the run
-        real(path, data)
+        if calls["n"] == 4:
+            raise KeyboardInterrupt  # as if killed in the middle of the run, at the fourth frame
+        real(files)
 
-    monkeypatch.setattr(synth, "write_bytes_atomic", dying_writer)
+    monkeypatch.setattr(synth, "write_files_atomic", dying_writer)
     with pytest.raises(KeyboardInterrupt):
         synth.generate(m, tmp_path / "run", progress=False)
-    monkeypatch.setattr(synth, "write_bytes_atomic", real)
+    monkeypatch.setattr(synth, "write_files_atomic", real)
     assert not (tmp_path / "run" / "checksums.sha256").exists()
     assert integrity.verify(tmp_path / "run") != []
     synth.generate(m, tmp_path / "run", progress=False)

@@ -76,7 +76,7 @@ from geodepth_lite.data.frames import (
 from geodepth_lite.evaluation import baselines
 from geodepth_lite.training import checkpoint
 from geodepth_lite.training.inference import DEFAULT_BATCH_SIZE, FLIPS, batches, pick_device, predict_frames
-from geodepth_lite.views.depth_files import PANELS, frame_output_bytes, frame_summary, panel_image, write_outputs
+from geodepth_lite.views.depth_files import PANELS, frame_output_bytes, panel_image, write_outputs
 
 ROOM_MARGIN = 2**20  # bytes --out must have free beyond one frame's outputs
 # a write failure with one of these reasons stops the run: every later frame would fail the same way
@@ -117,6 +117,9 @@ class PredictOptions:
             raise UserError("give either --intrinsics or --fov, not both")
         if self.device is not None:
             utils.parse_device(self.device)  # a bad --device: one line, before any work
+        if self.input.is_dir() and self.out.resolve() == self.input.resolve():  # a rerun would read its outputs
+            raise UserError(f"--out {self.out} is the --input folder: the outputs would be mixed with the images "
+                            f"(and read as images by the next run); choose another --out")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> PredictOptions:
@@ -126,14 +129,6 @@ class PredictOptions:
                    intrinsics=intrinsics, fov=args.fov, batch_size=args.batch_size, ply=args.ply,
                    ply_stride=args.ply_stride, device=args.device, flips=args.flips, mask=args.mask,
                    panel=args.panel, max_pixels=args.max_pixels, progress=not args.no_progress)
-
-
-def check_out_is_not_input(out, input_path) -> None:
-    """A ValueError when ``--out`` is the ``--input`` folder: a second run would read its own outputs."""
-    src = Path(input_path)
-    if src.is_dir() and Path(out).resolve() == src.resolve():
-        raise UserError(f"--out {out} is the --input folder: the outputs would be mixed with the images "
-                         f"(and read as images by the next run); choose another --out")
 
 
 def stops_the_run(exc: BaseException) -> bool:
@@ -176,7 +171,7 @@ def _save_frame(out_dir: Path, frame: Frame, depth: np.ndarray, opts: PredictOpt
         tally.failures.append(f"cannot write the outputs of {frame.name}: {exc.__class__.__name__}: {exc}")
         return
     tally.written += 1
-    tqdm.write(frame_summary(frame.name, depth, written), file=sys.stdout)
+    tqdm.write(written["summary"], file=sys.stdout)
 
 
 def _refuse_non_finite(batch, depths, ckpt: Path) -> None:
@@ -266,7 +261,6 @@ def predict_with(opts: PredictOptions) -> int:
     frame written (the module docstring says what fails how); the exit status."""
     calib = load_intrinsics(opts.intrinsics) if opts.intrinsics else None
     files, kind = list_inputs(opts.input)
-    check_out_is_not_input(opts.out, opts.input)
     if not opts.checkpoint.is_file():
         raise FileNotFoundError(f"--checkpoint not found: {opts.checkpoint}")
     width, height = first_frame_size(files, kind, opts.max_pixels)

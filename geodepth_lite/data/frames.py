@@ -21,11 +21,9 @@ import numpy as np
 import yaml
 from PIL import Image
 
-from geodepth_lite import utils
-from geodepth_lite.data import bounds
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
-from geodepth_lite.data import fov
+from geodepth_lite.data import bounds, fov
 from geodepth_lite.data.images import read_rgb
 from geodepth_lite.utils import FileProblem, os_reason
 

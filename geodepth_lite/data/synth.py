@@ -32,7 +32,6 @@ Command: ``python -m geodepth_lite synth --manifest NAME|PATH --out DIR`` (and
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import math
 import multiprocessing
@@ -43,18 +42,27 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 from tqdm.auto import tqdm
 
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.data import appearance as ap
 from geodepth_lite.data import integrity
 from geodepth_lite.data import manifest as mf
 from geodepth_lite.data import render as rd
 from geodepth_lite.data import render_torch as rt
 from geodepth_lite.data import tube as tb
-from geodepth_lite.core.errors import UserError
 from geodepth_lite.data.bounds import read_npy
-from geodepth_lite.utils import FileProblem, data_dir, make_dir, os_reason, remove_stale_temps, write_bytes_atomic, write_json_atomic
+from geodepth_lite.data.images import encode_npy, encode_png
+from geodepth_lite.utils import (
+    FileProblem,
+    data_dir,
+    make_dir,
+    os_reason,
+    remove_stale_temps,
+    write_bytes_atomic,
+    write_files_atomic,
+    write_json_atomic,
+)
 
 LUMEN_RADII = 4.0  # a pixel deeper than this many lumen radii sees down the lumen (frames.jsonl "lumen_share")
 RENDERERS = ("vtk", "torch", "auto")  # synth --renderer; auto: vtk when it can be imported, else torch
@@ -177,18 +185,6 @@ def scene_plan(m: dict, split: str) -> list[dict]:
 
 def frame_rng(m: dict, split: str, scene: int, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([m["seed"], mf.SPLITS.index(split), scene, index, 1]))
-
-
-def encode_png(rgb: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    Image.fromarray(rgb).save(buf, format="PNG", compress_level=1)  # fast; still lossless
-    return buf.getvalue()
-
-
-def encode_npy(depth: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, np.ascontiguousarray(depth, dtype=np.float32), allow_pickle=False)
-    return buf.getvalue()
 
 
 def _frame_path(out: Path, split: str, index: int, kind: str) -> Path:
@@ -381,8 +377,7 @@ def _render_scene(m: dict, out: Path, split: str, scene: dict, renderer: _LazyRe
                              m["lighting_sets"][lighting_name], m["appearance"], **camera,
                              renderer=shown if i in todo else None)
         if i in todo:
-            write_bytes_atomic(_frame_path(out, split, i, "depth"), encode_npy(frame["depth"]))
-            write_bytes_atomic(_frame_path(out, split, i, "rgb"), encode_png(frame["rgb"]))
+            write_frame_files(out, split, i, frame["rgb"], frame["depth"])
         else:
             frame["depth"] = read_npy(_frame_path(out, split, i, "depth"))
         records.append(frame_record(m, split, i, scene, lighting_name, frame))
@@ -398,8 +393,14 @@ def scene_texture(m: dict, split: str, scene: dict) -> np.ndarray:
 
 def _finish_frame(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.ndarray, look: dict) -> None:
     """Apply a rendered frame's appearance and write both its files (a worker thread's share)."""
-    write_bytes_atomic(_frame_path(out, split, index, "depth"), encode_npy(depth))
-    write_bytes_atomic(_frame_path(out, split, index, "rgb"), encode_png(ap.apply_appearance(rgb, look)))
+    write_frame_files(out, split, index, ap.apply_appearance(rgb, look), depth)
+
+
+def write_frame_files(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.ndarray) -> None:
+    """A frame's two files, its depth (``.npy``) and its colour image (PNG, fast and lossless), written
+    as one set (``utils.write_files_atomic``): an interrupted run never leaves one without the other."""
+    write_files_atomic({_frame_path(out, split, index, "depth"): encode_npy(depth),
+                        _frame_path(out, split, index, "rgb"): encode_png(rgb, compress_level=1)})
 
 
 def scene_assets(m: dict, out: Path, split: str, scene: dict) -> tuple:

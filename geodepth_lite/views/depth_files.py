@@ -5,14 +5,13 @@ written, and the one summary line a frame gets.
 
 from __future__ import annotations
 
-import contextlib
-import io
 from pathlib import Path
 
 import numpy as np
 
 from geodepth_lite import utils
 from geodepth_lite.data.frames import OUTPUT_SUFFIX, PANEL_SUFFIX
+from geodepth_lite.data.images import encode_npy, encode_png
 from geodepth_lite.views import recon, viz
 
 PANELS = {"none": 0, "depth": 2, "prior": 3}  # --panel: columns of the side-by-side PNG
@@ -38,17 +37,6 @@ def frame_output_bytes(width: int, height: int, ply: str = "points", stride: int
     ply_bytes = {"points": 15 * points, "mesh": 53 * points, "none": 0}[ply]
     panel_bytes = png_bytes(*panel_size(width, height, panel)) if panel != "none" and width and height else 0
     return 4 * width * height + 128 + png_bytes(width, height) + panel_bytes + ply_bytes + 2048
-
-
-def save_npy(array: np.ndarray, path) -> Path:
-    """``np.save``, atomically, through one Python write: numpy writing to a file itself reports a
-    full disk as "4096 requested and 3040 written", without the system's reason."""
-    buf = io.BytesIO()
-    np.save(buf, array, allow_pickle=False)
-    path = Path(path)
-    with utils.atomic_path(path) as tmp:
-        tmp.write_bytes(buf.getbuffer())
-    return path
 
 
 def output_paths(out_dir: Path, name: str, ply: str = "points", panel: str = "none") -> list[Path]:
@@ -104,33 +92,27 @@ def panel_image(rgb: np.ndarray, depth: np.ndarray, mask: np.ndarray, prior: np.
 
 def write_outputs(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray,
                   ply: str = "points", stride: int = 1, panel: np.ndarray | None = None) -> dict:
-    """The files of one frame (``output_paths``), each written atomically, and all or none: if
-    one fails after another was written, the frame's files are all removed again (those an
-    earlier run left under these names too, which would no longer match), then it re-raises.
+    """The files of one frame (``output_paths``), made in memory first, then written as one set
+    (``utils.write_files_atomic``): all or none. A file that cannot be made (a mesh that fails,
+    say) writes none of them; one that cannot be written removes the frame's files, those an
+    earlier run left under these names too (they would no longer match); either re-raises.
 
     depth: H x W, NaN outside the field of view (no colour in the PNG, no point in the PLY);
     panel: the side-by-side image (``panel_image``) or None. Returns {"paths": the files,
-    "points": vertices in the PLY or None, "triangles": its faces or None}.
+    "points": vertices in the PLY or None, "triangles": its faces or None, "summary": the frame's
+    line (``frame_summary``)}.
     """
     paths = output_paths(out_dir, name, ply, "none" if panel is None else "depth")
-    written, done = 0, {"paths": paths, "points": None, "triangles": None}
-    try:
-        save_npy(depth.astype(np.float32), paths[0])
-        written += 1
-        recon.save_png(viz.colorize_depth(depth), paths[1])
-        written += 1
-        if panel is not None:
-            recon.save_png(panel, paths[2])
-        if ply != "none":
-            poly = (recon.depth_mesh if ply == "mesh" else recon.point_cloud)(depth, K, rgb, stride=stride)
-            recon.save_ply(poly, paths[-1])
-            done["points"], done["triangles"] = poly.n_points, (poly.n_cells if ply == "mesh" else None)
-    except BaseException:
-        if written:
-            for p in paths:
-                with contextlib.suppress(OSError):
-                    p.unlink(missing_ok=True)
-        raise
+    images = [viz.colorize_depth(depth)] + ([panel] if panel is not None else [])
+    done = {"paths": paths, "points": None, "triangles": None}
+    ply_data = b""
+    if ply != "none":
+        poly = (recon.depth_mesh if ply == "mesh" else recon.point_cloud)(depth, K, rgb, stride=stride)
+        ply_data = recon.ply_bytes(poly)
+        done["points"], done["triangles"] = poly.n_points, (poly.n_cells if ply == "mesh" else None)
+    done["summary"] = frame_summary(name, depth, done)
+    files = dict(zip(paths, [encode_npy(depth)] + [encode_png(image) for image in images] + [ply_data]))
+    utils.write_files_atomic(files)
     return done
 
 

@@ -26,7 +26,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from geodepth_lite import utils
 from geodepth_lite.core import camera
@@ -35,6 +34,7 @@ from geodepth_lite.core.metrics import median_scale
 from geodepth_lite.data import manifest as mf
 from geodepth_lite.data import render
 from geodepth_lite.data import tube as tube_mod
+from geodepth_lite.data.images import encode_png
 from geodepth_lite.views import viz
 
 # A triangle between neighbouring pixels is kept only if a smooth surface could produce its
@@ -169,12 +169,18 @@ def depth_mesh(depth, K, image=None, valid=None, T_world_cam=None, stride: int =
 
 # --------------------------------------------------------------------------- PLY
 def save_ply(poly, path, binary: bool = True) -> Path:
-    """Write points (+ faces, "Normals", "rgb" point data) as PLY, atomically.
+    """Write points (+ faces, "Normals", "rgb" point data) as PLY (``ply_bytes``), atomically."""
+    path = Path(path)
+    utils.write_bytes_atomic(path, ply_bytes(poly, binary))
+    return path
+
+
+def ply_bytes(poly, binary: bool = True) -> bytes:
+    """The bytes of points (+ faces, "Normals", "rgb" point data) as a PLY file.
 
     Vertex properties: x y z (float32), nx ny nz (float32) when present, red green blue
     (uchar) when present; faces as uchar-counted int lists.
     """
-    path = Path(path)
     pts = np.asarray(poly.points, dtype=np.float32)
     cols = [("x", "<f4", pts[:, 0]), ("y", "<f4", pts[:, 1]), ("z", "<f4", pts[:, 2])]
     if "Normals" in poly.point_data:
@@ -190,26 +196,21 @@ def save_ply(poly, path, binary: bool = True) -> Path:
     header += [f"property {ply_type[t]} {name}" for name, t, _ in cols]
     if len(faces):
         header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
-    header_bytes = ("\n".join(header) + "\nend_header\n").encode("ascii")
+    parts = [("\n".join(header) + "\nend_header\n").encode("ascii")]
     vert = np.empty(len(pts), dtype=[(name, t) for name, t, _ in cols])
     for name, _, v in cols:
         vert[name] = v
-    with utils.atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header_bytes)
-            if binary:
-                fh.write(vert.tobytes())
-                if len(faces):
-                    fb = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-                    fb["n"], fb["i"] = 3, faces
-                    fh.write(fb.tobytes())
-            else:
-                fmt = " ".join("%.9g" if t == "<f4" else "%d" for _, t, _ in cols)
-                for row in vert:
-                    fh.write((fmt % tuple(row) + "\n").encode("ascii"))
-                for tri in faces:
-                    fh.write(f"3 {tri[0]} {tri[1]} {tri[2]}\n".encode("ascii"))
-    return path
+    if binary:
+        parts.append(vert.tobytes())
+        if len(faces):
+            fb = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+            fb["n"], fb["i"] = 3, faces
+            parts.append(fb.tobytes())
+    else:
+        fmt = " ".join("%.9g" if t == "<f4" else "%d" for _, t, _ in cols)
+        parts += [(fmt % tuple(row) + "\n").encode("ascii") for row in vert]
+        parts += [f"3 {tri[0]} {tri[1]} {tri[2]}\n".encode("ascii") for tri in faces]
+    return b"".join(parts)
 
 
 def _triangles(poly) -> np.ndarray:
@@ -516,10 +517,9 @@ def show(poly, interactive: bool = False, titles=None, **kw):
 
 
 def save_png(image: np.ndarray, path) -> Path:
-    """Write an H x W x 3 uint8 array as PNG, atomically."""
+    """Write an H x W x 3 uint8 array as PNG (``images.encode_png``), atomically."""
     path = Path(path)
-    with utils.atomic_path(path) as tmp:
-        Image.fromarray(np.asarray(image, dtype=np.uint8)).save(tmp, format="PNG")
+    utils.write_bytes_atomic(path, encode_png(image))
     return path
 
 

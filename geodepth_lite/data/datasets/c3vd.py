@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from geodepth_lite import utils
-from geodepth_lite.data import bounds
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.data import bounds
 from geodepth_lite.data.datasets.base import PublicDepthDataset, numbered, pair_images_with_depths
 
 # Bobrow et al. 2023: <sequence>/<n>_color.png, <sequence>/<nnnn>_depth.tiff (16-bit,
