@@ -189,10 +189,11 @@ def predict_into(out_dir: Path, files: list[Path], kind: str, model, cfg: dict, 
     filled from the inside (``fov.fill_outside``); its depth is NaN outside the field of view."""
     tally = Tally()
     total = len(files) if kind == "images" else None
-    frames = iter_frames(files, kind, tally.failures, opts.max_pixels)
-    with contextlib.closing(frames), tqdm(total=total, unit="frame", desc="predict", disable=not opts.progress,
-                                          file=sys.stderr) as bar:
-        for batch in batches(masked_frames(frames, opts.mask, given_mask, tally.failures), opts.batch_size):
+    read = iter_frames(files, kind, tally.failures, opts.max_pixels)
+    frames = masked_frames(read, opts.mask, given_mask, tally.failures)
+    with contextlib.closing(read), tqdm(total=total, unit="frame", desc="predict", disable=not opts.progress,
+                                        file=sys.stderr) as bar:
+        for batch in batches(frames, opts.batch_size):
             depths = predict_frames(model, [f.net_input for f in batch], cfg["image_size"], opts.flips)
             _refuse_non_finite(batch, depths, opts.checkpoint)
             for frame, depth in zip(batch, depths):
