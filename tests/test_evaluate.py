@@ -259,29 +259,3 @@ def test_border_ratio_intervals_resample_whole_clusters():
     assert own["intervals"] == frames["intervals"]
     with pytest.raises(ValueError, match="5 cluster labels for 6 frames"):
         border.border_error_map(pred, ds, clusters=list(range(5)))
-
-
-def test_cached_predictor_predicts_each_batch_once():
-    """The metrics and then the border map over the same frames: the wrapped predictor sees each
-    batch once, and both results equal those of the bare predictor."""
-    H = W = 40
-    seen = []
-
-    def pred(images):
-        seen.append(images.shape[0])
-        return torch.stack([2.0 + x[0] + 0.01 * torch.arange(W).float()[None] for x in images])  # i + 2 + 0.01 x
-
-    ds = _NumberedFrames(n=5)
-    cached = evaluate.cached_predictor(pred)
-    metrics = evaluate.evaluate_predictor(cached, ds, batch_size=2, error_maps=0)
-    border_map = border.border_error_map(cached, ds, batch_size=2)
-    assert cached.calls == 3 and seen == [2, 2, 1]      # 5 frames in batches of 2, each predicted once
-    seen.clear()
-    assert evaluate.evaluate_predictor(pred, ds, batch_size=2, error_maps=0)["overall"] == metrics["overall"]
-    np.testing.assert_array_equal(border.border_error_map(pred, ds, batch_size=2)["abs"], border_map["abs"])
-    assert len(seen) == 6                                # the bare predictor: twice over
-    # other frames are predicted anew, and an answer handed out cannot change the remembered one
-    out = cached(torch.full((1, 3, H, W), 9.0))
-    assert cached.calls == 4 and out[0, 0, 0] == pytest.approx(11.0)
-    out[:] = 0.0
-    assert cached(torch.full((1, 3, H, W), 9.0))[0, 0, 0] == pytest.approx(11.0) and cached.calls == 4

@@ -22,7 +22,6 @@ Beside it: ``tables.py`` (tables and result files), ``border.py`` (the border er
 
 from __future__ import annotations
 
-import hashlib
 import os
 import warnings
 from pathlib import Path
@@ -230,28 +229,6 @@ def evaluate_model(model, dataset, *, image_size: int | None = None, batch_size:
     return evaluate_predictor(predict_fn, dataset, batch_size=batch_size, out_dir=out_dir, error_maps=error_maps,
                               min_depth=min_depth, max_depth=max_depth, progress=progress, name=name,
                               baselines=baselines)
-
-
-def cached_predictor(predict_fn: Callable) -> Callable:
-    """``predict_fn`` that remembers its answer to each batch of images, keyed by their bytes.
-
-    A second pass over the same frames in the same batches (the metrics of ``evaluate_predictor``,
-    then ``border.border_error_map``) then predicts nothing again: with test-time flips a network pass
-    per mirroring is saved. Answers are kept as float32 N x H x W arrays for as long as the
-    returned function lives; its ``calls`` attribute counts the batches ``predict_fn`` really saw.
-    """
-    store: dict[bytes, np.ndarray] = {}
-
-    def predict(images: torch.Tensor) -> np.ndarray:
-        a = images.detach().cpu().contiguous().numpy()
-        key = hashlib.blake2b(a.tobytes(), digest_size=20).digest() + repr((a.shape, a.dtype.str)).encode()
-        if key not in store:
-            predict.calls += 1
-            store[key] = as_depth_batch(predict_fn(images)).copy()
-        return store[key].copy()
-
-    predict.calls = 0
-    return predict
 
 
 def prediction_examples(models: dict, dataset, indices: list[int], *, min_depth: float = EVAL_MIN_DEPTH,
