@@ -410,6 +410,15 @@ def test_only_a_gone_writers_temporary_files_are_stale(tmp_path):
 
 
 
+def _named_failure(writer, files: dict, named: Path, what: str) -> list[str]:
+    """[] when ``writer(files)`` raises a FileProblem naming ``named``; else what it did instead."""
+    try:
+        writer(files)
+    except utils.FileProblem as exc:
+        return [] if exc.path == named else [f"{what} named {exc.path}"]
+    return [f"{what} raised nothing"]
+
+
 def _set_write_problems(writer, folder: Path, monkeypatch) -> list[str]:
     """What goes wrong when ``writer`` writes the set {a, b, c} over an earlier set: once with the disk
     full at the second file's flush, once with a folder in the way of the third file's name (Linux:
@@ -428,23 +437,13 @@ def _set_write_problems(writer, folder: Path, monkeypatch) -> list[str]:
         real_fsync(fd)
 
     monkeypatch.setattr(utils.os, "fsync", full_at_b)
-    try:
-        writer(new)
-        problems.append("a full disk raised nothing")
-    except utils.FileProblem as exc:
-        if exc.path != folder / "b":
-            problems.append(f"the full disk named {exc.path}")
+    problems += _named_failure(writer, new, folder / "b", "a full disk")
     monkeypatch.setattr(utils.os, "fsync", real_fsync)
     if {p: p.read_bytes() for p in old} != old:
         problems.append("a full disk changed the earlier set")
     (folder / "c").unlink()
     (folder / "c").mkdir()  # in the way of the last rename
-    try:
-        writer(new)
-        problems.append("a folder in the way raised nothing")
-    except utils.FileProblem as exc:
-        if exc.path != folder / "c":
-            problems.append(f"the folder in the way named {exc.path}")
+    problems += _named_failure(writer, new, folder / "c", "a folder in the way")
     if sorted(os.listdir(folder)) != ["c"]:
         problems.append(f"a failed rename left {sorted(os.listdir(folder))}")
     return problems
