@@ -251,10 +251,11 @@ def write_files_atomic(files: dict[Path, bytes]) -> None:
     try:
         for path, data in files.items():
             path = Path(path)
-            staged.append((_temp_beside(path), path))
+            tmp = _temp_beside(path)
+            staged.append((tmp, path))
             try:
-                staged[-1][0].write_bytes(data)
-                _flush(staged[-1][0])
+                tmp.write_bytes(data)
+                _flush(tmp)
             except OSError as exc:
                 raise FileProblem(f"cannot write {path}: {os_reason(exc)}", path) from exc
         renaming = True

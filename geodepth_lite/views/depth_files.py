@@ -103,15 +103,19 @@ def write_outputs(out_dir: Path, name: str, rgb: np.ndarray, depth: np.ndarray, 
     line (``frame_summary``)}.
     """
     paths = output_paths(out_dir, name, ply, "none" if panel is None else "depth")
-    images = [viz.colorize_depth(depth)] + ([panel] if panel is not None else [])
+    colour = viz.colorize_depth(depth)
     done = {"paths": paths, "points": None, "triangles": None}
-    ply_data = b""
+    ply_data = None
     if ply != "none":
         poly = (recon.depth_mesh if ply == "mesh" else recon.point_cloud)(depth, K, rgb, stride=stride)
         ply_data = recon.ply_bytes(poly)
         done["points"], done["triangles"] = poly.n_points, (poly.n_cells if ply == "mesh" else None)
     done["summary"] = frame_summary(name, depth, done)
-    files = dict(zip(paths, [encode_npy(depth)] + [encode_png(image) for image in images] + [ply_data]))
+    files = {paths[0]: encode_npy(depth), paths[1]: encode_png(colour)}
+    if panel is not None:
+        files[paths[2]] = encode_png(panel)
+    if ply_data is not None:
+        files[paths[-1]] = ply_data
     utils.write_files_atomic(files)
     return done
 
