@@ -398,7 +398,9 @@ def _finish_frame(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.
 
 def write_frame_files(out: Path, split: str, index: int, rgb: np.ndarray, depth: np.ndarray) -> None:
     """A frame's two files, its depth (``.npy``) and its colour image (PNG, fast and lossless), written
-    as one set (``utils.write_files_atomic``): an interrupted run never leaves one without the other."""
+    as one set (``utils.write_files_atomic``): both are on disk under temporary names before either is
+    renamed, so only a kill between the two renames can leave one without the other (``verify`` counts
+    such a frame as missing and ``synth`` renders it again)."""
     write_files_atomic({_frame_path(out, split, index, "depth"): encode_npy(depth),
                         _frame_path(out, split, index, "rgb"): encode_png(rgb, compress_level=1)})
 
