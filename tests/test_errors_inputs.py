@@ -372,6 +372,28 @@ def test_an_image_over_the_pixel_limit_is_refused_from_its_header(smoke_root, un
     capsys.readouterr()
 
 
+def test_a_refused_first_image_does_not_size_the_mask_or_the_run(untrained_checkpoint, bomb, tmp_path, capsys):
+    """The frames' size that a ``--mask`` image is held to is that of the first image predict will read:
+    a bomb, or a frame too small, sorted first is named on its own line and the others are written."""
+    from PIL import Image
+
+    rgb = np.random.default_rng(0).integers(0, 256, size=(48, 64, 3), dtype=np.uint8)
+    mask = tmp_path / "mask.png"
+    Image.fromarray(np.full((48, 64), 255, dtype=np.uint8)).save(mask)
+    for first, made_by in (("a_bomb.png", lambda p: shutil.copy(bomb, p)),
+                           ("a_tiny.png", lambda p: Image.fromarray(rgb[:1, :1]).save(p))):
+        folder = tmp_path / first.removesuffix(".png")
+        folder.mkdir()
+        made_by(folder / first)
+        Image.fromarray(rgb).save(folder / "b_fine.png")
+        out = folder.with_name(folder.name + "_out")
+        assert cli.main(["predict", "--checkpoint", str(untrained_checkpoint), "--input", str(folder),
+                         "--out", str(out), "--no-progress", "--ply", "none", "--mask", str(mask)]) == 2
+        one_line_error(capsys, str(folder / first))
+        assert frames.first_frame_size(sorted(folder.iterdir()), "images") == (64, 48)
+        assert (out / "b_fine_depth.npy").is_file()
+
+
 def test_a_dataset_frame_over_the_pixel_limit_is_refused(smoke_copy, bomb):
     rec = _records(smoke_copy, "train")[0]
     shutil.copy(bomb, smoke_copy / rec["rgb"])

@@ -19,7 +19,6 @@ from typing import Iterator
 
 import numpy as np
 import yaml
-from PIL import Image
 
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
@@ -151,13 +150,17 @@ def read_frame(path: Path, max_pixels: int | None = None) -> np.ndarray:
     return read_rgb(path, max_pixels, check_size=lambda width, height: check_frame_size(width, height, "image", path))
 
 
-def _image_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) from an image's header, or None if it cannot be read (reported later)."""
+def _usable_size(path: Path, max_pixels: int | None) -> tuple[int, int] | None:
+    """(width, height) from an image's header when ``read_frame`` would read it (within ``max_pixels``,
+    at least MIN_SIDE a side), else None: ``read_frame`` names that file when its turn comes."""
     try:
-        with Image.open(path) as im:
-            return im.size
-    except Exception:  # noqa: BLE001 - read_frame names the file when its turn comes
+        size = bounds.image_header_size(path)
+        if size is not None:
+            check_frame_size(*size, "image", path)
+            bounds.check_pixels(*size, path, "image", max_pixels)
+    except FileProblem:
         return None
+    return size
 
 
 _FFMPEG_TAG = re.compile(r"^\[[^\]]*\]\s*")  # ffmpeg's "[in#0 @ 0x55d1f8d38040] " line prefix
@@ -219,11 +222,13 @@ def video_size(path: Path, max_pixels: int | None = None) -> tuple[int, int]:
 
 
 def first_frame_size(files: list[Path], kind: str, max_pixels: int | None = None) -> tuple[int, int]:
-    """(width, height) of the first frame that can be sized, (0, 0) if none; a video that cannot
-    be read, or whose frames are over ``max_pixels``, is refused here, before any output is made."""
+    """(width, height) of the first frame that will be read, (0, 0) if none; a video that cannot be
+    read, or whose frames are over ``max_pixels``, is refused here, before any output is made. An image
+    that ``read_frame`` will refuse (unreadable, too small, over ``max_pixels``) is passed over, so a
+    ``--mask`` image and the room ``--out`` needs are sized by the frames that are written."""
     if kind == "video":
         return video_size(files[0], max_pixels)
-    return next((s for s in map(_image_size, files) if s is not None), (0, 0))
+    return next((s for s in (_usable_size(f, max_pixels) for f in files) if s is not None), (0, 0))
 
 
 def iter_frames(files: list[Path], kind: str, failures: list[str],
