@@ -1,6 +1,8 @@
 """Named constants: one scene depth range for renderer and network, shape coefficients that drive the tube."""
 
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,3 +58,39 @@ def test_dome_heights_and_minimum_radius_clamp():
     r = tube.radius_field(np.array([30.0, 45.0]), np.array([0.0, 0.0]), deep, feats)
     assert r[0] == tube.MIN_RADIUS_FRACTION * R
     assert r[1] == pytest.approx(R, abs=1e-9)  # far from the fold: the plain wall
+
+
+# --------------------------------------------------------------------------- the bounds the docs state
+
+BOUNDS_DOC = Path(__file__).resolve().parent.parent / "docs" / "errors_and_files.md"
+
+
+def _stated(value: int) -> str:
+    """How the docs write a bound: bytes in whole KiB/MiB/GiB, counts with a space every three digits."""
+    for unit, size in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if value >= size and value % size == 0:
+            return f"{value // size} {unit}"
+    return f"{value:,}".replace(",", " ")
+
+
+def bound_mismatches(text: str, modules: dict) -> list[str]:
+    """Each row of the docs' bounds table that names a constant (`module.NAME`) without stating its value."""
+    wrong = []
+    for row in (line for line in text.splitlines() if line.startswith("| ")):
+        for mod, name in re.findall(r"`(\w+)\.(MAX_\w+)`", row):
+            value = getattr(modules[mod], name)
+            if _stated(value) not in row:
+                wrong.append(f"{mod}.{name} = {value} ({_stated(value)}) not in: {row[:80]}")
+    return wrong
+
+
+def test_the_bounds_the_docs_state_are_the_codes(monkeypatch):
+    from geodepth_lite.data import bounds, frames, integrity, manifest
+
+    modules = {"bounds": bounds, "frames": frames, "integrity": integrity, "manifest": manifest}
+    text = BOUNDS_DOC.read_text()
+    assert len(re.findall(r"`\w+\.MAX_\w+`", text)) >= 6  # every bound of the table is checked
+    assert bound_mismatches(text, modules) == []
+    monkeypatch.setattr(frames, "MAX_INTRINSICS_BYTES", 32 * 2**10)  # a bound changed without the docs
+    wrong = bound_mismatches(text, modules)
+    assert len(wrong) == 1 and wrong[0].startswith("frames.MAX_INTRINSICS_BYTES = 32768 (32 KiB) not in: "), wrong

@@ -1,5 +1,5 @@
 """``predict`` against a hostile user: 16-bit images, frames too small, bad video, full disk,
-stale temporary files, --out inside --input, symbolic link loops, refused runs and bad --mask files.
+stale temporary files, --out inside --input, symbolic link loops, refused runs, bad --mask and --intrinsics files.
 
 Every failure is one line ``error: <message naming the file>`` on stderr; a folder run
 processes the other files and exits with status 2 if any failed.
@@ -477,3 +477,39 @@ def test_a_frame_of_another_size_than_the_mask_is_named_and_the_others_go_on(tmp
     for name in "ac":
         np.testing.assert_array_equal(np.isfinite(np.load(out / f"{name}_depth.npy")), mask)
     assert _last_line(stdout) == f"2 frame(s) written to {out}; 1 failed (the error lines above)"
+
+
+# --------------------------------------------------------------------------- 11. --intrinsics files
+
+
+def _intrinsics_cases() -> dict[str, tuple[bytes, str]]:
+    """Crafted --intrinsics files: name -> (content, what the one error line must say)."""
+    laughs = "a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1]\n" + "".join(
+        f"{n}: &{n} [{', '.join([f'*{p}'] * 9)}]\n" for p, n in zip("abcdefg", "bcdefgh"))
+    return {
+        "text.yaml": (b"K: [[a, 0, 1], [0, 1, 1], [0, 0, 1]]\n", "K[0][0] must be a finite number, got 'a'"),
+        "word.yaml": (b"fx: abc\nfy: 1\ncx: 1\ncy: 1\n", "fx must be a finite number, got 'abc'"),
+        "nan.yaml": (b"fx: 10\nfy: 10\ncx: .nan\ncy: 1\n", "cx must be a finite number, got nan"),
+        "inf.json": (b'{"fx": Infinity, "fy": 10, "cx": 1, "cy": 1}', "fx must be a finite number, got inf"),
+        "digits.yaml": (b"fx: " + b"9" * 400 + b"\nfy: 1\ncx: 1\ncy: 1\n", "fx must be a finite number"),
+        "ragged.yaml": (b"K: [[1, 0], [0, 1, 1], [0, 0, 1]]\n", "K must be 3x3"),
+        "laughs.yaml": ((laughs + "K: [[*h, 0, 0], [0, 1, 0], [0, 0, 1]]\n").encode(),
+                        "K[0][0] must be a finite number, got [["),
+        "bools.yaml": (b"fx: 10\nfy: 10\ncx: 1\ncy: 1\nwidth: true\nheight: true\n",
+                       "width and height must both be positive integers"),
+        "binary.yaml": (b"\xff\xfe\x00\x81" * 8, "cannot parse (not a UTF-8 text file)"),
+        "long.yaml": (b"# " + b"x" * 70_000 + b"\nfx: 1\n", "over the limit of 65536 bytes"),
+    }
+
+
+def test_a_bad_intrinsics_file_is_one_line_naming_it_before_any_work(tmp_path, ckpt, capsys):
+    """Every crafted calibration is the user's mistake (exit 2, one line naming the file and the value),
+    never a bug line, a NaN point cloud or a parse of megabytes; --out is not made."""
+    src = _folder(tmp_path / "in", {"a.png": _frame(20, 24)})
+    for name, (content, needle) in _intrinsics_cases().items():
+        calib = tmp_path / name
+        calib.write_bytes(content)
+        assert _run(ckpt, src, tmp_path / "out", "--intrinsics", str(calib)) == 2, name
+        errors, _ = _errors(capsys)
+        assert len(errors) == 1 and str(calib) in errors[0] and needle in errors[0], (name, errors)
+        assert not (tmp_path / "out").exists()

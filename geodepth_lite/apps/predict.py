@@ -34,7 +34,8 @@ the network's predictions for the frame and its three mirror images, mirrored ba
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
 degrees).
 
-Failures: before any work, the inputs (and a ``--mask`` image) are checked and ``--out`` is
+Failures: before any work, the inputs (and a ``--mask`` image, an ``--intrinsics`` file: every value a finite
+number) are checked and ``--out`` is
 created, probed for writing and for room for one frame's outputs (``utils.check_output_dir``);
 a refused run leaves no folder behind. Half-written temporary files of an interrupted run are
 removed from ``--out``. A folder's images that ``predict`` itself wrote (``<name>_depth.png``

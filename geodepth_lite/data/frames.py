@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -35,37 +36,66 @@ PANEL_SUFFIX = "_panel.png"  # the side-by-side view, likewise never read as an 
 MASK_CHOICES = ("auto", "none")  # --mask: detect per frame, every pixel in view; anything else is a mask image
 
 
+MAX_INTRINSICS_BYTES = 64 * 2**10  # an --intrinsics file (a few numbers) is refused above this, before parsing
+
+
+def _read_calibration(path: Path):
+    """The parsed YAML/JSON of an ``--intrinsics`` file, read within ``MAX_INTRINSICS_BYTES``."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_INTRINSICS_BYTES + 1)
+    except OSError as exc:
+        raise FileProblem(f"cannot read --intrinsics {path}: {os_reason(exc)}", path) from exc
+    if len(raw) > MAX_INTRINSICS_BYTES:
+        raise FileProblem(f"cannot read --intrinsics {path}: over the limit of {MAX_INTRINSICS_BYTES} bytes for "
+                          "an intrinsics file (it holds a few numbers)", path)
+    try:
+        text = raw.decode("utf-8")
+        return json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except Exception as exc:  # noqa: BLE001 - any decoding or parse error is the user's file
+        reason = "not a UTF-8 text file" if isinstance(exc, UnicodeDecodeError) else f"{exc.__class__.__name__}: {exc}"
+        raise UserError(f"--intrinsics {path}: cannot parse ({_short(reason, 200)})") from None
+
+
+def _finite(value, name: str, path: Path) -> float:
+    """``value`` as a float when it is a finite number (not a bool, a string or a list), else a UserError."""
+    try:
+        number = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+    except OverflowError:  # an integer of hundreds of digits
+        number = math.nan
+    if not math.isfinite(number):
+        raise UserError(f"--intrinsics {path}: {name} must be a finite number, got {_short(repr(value), 40)}")
+    return number
+
+
 def load_intrinsics(path) -> dict:
-    """Intrinsics file (YAML or JSON): ``K`` (3x3) or ``fx, fy, cx, cy``, in pixels, and optionally
-    ``width``, ``height``: the image size the calibration refers to (frames of another size
-    get K scaled). Returns {"K": 3x3 array, "size": (W, H) or None}."""
+    """Intrinsics file (YAML or JSON, at most ``MAX_INTRINSICS_BYTES``): ``K`` (3x3) or ``fx, fy, cx, cy``,
+    in pixels, and optionally ``width``, ``height``: the image size the calibration refers to (frames of
+    another size get K scaled). Every value must be a finite number (width and height positive integers,
+    focal lengths positive); anything else is a UserError naming the file and the value. Returns
+    {"K": 3x3 array, "size": (W, H) or None}."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"--intrinsics file not found: {path}")
-    text = path.read_text()
-    try:
-        if path.suffix.lower() == ".json":
-            data = json.loads(text)
-        else:
-            data = yaml.safe_load(text)
-    except Exception as exc:  # noqa: BLE001 - any parse error is the user's file
-        raise UserError(f"--intrinsics {path}: cannot parse ({exc.__class__.__name__}: {exc})") from None
+    data = _read_calibration(path)
     if not isinstance(data, dict):
         raise UserError(f"--intrinsics {path}: expected a mapping with K or fx, fy, cx, cy")
     if "K" in data:
-        K = np.asarray(data["K"], dtype=np.float64)
-        if K.shape != (3, 3):
-            raise UserError(f"--intrinsics {path}: K must be 3x3, got shape {K.shape}")
+        rows = data["K"]
+        if not (isinstance(rows, list) and len(rows) == 3 and all(isinstance(r, list) and len(r) == 3 for r in rows)):
+            raise UserError(f"--intrinsics {path}: K must be 3x3 (three lists of three numbers)")
+        K = np.array([[_finite(v, f"K[{i}][{j}]", path) for j, v in enumerate(r)] for i, r in enumerate(rows)])
     else:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
         if missing:
             raise UserError(f"--intrinsics {path}: missing {', '.join(missing)} (or give K as a 3x3 list)")
-        K = np.array([[data["fx"], 0, data["cx"]], [0, data["fy"], data["cy"]], [0, 0, 1]], dtype=np.float64)
+        fx, fy, cx, cy = (_finite(data[k], k, path) for k in ("fx", "fy", "cx", "cy"))
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise UserError(f"--intrinsics {path}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
     size = None
     if "width" in data or "height" in data:
-        if not all(isinstance(data.get(k), int) and data[k] > 0 for k in ("width", "height")):
+        if not all(type(data.get(k)) is int and data[k] > 0 for k in ("width", "height")):
             raise UserError(f"--intrinsics {path}: width and height must both be positive integers")
         size = (data["width"], data["height"])
     return {"K": K, "size": size}
