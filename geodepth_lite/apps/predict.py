@@ -34,15 +34,14 @@ the network's predictions for the frame and its three mirror images, mirrored ba
 horizontal field of view (``--fov``, default: the authors' set, fx = 0.5556 W, about 84
 degrees).
 
-Failures: before any work, the inputs (and a ``--mask`` image, an ``--intrinsics`` file: every value a finite
-number) are checked and ``--out`` is
-created, probed for writing and for room for one frame's outputs (``utils.check_output_dir``);
-a refused run leaves no folder behind. Half-written temporary files of an interrupted run are
-removed from ``--out``. A folder's images that ``predict`` itself wrote (``<name>_depth.png``
-and ``<name>_panel.png`` beside ``<name>_depth.npy``) are skipped, and ``--out`` may not be the
-``--input`` folder. An image or video that cannot be read, a frame of another size than the
-``--mask`` image, or a frame whose outputs cannot be made, is reported by name and the others
-are still processed; a frame's outputs are written all or none. At the end each failure is
+Failures: before any work, the inputs (and a ``--mask`` image, an ``--intrinsics`` file: every value a
+finite number) are checked and ``--out`` is created, probed for writing and for room for one frame's
+outputs (``utils.check_output_dir``); a refused run leaves no folder behind. Half-written temporary
+files of an interrupted run are removed from ``--out``. A folder's images that ``predict`` itself
+wrote (``<name>_depth.png`` and ``<name>_panel.png`` beside ``<name>_depth.npy``) are skipped, and
+``--out`` may not be the ``--input`` folder. An image or video that cannot be read, a frame of
+another size than the ``--mask`` image, or a frame whose outputs cannot be made, is reported by
+name and the others are still processed; a frame's outputs are written all or none. At the end each failure is
 one line ``error: <message naming the file>`` on stderr, followed by the summary, and the exit
 status is 2 if anything failed, else 0. A full or read-only disk stops the run at the first
 frame it refuses (exit status 2).
