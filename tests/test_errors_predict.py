@@ -497,8 +497,9 @@ def _intrinsics_cases() -> dict[str, tuple[bytes, str]]:
                         "K[0][0] must be a finite number, got [["),
         "bools.yaml": (b"fx: 10\nfy: 10\ncx: 1\ncy: 1\nwidth: true\nheight: true\n",
                        "width and height must both be positive integers"),
-        "binary.yaml": (b"\xff\xfe\x00\x81" * 8, "cannot parse (not a UTF-8 text file)"),
+        "binary.yaml": (b"\xff\xfe\x00\x81" * 8, "not a UTF-8 text file"),
         "long.yaml": (b"# " + b"x" * 70_000 + b"\nfx: 1\n", "over the limit of 65536 bytes"),
+        "syntax.yaml": (b"fx: [1, 2\n", "cannot parse (ParserError"),
     }
 
 

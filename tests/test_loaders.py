@@ -318,3 +318,41 @@ def test_evaluate_as_a_process_and_a_wrong_root_is_named(tmp_path, untrained_che
     assert cli.main(base + ["--dataset", "endoslam", "--root", str(tmp_path / "data")]) == 2
     err = capsys.readouterr().err
     assert "holds no endoslam frame/depth pairs" in err and "UnityCam" in err
+
+
+# The text files of a public dataset (a camera's calibration, poses) crafted against the loaders:
+# (dataset, file to spoil, relative to the fixture's root, its new bytes, what the one line says).
+SPOILED_TEXT = [
+    ("simcol3d", "SyntheticColon_II/cam.txt", b"227.6 abc 240.5 237\n", "cam.txt: 'abc' is not a finite number"),
+    ("simcol3d", "SyntheticColon_II/SavedPosition_S1.txt", b"1 2 3\n4 5 nan\n",
+     "SavedPosition_S1.txt:2: 'nan' is not a finite number"),
+    ("c3vd", "cecum_t1_a/pose.txt", b"0,1,0,0,-1,0,0,0,0,0,1,0,inf,10,100,1\n", "pose.txt:1: 'inf' is not a finite"),
+    ("c3vd", "cecum_t1_a/pose.txt", b"\xff\xfe\x00" * 20, "pose.txt: not a UTF-8 text file"),
+    ("endoslam", "UnityCam/Colon/Poses/poses.csv", b"tX,tY,tZ,rX,rY,rZ,rW\n1,2,3,0,0,0,1\n1,2,x3,0,0,0,1\n",
+     "poses.csv:3: 'x3' is not a finite number"),
+]
+
+
+@pytest.mark.parametrize("name, rel, content, needle", SPOILED_TEXT,
+                         ids=[f"{n}-{r.rsplit('/', 1)[-1]}-{i}" for i, (n, r, _, _) in enumerate(SPOILED_TEXT)])
+def test_a_spoiled_text_file_of_a_dataset_is_one_line_naming_it(tmp_path, name, rel, content, needle,
+                                                                untrained_checkpoint, capsys):
+    """Never a bug line (a word where a number belongs) and never a NaN pose or camera taken in: exit 2."""
+    from geodepth_lite import cli
+
+    root = tmp_path / "data"
+    WRITERS[name](root)
+    (root / rel).write_bytes(content)
+    code = cli.main(["evaluate", "--checkpoint", str(untrained_checkpoint), "--dataset", name, "--root", str(root),
+                     "--out", str(tmp_path / "eval"), "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0] and str(root / rel) in err[0], (code, err)
+
+
+def test_a_dataset_text_file_over_the_limit_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    from geodepth_lite.data import bounds
+
+    _write_c3vd(tmp_path)
+    monkeypatch.setattr(bounds, "MAX_TEXT_BYTES", 100)  # the fixture's pose.txt is about 190 bytes
+    with pytest.raises(utils.FileProblem, match="pose.txt: over the limit of 100 bytes"):
+        datasets.open_dataset("c3vd", tmp_path)

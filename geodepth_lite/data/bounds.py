@@ -7,6 +7,7 @@ over one is a :class:`~geodepth_lite.utils.FileProblem` naming it.
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from pathlib import Path
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from geodepth_lite.core.errors import UserError
 from geodepth_lite.utils import FileProblem, os_reason
 
 MAX_PIXELS = 50_000_000  # an image (frame, mask, depth map) is refused above this many pixels, before decoding
@@ -48,6 +50,41 @@ def check_image_file(path: str | os.PathLike, what: str = "image", max_pixels: i
     size = image_header_size(path)
     if size is not None:
         check_pixels(*size, path, what, max_pixels)
+
+
+MAX_TEXT_BYTES = 64 * 2**20  # a text file of a public dataset (poses, a camera's calibration), at most
+
+
+def read_text(path: str | os.PathLike, what: str = "file", limit: int | None = None) -> str:
+    """The UTF-8 text of ``path``, read within ``limit`` bytes (default ``MAX_TEXT_BYTES``); a
+    :class:`FileProblem` naming it (as ``what``) when it cannot be read, is larger or is not UTF-8 text."""
+    limit = MAX_TEXT_BYTES if limit is None else limit
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(limit + 1)
+    except OSError as exc:
+        raise FileProblem(f"cannot read {what} {path}: {os_reason(exc)}", path) from exc
+    if len(raw) > limit:
+        raise FileProblem(f"cannot read {what} {path}: over the limit of {limit} bytes for this file", path)
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise FileProblem(f"cannot read {what} {path}: not a UTF-8 text file", path) from exc
+
+
+def finite_numbers(tokens: list[str], where: str) -> list[float]:
+    """``tokens`` as floats, each finite; else a :class:`UserError` naming ``where`` (``file:line``)
+    and the first token that is not a finite number."""
+    values = []
+    for token in tokens:
+        try:
+            value = float(token)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise UserError(f"{where}: {token[:40]!r} is not a finite number")
+        values.append(value)
+    return values
 
 
 MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file (data_manifests/*.json, a dataset's manifest.json), at most

@@ -41,20 +41,12 @@ MAX_INTRINSICS_BYTES = 64 * 2**10  # an --intrinsics file (a few numbers) is ref
 
 def _read_calibration(path: Path):
     """The parsed YAML/JSON of an ``--intrinsics`` file, read within ``MAX_INTRINSICS_BYTES``."""
+    text = bounds.read_text(path, "--intrinsics", MAX_INTRINSICS_BYTES)
     try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_INTRINSICS_BYTES + 1)
-    except OSError as exc:
-        raise FileProblem(f"cannot read --intrinsics {path}: {os_reason(exc)}", path) from exc
-    if len(raw) > MAX_INTRINSICS_BYTES:
-        raise FileProblem(f"cannot read --intrinsics {path}: over the limit of {MAX_INTRINSICS_BYTES} bytes for "
-                          "an intrinsics file (it holds a few numbers)", path)
-    try:
-        text = raw.decode("utf-8")
         return json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except Exception as exc:  # noqa: BLE001 - any decoding or parse error is the user's file
-        reason = "not a UTF-8 text file" if isinstance(exc, UnicodeDecodeError) else f"{exc.__class__.__name__}: {exc}"
-        raise UserError(f"--intrinsics {path}: cannot parse ({_short(reason, 200)})") from None
+    except Exception as exc:  # noqa: BLE001 - any parse error is the user's file
+        reason = " ".join(f"{exc.__class__.__name__}: {exc}".split())[:200]  # YAML's messages span lines
+        raise UserError(f"--intrinsics {path}: cannot parse ({reason})") from None
 
 
 def _finite(value, name: str, path: Path) -> float:

@@ -57,8 +57,8 @@ class C3VDDataset(PublicDepthDataset):
         numbers, column-major has 0 at positions 4, 8, 12 and 1 at 16.
         """
         poses = []
-        for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
-            vals = [float(v) for v in re.split(r"[,\s]+", line.strip()) if v]
+        for lineno, line in enumerate(bounds.read_text(path, "C3VD pose file").splitlines(), 1):
+            vals = bounds.finite_numbers([v for v in re.split(r"[,\s]+", line.strip()) if v], f"{path}:{lineno}")
             if not vals:
                 continue
             if len(vals) != 16:

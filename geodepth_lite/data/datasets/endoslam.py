@@ -12,6 +12,7 @@ import numpy as np
 
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.data import bounds
 from geodepth_lite.data.datasets.base import PublicDepthDataset, norm_name, numbered, pair_images_with_depths, read_png_unit
 
 # Ozyoruk et al. 2021: UnityCam/<Organ>/Frames/image_%04d.png,
@@ -68,13 +69,10 @@ class EndoSLAMDataset(PublicDepthDataset):
         if len(csvs) != 1:
             return {}
         rows = []
-        for line in csvs[0].read_text().splitlines()[1:]:
+        for lineno, line in enumerate(bounds.read_text(csvs[0], "EndoSLAM pose file").splitlines()[1:], 2):
             vals = [v for v in re.split(r"[,;\s]+", line.strip()) if v]
             if len(vals) >= 7:
-                try:
-                    rows.append([float(v) for v in vals[:7]])
-                except ValueError:
-                    raise UserError(f"{csvs[0]}: non-numeric pose row {line!r}") from None
+                rows.append(bounds.finite_numbers(vals[:7], f"{csvs[0]}:{lineno}"))
         if not ENDOSLAM_POSE_ROW_IS_FRAME_ORDER or len(rows) != len(frame_numbers):
             if rows:
                 warnings.warn(f"{csvs[0]}: {len(rows)} pose rows for {len(frame_numbers)} frames; poses not used")

@@ -12,6 +12,7 @@ import numpy as np
 
 from geodepth_lite.core import camera
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.data import bounds
 from geodepth_lite.data.datasets.base import PublicDepthDataset, numbered, pair_images_with_depths, read_png_raw
 
 # Rau et al. 2023: SyntheticColon_X/Frames_<S|B|O><n>/FrameBuffer_%04d.png + Depth_%04d.png,
@@ -57,7 +58,8 @@ class SimCol3DDataset(PublicDepthDataset):
     @staticmethod
     def read_cam(path) -> np.ndarray:
         """SimCol3D ``cam.txt``: 9 numbers (3x3 K, row-major) or 4 numbers (fx fy cx cy)."""
-        vals = [float(v) for v in re.split(r"[,\s]+", Path(path).read_text().strip()) if v]
+        text = bounds.read_text(path, "SimCol3D camera file")
+        vals = bounds.finite_numbers([v for v in re.split(r"[,\s]+", text.strip()) if v], str(path))
         if len(vals) == 9:
             K = np.array(vals).reshape(3, 3)
         elif len(vals) == 4:
@@ -80,13 +82,13 @@ class SimCol3DDataset(PublicDepthDataset):
 
         def rows(path, k):
             out = []
-            for lineno, line in enumerate(path.read_text().splitlines(), 1):
+            for lineno, line in enumerate(bounds.read_text(path, "SimCol3D pose file").splitlines(), 1):
                 vals = [v for v in re.split(r"[,\s]+", line.strip()) if v]
                 if not vals:
                     continue
                 if len(vals) != k:
                     raise UserError(f"{path}:{lineno}: expected {k} numbers, got {len(vals)}")
-                out.append([float(v) for v in vals])
+                out.append(bounds.finite_numbers(vals, f"{path}:{lineno}"))
             return out
 
         pos, rot = rows(pos_f, 3), rows(rot_f, 4)
