@@ -72,19 +72,23 @@ def read_text(path: str | os.PathLike, what: str = "file", limit: int | None = N
         raise FileProblem(f"cannot read {what} {path}: not a UTF-8 text file", path) from exc
 
 
-def finite_numbers(tokens: list[str], where: str) -> list[float]:
-    """``tokens`` as floats, each finite; else a :class:`UserError` naming ``where`` (``file:line``)
-    and the first token that is not a finite number."""
-    values = []
-    for token in tokens:
-        try:
-            value = float(token)
-        except ValueError:
-            value = math.nan
-        if not math.isfinite(value):
-            raise UserError(f"{where}: {token[:40]!r} is not a finite number")
-        values.append(value)
-    return values
+def finite_numbers(values: list, where: str) -> list[float]:
+    """``values`` (words of a text file, or numbers parsed from YAML/JSON) as floats, each finite; else a
+    :class:`UserError` naming ``where`` (``file:line``, or the file and the field) and the first value that
+    is not a finite number (a word, ``nan``, ``inf``, ``true``, a list, an integer too large for a float)."""
+    numbers = []
+    for value in values:
+        number = math.nan
+        if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+            try:
+                number = float(value)
+            except (ValueError, OverflowError):
+                pass
+        if not math.isfinite(number):
+            shown = repr(value)
+            raise UserError(f"{where}: {shown if len(shown) <= 40 else shown[:39] + '…'} is not a finite number")
+        numbers.append(number)
+    return numbers
 
 
 MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file (data_manifests/*.json, a dataset's manifest.json), at most

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
-import math
 import os
 import re
 from dataclasses import dataclass
@@ -49,17 +48,6 @@ def _read_calibration(path: Path):
         raise UserError(f"--intrinsics {path}: cannot parse ({reason})") from None
 
 
-def _finite(value, name: str, path: Path) -> float:
-    """``value`` as a float when it is a finite number (not a bool, a string or a list), else a UserError."""
-    try:
-        number = float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
-    except OverflowError:  # an integer of hundreds of digits
-        number = math.nan
-    if not math.isfinite(number):
-        raise UserError(f"--intrinsics {path}: {name} must be a finite number, got {_short(repr(value), 40)}")
-    return number
-
-
 def load_intrinsics(path) -> dict:
     """Intrinsics file (YAML or JSON, at most ``MAX_INTRINSICS_BYTES``): ``K`` (3x3) or ``fx, fy, cx, cy``,
     in pixels, and optionally ``width``, ``height``: the image size the calibration refers to (frames of
@@ -76,12 +64,12 @@ def load_intrinsics(path) -> dict:
         rows = data["K"]
         if not (isinstance(rows, list) and len(rows) == 3 and all(isinstance(r, list) and len(r) == 3 for r in rows)):
             raise UserError(f"--intrinsics {path}: K must be 3x3 (three lists of three numbers)")
-        K = np.array([[_finite(v, f"K[{i}][{j}]", path) for j, v in enumerate(r)] for i, r in enumerate(rows)])
+        K = np.array([bounds.finite_numbers(r, f"--intrinsics {path}, K[{i}]") for i, r in enumerate(rows)])
     else:
         missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
         if missing:
             raise UserError(f"--intrinsics {path}: missing {', '.join(missing)} (or give K as a 3x3 list)")
-        fx, fy, cx, cy = (_finite(data[k], k, path) for k in ("fx", "fy", "cx", "cy"))
+        fx, fy, cx, cy = (bounds.finite_numbers([data[k]], f"--intrinsics {path}, {k}")[0] for k in ("fx", "fy", "cx", "cy"))
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64)
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise UserError(f"--intrinsics {path}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
