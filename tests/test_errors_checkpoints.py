@@ -151,6 +151,15 @@ def buffer_checkpoint(path: Path) -> Path:
     return _torch_file(path, {"model": {_key(): _Call(bytearray, 10**10)}, "cfg": {"image_size": 32}}, [])
 
 
+def hidden_buffer_checkpoint(path: Path) -> Path:
+    """``buffer_checkpoint``'s pickle as a second ``data.pkl`` behind a harmless first one: a check that
+    reads the first record of that name passes the file, and torch.load reads the second."""
+    benign = _pickled({"model": {}, "cfg": {"image_size": 32}})
+    evil = _pickled({"model": {_key(): _Call(bytearray, 10**10)}, "cfg": {"image_size": 32}})
+    return _zip(path, [_stored("archive/data.pkl", benign), _stored("archive/data.pkl", evil),
+                       _stored("archive/byteorder", b"little"), _stored("archive/version", b"3\n")])
+
+
 def bundle_of(path: Path, ckpt: Path, run: str = "case4_seed0-crafted") -> Path:
     """A class bundle (bundle.json with checksums) holding ``ckpt`` as its one run's checkpoint."""
     name = f"checkpoints/{run}/checkpoint.pt"
@@ -246,6 +255,18 @@ def test_a_pickle_asking_for_a_huge_buffer_is_refused_unread(smoke_root, tmp_pat
     argv, _ = _commands(ckpt, tmp_path, smoke_root)["predict"]
     rc, err, rss = _bounded(argv, tmp_path, tmp_path / "home")
     _assert_one_line(rc, err, rss, ckpt, "refused", "builtins.bytearray")
+
+
+@pytest.mark.parametrize("command", ["predict", "unbundle"])
+def test_a_second_pickle_behind_a_harmless_one_is_refused_unread(smoke_root, tmp_path, command):
+    ckpt = hidden_buffer_checkpoint(tmp_path / "checkpoint.pt")
+    assert ckpt.stat().st_size < 2000
+    with pytest.raises(ValueError, match="archive/data.pkl is there twice"):
+        checkpoint.read_checkpoint(ckpt)
+    argv, named = _commands(ckpt, tmp_path, smoke_root)[command]
+    rc, err, rss = _bounded(argv, tmp_path, tmp_path / "home")
+    _assert_one_line(rc, err, rss, named, "there twice")
+    _nothing_written(tmp_path, tmp_path / "home")
 
 
 def test_convert_checkpoint_bounds_its_own_process_and_its_output(tmp_path, bomb):

@@ -134,9 +134,12 @@ def _refused(path: Path, reason: str) -> UserError:
 
 def _checked_records(path: Path, zf: zipfile.ZipFile, limits: Limits) -> zipfile.ZipInfo | None:
     """Every record's declared size and packing against ``limits``; returns the pickle's entry (or None)."""
-    total, pickle_info = 0, None
+    total, pickle_info, names = 0, None, set()
     with open(path, "rb") as f:
         for info in zf.infolist():
+            if info.filename in names:  # a reader takes one of the two, the check may have read the other
+                raise _refused(path, f"its record {info.filename[:80]} is there twice; torch.save writes each once")
+            names.add(info.filename)
             f.seek(info.header_offset)
             local = f.read(30)
             method = struct.unpack("<H", local[8:10])[0] if len(local) == 30 and local[:4] == b"PK\3\4" else -1
@@ -150,8 +153,11 @@ def _checked_records(path: Path, zf: zipfile.ZipFile, limits: Limits) -> zipfile
                 raise _refused(path, f"its record {info.filename[:80]} declares {info.file_size} bytes, over the "
                                      f"{cap} bytes of {what}")
             total += info.file_size
+            if is_pickle and pickle_info is not None:
+                raise _refused(path, f"it holds two pickles ({pickle_info.filename[:80]}, {info.filename[:80]}); "
+                                     "torch.save writes one")
             if is_pickle:
-                pickle_info = pickle_info or info
+                pickle_info = info
     if total > limits.total + PICKLE_MAX_BYTES:
         raise _refused(path, f"its records declare {total} bytes, over the {limits.total} bytes a checkpoint of "
                              "the network holds (its weights and the optimizer's two moments)")
