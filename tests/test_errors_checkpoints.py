@@ -19,6 +19,7 @@ import struct
 import subprocess
 import sys
 import time
+import zipfile
 import zlib
 from pathlib import Path
 
@@ -28,6 +29,7 @@ import torch
 from conftest import one_line_error
 
 from geodepth_lite import cli
+from geodepth_lite.data import bounds
 from geodepth_lite.training import checkpoint
 
 CAP = 2 * 2**30  # address space of a command: torch and a normal predict run fit (about 1.5 GiB suffices)
@@ -326,3 +328,63 @@ def test_unbundle_refuses_a_checkpoint_that_does_not_fit_the_network(tmp_path, m
     assert cli.main(["unbundle", str(bundled)]) == 2
     one_line_error(capsys, bundled, "does not fit this network", "unexpected tensor(s), first w")
     _nothing_written(tmp_path, tmp_path / "home")
+
+
+# --------------------------------------------------------------------------- zip directories, bounded unread
+
+
+def test_the_zip_directory_is_read_from_its_end_record(tmp_path):
+    """Known answers: the hand-made zip's directory is 46 bytes and the name per member; a zip of more
+    than 65535 members keeps its counts in the ZIP64 end record, which is read instead."""
+    made = _zip(tmp_path / "three.zip", [_stored(f"m{i}", b"x" * i) for i in range(3)])
+    assert bounds.zip_directory(made) == (3, 3 * (46 + 2))
+    big = tmp_path / "zip64.zip"
+    with zipfile.ZipFile(big, "w") as zf:
+        for i in range(70_000):
+            zf.writestr(f"{i:05d}", b"")
+    with zipfile.ZipFile(big) as zf:
+        assert len(zf.infolist()) == 70_000
+    entries, directory = bounds.zip_directory(big)
+    assert entries == 70_000 and directory == 70_000 * (46 + 5)
+    (tmp_path / "plain.txt").write_bytes(b"not a zip")
+    assert bounds.zip_directory(tmp_path / "plain.txt") is None
+
+
+def _directory_liar(path: Path, members: int, declared: int, name_len: int = 7) -> Path:
+    """A zip of ``members`` empty members (names of ``name_len`` characters) whose end record declares
+    ``declared`` of them."""
+    _zip(path, [_stored(f"m{i:06d}".ljust(name_len, "x"), b"") for i in range(members)])
+    data = bytearray(path.read_bytes())
+    data[-12:-8] = struct.pack("<HH", declared, declared)
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("members, declared, name_len", [(10_001, 10_001, 7), (2_600, 1, 4_000)])
+def test_unbundle_refuses_a_directory_over_its_bound_before_zipfile_reads_it(tmp_path, monkeypatch, capsys,
+                                                                             members, declared, name_len):
+    """More members than a bundle holds, or a directory far larger than the members it declares: refused
+    from the end record, before ``zipfile`` builds the directory in memory (millions of members: GBs)."""
+    from geodepth_lite import cli
+    from geodepth_lite.apps import bundle
+
+    path = _directory_liar(tmp_path / "class.zip", members, declared, name_len)
+
+    def never(*args, **kwargs):
+        raise AssertionError("zipfile read the directory")
+
+    monkeypatch.setattr(bundle.zipfile, "ZipFile", never)
+    monkeypatch.setenv("GEODEPTH_LITE_HOME", str(tmp_path / "home"))
+    assert cli.main(["unbundle", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"bundle {path} is refused: its zip directory declares {declared} members" in err[0]
+    assert not (tmp_path / "home").exists()
+
+
+def test_a_checkpoint_directory_over_its_bound_is_refused_before_zipfile_reads_it(tmp_path, monkeypatch):
+    limits = checkpoint.network_limits()
+    path = _directory_liar(tmp_path / "checkpoint.pt", limits.members + 1, limits.members + 1)
+    monkeypatch.setattr(checkpoint.zipfile, "ZipFile", lambda *a, **k: pytest.fail("zipfile read the directory"))
+    with pytest.raises(ValueError, match=f"its zip directory declares {limits.members + 1} members"):
+        checkpoint.check_archive(path, limits)
+    assert limits.members > 471  # a training run's checkpoint holds 471 records

@@ -34,6 +34,7 @@ import torch
 
 from geodepth_lite import utils
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.data import bounds
 from geodepth_lite.data import manifest as mf
 from geodepth_lite.training import checkpoint, config
 
@@ -324,6 +325,7 @@ def unpack_bundle(path: str | Path) -> list[Path]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"bundle not found: {path}")
+    bounds.check_zip_directory(path, MEMBERS_MAX, "bundle")  # before zipfile reads the directory
     try:
         zf = zipfile.ZipFile(path)
     except zipfile.BadZipFile:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import struct
 import warnings
 from pathlib import Path
 
@@ -89,6 +90,43 @@ def finite_numbers(values: list, where: str) -> list[float]:
             raise UserError(f"{where}: {shown if len(shown) <= 40 else shown[:39] + '…'} is not a finite number")
         numbers.append(number)
     return numbers
+
+
+ZIP_ENTRY_BYTES = 1024  # the central directory may hold this many bytes per member it may declare
+
+
+def zip_directory(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(members, bytes) that a zip file's central directory declares, read from its end record (and
+    the ZIP64 one where there is one) without parsing the directory; None when there is no end record."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        f.seek(max(size - 22 - 65535, 0))  # the end record: 22 bytes and a comment of up to 65535
+        tail = f.read()
+        at = tail.rfind(b"PK\x05\x06")
+        if at < 0 or len(tail) - at < 22:
+            return None
+        entries, directory = struct.unpack("<HL", tail[at + 10:at + 16])
+        if at >= 20 and tail[at - 20:at - 16] == b"PK\x06\x07":  # ZIP64: the counts are in its own end record
+            f.seek(struct.unpack("<Q", tail[at - 12:at - 4])[0])
+            record = f.read(56)
+            if len(record) == 56 and record[:4] == b"PK\x06\x06":
+                entries, directory = struct.unpack("<QQ", record[32:48])
+    return entries, directory
+
+
+def check_zip_directory(path: str | os.PathLike, max_members: int, what: str) -> None:
+    """A :class:`UserError` naming ``path`` when its zip directory declares more than ``max_members`` members
+    or more than ``ZIP_ENTRY_BYTES`` a member: reading it would take memory a ``what`` never needs."""
+    try:
+        declared = zip_directory(path)
+    except OSError as exc:
+        raise FileProblem(f"cannot read {what} {path}: {os_reason(exc)}", path) from exc
+    if declared is None:
+        return  # not a zip: its reader says so
+    entries, directory = declared
+    if entries > max_members or directory > max_members * ZIP_ENTRY_BYTES:
+        raise UserError(f"{what} {path} is refused: its zip directory declares {entries} members in {directory} "
+                        f"bytes, over the {max_members} members a {what} holds; nothing in it was read")
 
 
 MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file (data_manifests/*.json, a dataset's manifest.json), at most

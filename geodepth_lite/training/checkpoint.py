@@ -33,6 +33,7 @@ import torch
 
 from geodepth_lite import utils
 from geodepth_lite.core.errors import UserError
+from geodepth_lite.data import bounds
 
 try:
     import resource  # POSIX only: bounds the memory of the process that reads a first-format checkpoint
@@ -97,14 +98,17 @@ class OldCheckpoint(UserError):
 
 @dataclass(frozen=True)
 class Limits:
-    """What one checkpoint may hold, in bytes: ``record``, one tensor's storage; ``total``, all of them."""
+    """What one checkpoint may hold: ``record``, one tensor's storage in bytes; ``total``, all of them;
+    ``members``, the records of its zip file."""
 
     record: int
     total: int
+    members: int = 100_000
 
 
 PICKLE_MAX_BYTES = 16 * 2**20  # data.pkl: every entry besides the tensors' data (a training run's: ~50 KB)
 RECORD_SLACK_BYTES = 2**20  # a record besides the weights (the random states: a few KB each)
+MEMBERS_SLACK = 200  # records besides the weights and the optimizer's two moments (a training run's: about 20)
 TOTAL_SLACK_BYTES = 16 * 2**20
 # a network given to train.fit in place of DepthNet: its size is not known before it is built
 ANY_NETWORK = Limits(record=4 * 2**30, total=16 * 2**30)
@@ -125,7 +129,8 @@ def network_limits() -> Limits:
     """The bounds of a DepthNet checkpoint: one record, the largest weight tensor; all of them, the
     weights three times (the model and Adam's two moments), plus slack for the random states."""
     sizes = [int(np.prod(shape, dtype=np.int64)) * dt.itemsize for shape, dt in network_sizes().values()]
-    return Limits(record=max(max(sizes), RECORD_SLACK_BYTES), total=3 * sum(sizes) + TOTAL_SLACK_BYTES)
+    return Limits(record=max(max(sizes), RECORD_SLACK_BYTES), total=3 * sum(sizes) + TOTAL_SLACK_BYTES,
+                  members=3 * len(sizes) + MEMBERS_SLACK)
 
 
 def _refused(path: Path, reason: str) -> UserError:
@@ -197,6 +202,7 @@ def check_archive(path: Path, limits: Limits) -> list[str]:
     size = path.stat().st_size
     if size > limits.total + 2 * PICKLE_MAX_BYTES:
         raise _refused(path, f"it is {size} bytes, over the {limits.total} bytes a checkpoint of the network holds")
+    bounds.check_zip_directory(path, limits.members, "checkpoint")  # before zipfile reads the directory
     try:
         zf = zipfile.ZipFile(path)
     except zipfile.BadZipFile:
