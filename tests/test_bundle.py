@@ -147,3 +147,39 @@ def test_an_unfinished_run_is_not_bundled(tmp_path, monkeypatch, smoke_root):
     train.fit(cfg, tmp_path / "home" / "runs" / "smoke" / "checkpoints" / "case1_seed0-x", progress=False, stop_after=1)
     with pytest.raises(FileNotFoundError, match="no complete run"):
         bundle.make_bundle("smoke", tmp_path / "b.zip")
+
+
+def test_bundle_replaces_only_a_bundle_and_packs_only_manifests(smoke_runs, tmp_path, monkeypatch, capsys):
+    """--out over a user's file (a README, notes, a zip of theirs) is refused unchanged; over an earlier
+    bundle it is replaced. A run whose configuration names no dataset, or a file that is no manifest,
+    is one line naming it: the file is never packed."""
+    home, paths = smoke_runs
+    _use(monkeypatch, home)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    theirs = tmp_path / "theirs.zip"
+    with zipfile.ZipFile(theirs, "w") as zf:
+        zf.writestr("holiday.txt", "photos")
+    for target in (notes, theirs):
+        before = target.read_bytes()
+        assert cli.main(["bundle", "--profile", "smoke", "--out", str(target)]) == 2
+        assert "is not a class bundle" in capsys.readouterr().err and target.read_bytes() == before
+    made = tmp_path / "class.zip"
+    assert cli.main(["bundle", "--profile", "smoke", "--out", str(made)]) == 0
+    assert bundle.is_bundle(made) and not bundle.is_bundle(theirs) and not bundle.is_bundle(tmp_path)
+    assert cli.main(["bundle", "--profile", "smoke", "--out", str(made)]) == 0  # an earlier bundle: replaced
+    capsys.readouterr()
+
+    real = checkpoint.read_checkpoint
+    for dataset, needle in ((None, "its configuration names no dataset"), (str(notes), "manifest notes.txt is not")):
+        def crafted(path, *args, dataset=dataset, **kwargs):
+            ckpt = real(path, *args, **kwargs)
+            return {**ckpt, "cfg": {k: v for k, v in ckpt["cfg"].items() if k != "dataset"}
+                    | ({} if dataset is None else {"dataset": dataset})}
+
+        monkeypatch.setattr(bundle.checkpoint, "read_checkpoint", crafted)
+        out = tmp_path / f"crafted-{dataset is None}.zip"
+        assert cli.main(["bundle", "--profile", "smoke", "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and "this is a bug" not in err[0], err
+        assert not out.exists()

@@ -126,16 +126,18 @@ def test_out_that_is_a_file_is_refused_before_the_model_loads(smoke_root, untrai
 def test_a_read_only_out_is_refused_before_the_model_loads(smoke_root, untrained_checkpoint, tmp_path,
                                                            monkeypatch, capsys, existing):
     out = tmp_path / "a" / "eval"
-    if existing:
+    if existing:  # an earlier evaluation's folder
         out.mkdir(parents=True)
         (out / "metrics.json").write_text("{}\n")
+        (out / tables.MARKER).write_text("written by python -m geodepth_lite evaluate\n")
     _no_model_loading(monkeypatch)
     monkeypatch.setattr(utils.tempfile, "mkstemp", lambda *a, **k: (_ for _ in ()).throw(
         OSError(errno.EROFS, os.strerror(errno.EROFS))))  # root ignores chmod: a read-only disk simulated
     assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, out)) == 2
     one_line_error(capsys, f"error: cannot write {out}: read-only file system")
     if existing:
-        assert _snapshot(out) == {"metrics.json": b"{}\n"}
+        assert _snapshot(out) == {"metrics.json": b"{}\n",
+                                  tables.MARKER: b"written by python -m geodepth_lite evaluate\n"}
     else:
         assert not (tmp_path / "a").exists()  # no empty folder left behind
 
@@ -208,8 +210,29 @@ def test_a_new_set_replaces_the_old_one_whole(smoke_root, untrained_checkpoint, 
     assert new["overall"]["abs_rel"] == pytest.approx(_frames_mean(out), rel=1e-5)  # the files belong together
     assert "baseline: constant" in (out / "tables.md").read_text()
     assert len(list((out / "error_maps").glob("*.png"))) == 1  # none of the old run's three maps is left
-    assert sorted(p.name for p in out.iterdir()) == ["error_maps", "frames.csv", "metrics.json", "notes.txt",
-                                                     "tables.md"]
+    assert sorted(p.name for p in out.iterdir()) == [tables.MARKER, "error_maps", "frames.csv", "metrics.json",
+                                                     "notes.txt", "tables.md"]
+
+
+def test_a_folder_evaluate_did_not_write_is_refused_and_kept(smoke_root, untrained_checkpoint, tmp_path,
+                                                             monkeypatch, capsys):
+    """A user's folder holding files of evaluate's names (metrics.json, error_maps/), or any other file: exit 2
+    before the model loads, nothing in it changed; a killed run's hidden staging folder does not count."""
+    _no_model_loading(monkeypatch)
+    theirs = tmp_path / "mine"
+    (theirs / "error_maps").mkdir(parents=True)
+    (theirs / "metrics.json").write_text("my own numbers")
+    (theirs / "error_maps" / "holiday.png").write_bytes(b"a photo")
+    before = _snapshot(theirs)
+    assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, theirs)) == 2
+    one_line_error(capsys, f"error: cannot write into {theirs}: the folder holds files evaluate did not write "
+                           "(error_maps, ...)")
+    assert _snapshot(theirs) == before
+    left = tmp_path / "killed"
+    (left / f"{tables.STAGING_PREFIX}x1").mkdir(parents=True)
+    monkeypatch.undo()
+    assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, left, "--no-baselines")) == 0
+    assert (left / tables.MARKER).is_file() and (left / "metrics.json").is_file()
 
 
 def test_a_failed_swap_puts_the_earlier_set_back(smoke_root, untrained_checkpoint, tmp_path, monkeypatch, capsys):

@@ -30,6 +30,7 @@ from PIL import Image
 from geodepth_lite import cli, utils
 from geodepth_lite.apps import bundle
 from geodepth_lite.core.model import DepthNet
+from geodepth_lite.evaluation import tables
 from geodepth_lite.workbook import exercises
 
 DEAD_PID = 2**22 + 1  # above Linux's largest pid_max: no process can have it
@@ -167,6 +168,7 @@ def test_a_second_evaluate_into_one_folder_is_refused_and_the_first_ones_files_s
     out = tmp_path / "eval"
     out.mkdir()
     (out / "metrics.json").write_text('{"earlier": 1}')
+    utils.mark_folder(out, tables.MARKER, "evaluate")  # the first evaluation's folder
     pid = held(out)
     argv = ["evaluate", "--checkpoint", str(untrained_checkpoint), "--dataset", str(tmp_path / "data"),
             "--out", str(out), "--no-progress", "--no-verify"]

@@ -66,11 +66,37 @@ class _NothingToPack(Exception):
     """No complete run was found while packing (not an OSError, so the atomic write does not wrap it)."""
 
 
+def is_bundle(path: Path) -> bool:
+    """Whether ``path`` is a regular file holding a class bundle (a zip with ``bundle.json``), read from
+    its directory within the bundle's bounds."""
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        bounds.check_zip_directory(path, MEMBERS_MAX, "bundle")
+        with zipfile.ZipFile(path) as zf:
+            return INDEX in zf.namelist()
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, NotImplementedError, RuntimeError):
+        return False
+
+
+def _dataset_of(ckpt: dict, folder: Path) -> str:
+    """The dataset a run's configuration names (a shipped manifest's name, or a path); a UserError naming
+    the checkpoint when there is none."""
+    name = ckpt["cfg"].get("dataset")
+    if not isinstance(name, str) or not name:
+        raise UserError(f"cannot pack {folder / checkpoint.CHECKPOINT_NAME}: its configuration names no dataset "
+                        f"(dataset = {str(name)[:40]!r})")
+    return name
+
+
 def make_bundle(profile: str, out: str | Path | None = None) -> Path:
     """Pack every complete run of ``profile`` into a zip file (default ``<profile>-models.zip`` in
     the workspace); returns its path. Each checkpoint is read once; unfinished runs are left out."""
     config.get_profile(profile)
     target = Path(out) if out else utils.workspace() / f"{profile}-models.zip"
+    if os.path.lexists(target) and not is_bundle(target):  # replaced only when it is an earlier bundle
+        raise utils.FileProblem(f"cannot write {target}: it exists and is not a class bundle (bundle replaces only "
+                                "a bundle it wrote); choose another --out", target)
     files: dict[str, str] = {}
     runs: list[str] = []
     datasets: set[str] = set()
@@ -89,13 +115,14 @@ def make_bundle(profile: str, out: str | Path | None = None) -> Path:
                 for name in RUN_FILES[1:]:
                     if (folder / name).is_file():
                         add(f"checkpoints/{folder.name}/{name}", (folder / name).read_bytes())
-                datasets.add(str(ckpt["cfg"]["dataset"]))
+                datasets.add(_dataset_of(ckpt, folder))
             if not runs:  # leave the block: its temporary file is removed, nothing is written
                 raise _NothingToPack
             for name in sorted(datasets):
                 if Path(name).is_dir():  # a dataset folder given by path: its own manifest.json travels with it
                     continue
                 path = mf.manifest_path(name)
+                mf.load_manifest(path)  # a manifest, within its bounds, before its bytes are packed
                 add(f"manifests/{path.name}", path.read_bytes())
             zf.writestr(INDEX, json.dumps({"format": BUNDLE_FORMAT, "profile": profile, "runs": runs, "files": files},
                                           indent=1) + "\n")

@@ -404,15 +404,9 @@ def _full_lines(report: dict) -> list[str]:
 
 def _claim_out(out: Path) -> None:
     """The output folder: new, empty, or one this command wrote before (its marker)."""
-    if out.exists() and not out.is_dir():
-        raise utils.FileProblem(f"cannot write into {out}: it is a file, not a folder", out)
-    if out.is_dir():
-        entries = {p.name for p in out.iterdir()} - {utils.LOCK_NAME}
-        if entries and MARKER not in entries:
-            raise utils.FileProblem(f"cannot write into {out}: the folder holds files gpu-check did not write; "
-                                    "choose a new or empty folder", out)
+    utils.claim_folder(out, MARKER, "gpu-check")
     utils.make_dir(out)
-    (out / MARKER).write_text("written by python -m geodepth_lite gpu-check\n")
+    utils.mark_folder(out, MARKER, "gpu-check")
 
 
 def _step(report: dict, key: str, fn, save) -> dict:

@@ -75,9 +75,9 @@ def check_subsets(args: argparse.Namespace, public: bool, kw: dict) -> int:
 def run_evaluate(args: argparse.Namespace) -> int:
     """``evaluate``: check --out, verify the dataset, score the checkpoint, write the set of result files.
 
-    --out is checked (a folder, writable, room for the tables) and locked (``utils.FolderLock``: a
-    second evaluation into it is refused, naming this one's PID) before the model is loaded; a run
-    that fails leaves no folder it created behind, and never part of a result set
+    --out is checked (a folder that is new, empty or evaluate's own, writable, room for the tables) and
+    locked (``utils.FolderLock``: a second evaluation into it is refused, naming this one's PID) before the
+    model is loaded; a run that fails leaves no folder it created behind, and never part of a result set
     (``tables.write_results``)."""
     if args.device is not None:
         utils.parse_device(args.device)  # a bad --device: one line, before any work
@@ -92,8 +92,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.error_maps < 0:
         raise UserError(f"--error-maps must be >= 0, got {args.error_maps}")
     out = Path(args.out) if args.out else utils.runs_dir() / "eval" / f"{Path(args.dataset).name}-{args.split}"
+    # before any work: a refusal costs nothing. A folder of files evaluate did not write is refused.
+    if out.is_dir():  # a file of that name: prepare_output_dir says so
+        utils.claim_folder(out, tables.MARKER, "evaluate", own_prefixes=(tables.STAGING_PREFIX, tables.PREVIOUS_PREFIX))
     created = utils.missing_dirs(out)
-    # before any work: a refusal costs nothing
     tables.prepare_output_dir(out, tables.output_bytes_needed(args.error_maps))
     lock = utils.FolderLock(out, "output folder", remove_file=True)  # one evaluation per --out at a time
     try:
@@ -105,6 +107,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
                                               out_dir=out, device=args.device, batch_size=args.batch_size,
                                               error_maps=args.error_maps, progress=not args.no_progress,
                                               baselines=not args.no_baselines, flips=args.flips, **kw)
+        utils.mark_folder(out, tables.MARKER, "evaluate")  # its results are in: the folder is evaluate's
     except BaseException:
         lock.release()
         utils.remove_empty_dirs(created)  # a failed run leaves no empty output folder behind

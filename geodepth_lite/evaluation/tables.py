@@ -70,6 +70,7 @@ def metrics_table(result: dict, by: str | None = None) -> dict:
 
 
 OUTPUT_SET = ("metrics.json", "frames.csv", "tables.md", "error_maps")  # one evaluation's files, replaced whole
+MARKER = ".evaluate"  # marks an output folder as evaluate's (utils.claim_folder): it may write there again
 STAGING_PREFIX = ".eval-staging-"  # hidden folder in the output folder where a new set is written first
 PREVIOUS_PREFIX = ".eval-previous-"  # hidden folder that holds the replaced set until the new one is in place
 TABLES_BYTES = 4 * 2**20  # room asked for metrics.json, frames.csv and tables.md before any work (a few kB each)

@@ -133,17 +133,6 @@ def settings_argv(args: argparse.Namespace) -> list[str]:
     return out
 
 
-def claim_out(out: Path) -> None:
-    """Refuses an ``out`` that is a file, or a non-empty folder train-many did not write (nothing written)."""
-    if out.exists() and not out.is_dir():
-        raise utils.FileProblem(f"cannot write into {out}: it is a file, not a folder", out)
-    if out.is_dir():
-        entries = {p.name for p in out.iterdir()} - {utils.LOCK_NAME}
-        if entries and MARKER not in entries:
-            raise utils.FileProblem(f"cannot write into {out}: the folder holds files train-many did not write; "
-                                    "choose a new or empty --out", out)
-
-
 def plan_runs(args: argparse.Namespace, out: Path, pairs: list[tuple[int, int]]) -> tuple[list[Run], list[dict]]:
     """The runs to train and their configurations, checked before anything is written: bad settings,
     a run folder holding a checkpoint without ``--resume``, or one of another configuration."""
@@ -306,7 +295,7 @@ def run_train_many(args: argparse.Namespace, on_line=None) -> int:
     dev = check_device(args.device)
     _check_numbers(args)
     out = Path(args.out)
-    claim_out(out)
+    utils.claim_folder(out, MARKER, "train-many")  # a file, or a folder of others' files: refused
     created = utils.missing_dirs(out)
     try:
         with utils.FolderLock(out, "train-many folder", remove_file=True):
@@ -316,7 +305,7 @@ def run_train_many(args: argparse.Namespace, on_line=None) -> int:
             else:
                 runs, cfgs = plan_runs(args, out, [(c, s) for c in args.cases for s in args.seeds])
                 prepare_data(cfgs, not args.no_verify, not args.no_progress)
-                _mark(out)
+                utils.mark_folder(out, MARKER, "train-many")
                 record = train_group(runs, cfgs, args, dev, say)
                 utils.write_json_atomic(out / "train_many.json", record)
     except BaseException:
@@ -330,10 +319,6 @@ def run_train_many(args: argparse.Namespace, on_line=None) -> int:
     print(f"train-many: {len(record['runs']) - len(bad)} of {len(record['runs'])} runs finished in "
           f"{record['wall_s']:.1f} s; record {out / 'train_many.json'}")
     return 1 if bad else 0
-
-
-def _mark(out: Path) -> None:
-    (out / MARKER).write_text("written by python -m geodepth_lite train-many\n")
 
 
 def train_group(runs: list[Run], cfgs: list[dict], args: argparse.Namespace, dev: torch.device, say) -> dict:
@@ -387,7 +372,7 @@ def throughput(args: argparse.Namespace, out: Path, dev: torch.device, say) -> d
     cfg = plans[ks[-1]][1][0]
     prepare_data([cfg], not args.no_verify, not args.no_progress)
     frames, steps = epoch_size(cfg)
-    _mark(out)
+    utils.mark_folder(out, MARKER, "train-many")
     record = {"profile": args.profile, "case": args.cases[0], "device": str(dev), "cpu_count": os.cpu_count(),
               "epochs": cfg["epochs"], "steps_per_epoch": steps, "image_size": cfg["image_size"],
               "batch_size": cfg["batch_size"], "threads": cfg.get("threads"), "levels": []}
