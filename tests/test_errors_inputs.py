@@ -303,6 +303,8 @@ def _synth(tmp_path, text: str) -> tuple[Path, Path]:
     ('{"resolution": {"ring_step": 1e-9}}', ("'resolution.ring_step'", "over the limit of 4000000 points")),
     ('{"camera": {"fov_x_deg": NaN}}', ("'camera.fov_x_deg'", "finite")),
     ('{"camera": {"principal_point": [NaN, 10]}}', ("'camera.principal_point[0]'", "finite")),
+    ('{"camera": {"far": 1' + "0" * 400 + '}}', ("'camera.far'", "an integer of 401 digits")),
+    ('{"camera": {"principal_point": [1' + "0" * 400 + ', 10]}}', ("'camera.principal_point[0]'", "401 digits")),
     ('{"camera": {"width": 8192, "height": 8192}}', ("'camera.width'", "over the limit of 50000000 pixels")),
     ('{"description": ' + "[" * 100_000 + "]" * 100_000 + "}", ("nested too deep",)),
 ])
@@ -425,8 +427,12 @@ def test_a_depth_map_of_the_wrong_shape_is_named(smoke_copy, untrained_checkpoin
 
 @pytest.mark.parametrize("change, needles", [
     (lambda r: r.pop("rgb"), ("line 1", "lacks 'rgb'")),
-    (lambda r: r.update(K="zzz"), ("line 1", "'K' must be a 3x3 matrix")),
+    (lambda r: r.update(K="zzz"), ("line 1", "'K' must be a pinhole camera's 3x3 matrix")),
+    (lambda r: r.update(K=[[10**400, 0, 1], [0, 1, 1], [0, 0, 1]]), ("line 1", "'K' must be a pinhole")),
+    (lambda r: r.update(K=[[0, 0, 0], [0, 0, 0], [0, 0, 0]]), ("line 1", "focal lengths positive")),
+    (lambda r: r.update(K=[[1e300, 0, 1], [0, 1, 1], [0, 0, 1]]), ("line 1", "'K' must be a pinhole")),
     (lambda r: r.update(index="3"), ("line 1", "'index' must be an integer")),
+    (lambda r: r.update(index=2**64), ("line 1", "'index' must be an integer from 0 to 2^63 - 1")),
     (None, ("line 1", "not valid JSON")),
     ("deep", ("line 1", "nested too deep")),
 ])

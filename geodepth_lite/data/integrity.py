@@ -371,15 +371,18 @@ def _frame_record(root: Path, path: Path, line_no: int, line: str, covered: set[
     bad = [k for k in RECORD_TEXT_KEYS if not isinstance(rec[k], str)]
     if bad:
         raise FileProblem(f"cannot read {where}: {bad[0]!r} must be a string, got {str(rec[bad[0]])[:60]}", path)
-    if not isinstance(rec["index"], int) or isinstance(rec["index"], bool):
-        raise FileProblem(f"cannot read {where}: 'index' must be an integer, got {str(rec['index'])[:60]}", path)
+    if not isinstance(rec["index"], int) or isinstance(rec["index"], bool) or not 0 <= rec["index"] < 2**63:
+        raise FileProblem(f"cannot read {where}: 'index' must be an integer from 0 to 2^63 - 1, got "
+                          f"{str(rec['index'])[:60]}", path)
     try:
         K = np.asarray(rec["K"], dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # not numbers, ragged, or an integer of hundreds of digits
         K = None
-    if K is None or K.shape != (3, 3) or not np.isfinite(K).all():
-        raise FileProblem(f"cannot read {where}: 'K' must be a 3x3 matrix of finite numbers, got "
-                          f"{str(rec['K'])[:60]}", path)
+    with np.errstate(over="ignore"):  # the loaders hand K on as float32: it must stay finite there
+        finite = K is not None and K.shape == (3, 3) and np.isfinite(K.astype(np.float32)).all()
+    if not finite or not (K[0, 0] > 0 and K[1, 1] > 0) or K[2].tolist() != [0.0, 0.0, 1.0]:
+        raise FileProblem(f"cannot read {where}: 'K' must be a pinhole camera's 3x3 matrix of finite numbers "
+                          f"(focal lengths positive, last row 0 0 1), got {str(rec['K'])[:60]}", path)
     for key in ("rgb", "depth"):
         dataset_file(root, rec[key], key, where)  # confined, regular, bounded
         if covered is not None and str(Path(rec[key])) not in covered and rec[key] not in covered:

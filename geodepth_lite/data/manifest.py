@@ -122,6 +122,12 @@ def _merge(field: str, base: dict, update: dict) -> dict:
 def _range(field: str, value, lo=None, hi=None, lo_open=False, hi_open=False) -> None:
     if isinstance(value, float) and not math.isfinite(value):
         raise UserError(f"manifest field '{field}' must be a finite number, got {value!r}")
+    if isinstance(value, int) and not isinstance(value, bool):
+        try:
+            float(value)
+        except OverflowError:  # an integer of hundreds of digits: no float holds it
+            raise UserError(f"manifest field '{field}' must be a finite number, got an integer of "
+                            f"{len(str(abs(value)))} digits") from None
     bad = ((lo is not None and (value <= lo if lo_open else value < lo))
            or (hi is not None and (value >= hi if hi_open else value > hi)))
     if bad:
@@ -316,9 +322,16 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
 
 
 def _check_finite(field: str, value, depth: int = 0) -> None:
-    """Every number anywhere in the manifest finite (JSON readers accept NaN and Infinity)."""
+    """Every number anywhere in the manifest finite (JSON readers accept NaN and Infinity), and every
+    integer within a float's range (the renderer computes with floats)."""
     if isinstance(value, float) and not math.isfinite(value):
         raise UserError(f"manifest field '{field}' must be a finite number, got {value!r}")
+    if isinstance(value, int) and not isinstance(value, bool):
+        try:
+            float(value)
+        except OverflowError:  # an integer of hundreds of digits: no float holds it
+            raise UserError(f"manifest field '{field}' must be a finite number, got an integer of "
+                            f"{len(str(abs(value)))} digits") from None
     if depth > MAX_JSON_DEPTH:
         raise UserError(f"manifest field '{field}' is nested over {MAX_JSON_DEPTH} deep")
     if isinstance(value, dict):
