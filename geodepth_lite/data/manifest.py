@@ -119,15 +119,21 @@ def _merge(field: str, base: dict, update: dict) -> dict:
     return out
 
 
-def _range(field: str, value, lo=None, hi=None, lo_open=False, hi_open=False) -> None:
+def _check_number(field: str, value) -> None:
+    """A UserError naming ``field`` for a float that is not finite (JSON readers accept NaN and Infinity)
+    or an integer no float holds (the renderer computes with floats); anything else passes."""
     if isinstance(value, float) and not math.isfinite(value):
         raise UserError(f"manifest field '{field}' must be a finite number, got {value!r}")
     if isinstance(value, int) and not isinstance(value, bool):
         try:
             float(value)
-        except OverflowError:  # an integer of hundreds of digits: no float holds it
+        except OverflowError:  # an integer of hundreds of digits
             raise UserError(f"manifest field '{field}' must be a finite number, got an integer of "
                             f"{len(str(abs(value)))} digits") from None
+
+
+def _range(field: str, value, lo=None, hi=None, lo_open=False, hi_open=False) -> None:
+    _check_number(field, value)
     bad = ((lo is not None and (value <= lo if lo_open else value < lo))
            or (hi is not None and (value >= hi if hi_open else value > hi)))
     if bad:
@@ -324,14 +330,7 @@ def resolve_manifest(raw: dict, overrides: dict | None = None) -> dict:
 def _check_finite(field: str, value, depth: int = 0) -> None:
     """Every number anywhere in the manifest finite (JSON readers accept NaN and Infinity), and every
     integer within a float's range (the renderer computes with floats)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise UserError(f"manifest field '{field}' must be a finite number, got {value!r}")
-    if isinstance(value, int) and not isinstance(value, bool):
-        try:
-            float(value)
-        except OverflowError:  # an integer of hundreds of digits: no float holds it
-            raise UserError(f"manifest field '{field}' must be a finite number, got an integer of "
-                            f"{len(str(abs(value)))} digits") from None
+    _check_number(field, value)
     if depth > MAX_JSON_DEPTH:
         raise UserError(f"manifest field '{field}' is nested over {MAX_JSON_DEPTH} deep")
     if isinstance(value, dict):
