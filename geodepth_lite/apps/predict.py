@@ -41,10 +41,10 @@ files of an interrupted run are removed from ``--out``. A folder's images that `
 wrote (``<name>_depth.png`` and ``<name>_panel.png`` beside ``<name>_depth.npy``) are skipped, and
 ``--out`` may not be the ``--input`` folder. An image or video that cannot be read, a frame of
 another size than the ``--mask`` image, or a frame whose outputs cannot be made, is reported by
-name and the others are still processed; a frame's outputs are written all or none. At the end each failure is
-one line ``error: <message naming the file>`` on stderr, followed by the summary, and the exit
-status is 2 if anything failed, else 0. A full or read-only disk stops the run at the first
-frame it refuses (exit status 2).
+name and the others are still processed; a frame's outputs are written all or none. At the end
+each failure is one line ``error: <message naming the file>`` on stderr, followed by the summary,
+and the exit status is 2 if anything failed, else 0. A full or read-only disk stops the run at the
+first frame it refuses (exit status 2).
 """
 
 from __future__ import annotations
