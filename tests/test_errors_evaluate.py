@@ -228,6 +228,11 @@ def test_a_folder_evaluate_did_not_write_is_refused_and_kept(smoke_root, untrain
     one_line_error(capsys, f"error: cannot write into {theirs}: the folder holds files evaluate did not write "
                            "(error_maps, ...)")
     assert _snapshot(theirs) == before
+    tracked = utils.checkout_path("notebooks", "gallery")  # a folder of the checkout's tracked files
+    before = _snapshot(tracked)
+    assert cli.main(_evaluate_argv(untrained_checkpoint, smoke_root, tracked)) == 2
+    one_line_error(capsys, f"error: cannot write into {tracked}: the folder holds files evaluate did not write")
+    assert _snapshot(tracked) == before
     left = tmp_path / "killed"
     (left / f"{tables.STAGING_PREFIX}x1").mkdir(parents=True)
     monkeypatch.undo()
