@@ -10,6 +10,7 @@ cell with hidden tests per exercise, the last one open-ended."""
 import csv
 import hashlib
 import html
+import io
 import json
 import os
 import re
@@ -376,8 +377,10 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     """Three students: ana all right; bo's notebook ends Python (exit()) in exercise 99.2; cy's 99.1 is
     right, but first tries to read the solutions, the gradebook and ana's notebook and to write into
     the course folder, and cy's 99.2 returns a value equal to anything. ana and cy are graded, bo could not
-    run; cy's every attempt fails in the sandbox, and the static review sends cy's 99.1 (it imports socket)
-    and 99.2 (a class defining __eq__) to manual grading, with the reasons in the grade table."""
+    run; cy's every attempt fails in the sandbox, and the static review sends cy's 99.1 (it imports socket),
+    99.2 (a class defining __eq__, and the socket of 99.1 in the same kernel) and 99.3 (what 99.1 and 99.2
+    left in the kernel) to manual grading, with the reasons in the grade table; cy's page shows their rows
+    as held, without the checks' messages."""
     run = ["--course", str(tiny_course)]
     config = tiny_course / course.CONFIG
     config.write_text(config.read_text().replace(f"timeout = {course.TIMEOUT_MIN_S}", "timeout = 8"))
@@ -404,11 +407,11 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     with listener:
         assert cli.main(["course", "autograde", *run]) == 0
     captured = capsys.readouterr()
-    assert "autograded 2 submissions; 1 could not run; 0 graded before; 2 answers flagged for review" in captured.out
+    assert "autograded 2 submissions; 1 could not run; 0 graded before; 3 answers flagged for review" in captured.out
     (line,) = [ln for ln in captured.err.splitlines() if ln.startswith("could not run")]
     assert line.startswith(f"could not run: bo, {TINY}.ipynb: the kernel died")
     assert [ln.split(":")[1] for ln in captured.err.splitlines() if ln.startswith("flagged for review")] == [
-        f" cy, {TINY}.ipynb exercise 99.1", f" cy, {TINY}.ipynb exercise 99.2"]
+        f" cy, {TINY}.ipynb exercise 99.1", f" cy, {TINY}.ipynb exercise 99.2", f" cy, {TINY}.ipynb exercise 99.3"]
     printed = _printed(tiny_course / "autograded" / "cy" / TINY / f"{TINY}.ipynb")
     assert [ln for ln in printed.splitlines() if ln.startswith(("done", "blocked"))] == [
         f"blocked: {what}" for what in ("read source", "read gradebook", "read other student", "list course",
@@ -419,22 +422,24 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     assert cli.main(["course", "feedback", *run]) == 0
     pages = {who: (tiny_course / "feedback" / who / TINY / f"{TINY}.html").read_text() for who in ("ana", "bo", "cy")}
     assert "could not run" in pages["bo"] and "kernel died" in pages["bo"] and "0 of 9 points" in pages["cy"]
-    assert "99.2 Square</td><td>0 / 3 (graded by hand, pending)</td><td class=\"passed\">" in pages["cy"]
+    assert "99.2 Square</td><td>0 / 3 (graded by hand, pending)</td><td class=\"held\">" in pages["cy"]
+    assert pages["cy"].count(autograde.HELD_MESSAGE) == 3 and "passed" not in pages["cy"].split("<table>")[1]
     assert feedback_leaks(pages, tiny_course) == []
     assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), *run]) == 0
     report = capsys.readouterr().out
     assert (f"flagged for review: cy, {TINY}, 99.2: line 2: class Always defines __eq__: "
             f"{review.RULES['special-method']}") in report
-    assert "3 grades in" in report and "2 answers flagged by the static review" in report
+    assert "3 grades in" in report and "3 answers flagged by the static review" in report
     rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
-    # cy's checks passed (the always-equal square fooled them), but both flagged answers wait for a hand grade
+    # cy's checks passed (the always-equal square fooled them), but the flagged exercises' four graded cells
+    # (99.1's and 99.2's checks, 99.3's answer and check) wait for a hand grade
     assert {who: (float(r["points"]), int(r["needs_manual_grading"]), r["could_not_run"][:15])
-            for who, r in rows.items()} == {"ana": (5.0, 1, ""), "bo": (0.0, 0, "the kernel died"), "cy": (0.0, 3, "")}
+            for who, r in rows.items()} == {"ana": (5.0, 1, ""), "bo": (0.0, 0, "the kernel died"), "cy": (0.0, 4, "")}
     assert rows["ana"]["flagged_for_review"] == rows["bo"]["flagged_for_review"] == ""
     assert rows["cy"]["flagged_for_review"].startswith("99.1: line 2: import socket: runs code where the grading ")
     assert "99.2: line 2: class Always defines __eq__" in rows["cy"]["flagged_for_review"]
     assert [(r["student"], r["exercise"]) for r in json.loads((tiny_course / autograde.FLAGGED).read_text())] == [
-        ("cy", "99.1"), ("cy", "99.2")]
+        ("cy", "99.1"), ("cy", "99.2"), ("cy", "99.3")]
     from nbgrader.api import Gradebook
 
     with Gradebook(f"sqlite:///{tiny_course / 'gradebook.db'}") as gb:  # what formgrader shows the lecturer
@@ -669,6 +674,11 @@ def test_feedback_page_names_exercises_and_shows_messages_not_tests():
     assert hidden not in text and "http" not in text and "<script" not in text
     dead = autograde.page("bo", TINY, f"{TINY}.ipynb", None, "the kernel died: DeadKernelError: Kernel died")
     assert "could not run" in dead and "DeadKernelError" in dead
+    # an exercise the static review flagged: what its check printed may carry what the student's code read
+    held = autograde.exercise_rows(nb, grades, frozenset({"99.1"}))
+    assert [(r["number"], r["outcome"], r["message"]) for r in held] == [
+        ("99.1", "held", autograde.HELD_MESSAGE), *[(r["number"], r["outcome"], r["message"]) for r in rows[1:]]]
+    assert "AssertionError: my_sum" not in autograde.page("ana", TINY, f"{TINY}.ipynb", held, None)
 
 
 def tiny_notebook_text() -> str:
@@ -738,3 +748,66 @@ def test_a_rerun_skips_what_is_graded_and_retry_runs_the_failed_again(tmp_path, 
     assert [c[0] for c in calls] == ["bo", "cy"]  # cy has no autograded/ folder here: the stand-in wrote none
     assert lines == [f"could not run: bo, {TINY}.ipynb: the kernel died again"]
     assert autograde.read_failures(root) == {("bo", TINY): "the kernel died again"}
+
+
+def test_the_run_limit_counts_the_courses_cells_not_the_cells_a_student_adds(tmp_path, monkeypatch):
+    """A student who adds 40 cells does not hold the class 40 cell timeouts longer."""
+    root = tmp_path / "course"
+    (root / "source" / TINY).mkdir(parents=True)
+    tiny_notebook(root / "source" / TINY / f"{TINY}.ipynb")
+    released = json.loads((root / "source" / TINY / f"{TINY}.ipynb").read_text())
+    ours = sum(c["cell_type"] == "code" for c in released["cells"])
+    released["cells"] += [{"cell_type": "code", "metadata": {}, "source": "import time\ntime.sleep(7)",
+                           "outputs": [], "execution_count": None}] * 40
+    (root / "submitted" / "ana" / TINY).mkdir(parents=True)
+    (root / "submitted" / "ana" / TINY / f"{TINY}.ipynb").write_text(json.dumps(released))
+    limits = []
+    monkeypatch.setattr(autograde, "grade_one", lambda c, s, a, sb, limit_s: limits.append(limit_s) or "stand-in")
+    monkeypatch.setattr(sandbox, "unavailable", lambda: None)
+    autograde.grade_class(root, [TINY], 8)
+    assert limits == [8 * ours + autograde.KERNEL_START_S] and ours < 40
+
+
+def test_what_a_notebook_prints_is_kept_to_its_tail_in_the_grader(tmp_path, monkeypatch):
+    """nbgrader passes the kernel's standard error on; the grader keeps only the last OUTPUT_TAIL_BYTES of
+    it, so a notebook writing hundreds of MB there cannot fill the lecturer's memory."""
+    tail = bytearray()
+    autograde.keep_tail(io.BytesIO(b"a" * 100_000 + b"END"), tail, 10)
+    assert bytes(tail) == b"aaaaaaaEND"
+    flood = ("import sys\nprint('DeadKernelError: said first', flush=True)\n"
+             "for _ in range(20000):\n    sys.stdout.write('y' * 99 + '\\n')\n"
+             "print('[ERROR] the last line')\nsys.exit(1)")
+    real = subprocess.Popen
+
+    def stand_in(cmd, **kwargs):  # nbgrader replaced by a process that floods its output and fails
+        return real([sys.executable, "-c", flood], **kwargs)
+
+    monkeypatch.setattr(autograde.subprocess, "Popen", stand_in)
+    monkeypatch.setattr(autograde, "OUTPUT_TAIL_BYTES", 4096)
+    (tmp_path / "autograded").mkdir()
+    reason = autograde.grade_one(tmp_path, "ana", TINY, False, 60)
+    assert reason == "nbgrader exited with status 1: [ERROR] the last line"  # the first 2 MB were let go
+
+
+def test_a_graded_notebook_too_big_to_read_back_gets_its_page_and_the_class_goes_on(tmp_path, monkeypatch):
+    """A 70 MB print once stopped `course feedback` for the whole class; now that student's page says why
+    and the others are written."""
+    root = tmp_path / "course"
+    (root / "source" / TINY).mkdir(parents=True)
+    tiny_notebook(root / "source" / TINY / f"{TINY}.ipynb")
+    text = (root / "source" / TINY / f"{TINY}.ipynb").read_text()
+    for who, extra in (("ana", 0), ("big", 4000), ("zoe", 0)):
+        (root / "submitted" / who / TINY).mkdir(parents=True)
+        (root / "autograded" / who / TINY).mkdir(parents=True)
+        nb = json.loads(text)
+        nb["cells"][0]["outputs"] = [{"output_type": "stream", "name": "stdout", "text": "x" * extra}]
+        (root / "autograded" / who / TINY / f"{TINY}.ipynb").write_text(json.dumps(nb))
+    monkeypatch.setattr(exercises, "NOTEBOOK_MAX_BYTES", len(text) + 2000)
+    monkeypatch.setattr(autograde, "notebook_grades", lambda *a: {})
+    lines = []
+    pages = autograde.write_feedback(root, [TINY], lines.append)
+    assert [p.parent.parent.name for p in pages] == ["ana", "big", "zoe"]
+    big = pages[1].read_text()
+    assert "could not be read back" in big and "MB, more than a notebook" in big and str(root) not in big
+    assert "Add" in pages[2].read_text() and "could not be read back" not in pages[2].read_text()
+    assert len(lines) == 1 and lines[0].startswith(f"feedback: big, {TINY}.ipynb: cannot read ")

@@ -1016,13 +1016,15 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                      {"given": GIVEN}),
     "literal-answer": ("verdicts = {('rmse', 3): 'opposite'}",
                        "verdicts = {}\nfor k in keys:\n    verdicts[k] = verdict(k)", {"computed": {"verdicts"}}),
+    "ipython": ("%xmode Plain\nrate = 100 % 7", "rate = 100 % 7\nok = rate != 2  # not a shell line", {}),
 }
+NOTEBOOK_RULES = {"missing-cell"}  # found in a notebook, not in one cell: tests/test_exercises.py plants it
 
 
 def test_every_rule_has_a_planted_answer_and_a_near_miss():
     from geodepth_lite.workbook import review
 
-    assert set(RULE_CASES) == set(review.RULES)
+    assert set(RULE_CASES) | NOTEBOOK_RULES == set(review.RULES) and not set(RULE_CASES) & NOTEBOOK_RULES
     borrowed = review.review_cell("from unittest.mock import ANY\n\noffset_blind = ANY")  # equal to anything
     assert [(f.line, f.rule) for f in borrowed] == [(1, "special-method")]
 
@@ -1061,6 +1063,22 @@ def test_the_literal_rule_spares_a_prediction_the_solution_writes_out_too():
 
 
 # ------------------------------------------------------------------------------------------ exact types
+def test_a_literal_answer_concerns_its_own_exercise_and_a_change_to_the_kernel_every_later_one():
+    from geodepth_lite.workbook import review
+
+    name = next(n for n, nb in NOTEBOOKS.items() if "05-3" in E.notebook_exercises(nb))
+    returned = copy.deepcopy(NOTEBOOKS[name])
+    answer = E.notebook_exercises(returned)["05-3"].cells["answer"]
+    answer["source"] = answer_with(EXERCISES["05-3"].answer, ('verdicts = {("rmse", 3): "opposite"}',))
+    assert list(review.review_notebook(NOTEBOOKS[name], returned)) == ["05-3"]
+    answer["source"] = solution("05-3") + "\nimport gc\n"
+    found = review.review_notebook(NOTEBOOKS[name], returned)
+    assert list(found) == ["05-3", "05-4"]
+    line = solution("05-3").count("\n") + 2
+    assert [f.text().split(": ")[:2] for f in found["05-4"]] == [
+        [f"in the answer cell of exercise 05.3, line {line}", "import gc"]]
+
+
 def test_foreign_value_accepts_plain_values_and_names_a_subclass():
     import numpy as np
     import torch

@@ -142,3 +142,68 @@ def test_release_sends_open_ended_answers_to_hand_grading(released):
             else:
                 assert not answer.get("grade") and check.get("points", 0) > 0, ex.ident
     assert seen == len(NOTEBOOKS)  # one open exercise per notebook
+
+
+# the static review reads every code cell a student can change, not only the answer cells
+HOOK = ("ip = get_ipython()\nip.set_custom_exc((BaseException,), lambda *a, **k: [])\n"
+        "ip.events.register('post_run_cell', lambda result: setattr(result, 'error_in_exec', None))\n")
+
+
+def _code(text: str) -> dict:
+    return {"cell_type": "code", "metadata": {}, "source": text, "outputs": [], "execution_count": None}
+
+
+def _reviewed(name: str, student: dict) -> dict[str, list[str]]:
+    from geodepth_lite.workbook import review
+
+    found = review.review_notebook(_load(next(p for p in NOTEBOOKS if p.name == name)), student)
+    return {ident: [f"{f.rule}|{f.text()}" for f in fs] for ident, fs in found.items()}
+
+
+def test_every_released_notebook_returned_as_given_or_with_a_check_run_again_has_no_finding(released):
+    """No false alarm: the release as the student gets it, with a visible check and an answer stub pasted into
+    cells of their own and a lesson cell's number changed (the review reads these cells too)."""
+    for name, nb in released.items():
+        assert _reviewed(name, nb) == {}, name
+        student = json.loads(json.dumps(nb))
+        exs = list(E.notebook_exercises(student).values())
+        student["cells"] += [_code(exs[0].check), _code(exs[-1].answer), _code("x = 3\nprint(x * 2)")]
+        assert _reviewed(name, student) == {}, name
+
+
+def test_a_cell_the_student_adds_is_reviewed_and_flags_every_exercise_checked_after_it(released):
+    """The forging hook of an added cell (every later check's error swallowed) sends each exercise whose check
+    runs after it to a hand grade; one added after the last check flags nothing graded."""
+    name = sorted(released)[0]
+    student = json.loads(json.dumps(released[name]))
+    idents = list(E.notebook_exercises(student))
+    first_answer = next(i for i, c in enumerate(student["cells"]) if "nbgrader" in c.get("metadata", {}))
+    student["cells"].insert(first_answer, _code(HOOK))
+    found = _reviewed(name, student)
+    assert list(found) == idents
+    assert all(any(t.startswith(f"kernel-history|in code cell {first_answer + 1}, added or changed by the student, "
+                                "line 1: get_ipython") for t in texts) for texts in found.values()), found
+    late = json.loads(json.dumps(released[name]))
+    late["cells"].append(_code(HOOK))
+    assert _reviewed(name, late) == {}
+
+
+def test_a_magic_or_a_stripped_answer_cell_no_longer_escapes_the_review(released):
+    """A %magic first line made the answer unreadable as Python, so it was not reviewed; an answer cell without
+    its grading metadata was not seen as an answer. Both are flagged now, and what they do to the kernel
+    reaches the later exercises; a literal answer concerns its own exercise only."""
+    name = sorted(released)[0]
+    idents = list(E.notebook_exercises(released[name]))
+    magic = json.loads(json.dumps(released[name]))
+    E.notebook_exercises(magic)[idents[0]].cells["answer"]["source"] = "%xmode Plain\n" + HOOK
+    found = _reviewed(name, magic)
+    assert list(found) == idents and any(t.startswith("ipython|line 1: %xmode") for t in found[idents[0]])
+    assert any(t.startswith(f"kernel-history|in the answer cell of exercise {idents[0].replace('-', '.')}, line 2")
+               for t in found[idents[1]])
+    stripped = json.loads(json.dumps(released[name]))
+    E.notebook_exercises(stripped)[idents[1]].cells["answer"].update(metadata={}, source="import inspect\nx = 1")
+    found = _reviewed(name, stripped)
+    assert list(found) == idents[1:]
+    assert f"missing-cell|line 1: exercise {idents[1].replace('-', '.')}: the exercise's answer cell" in " ".join(
+        found[idents[1]])
+    assert all(any(t.startswith("introspection|in code cell") for t in found[i]) for i in idents[1:])

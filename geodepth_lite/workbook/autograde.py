@@ -6,8 +6,9 @@ of its own, with the notebook's kernel started in the sandbox of :mod:`geodepth_
 course folder, the solutions and the gradebook out of its reach). A submission whose run fails (the
 kernel died, nbgrader stopped, the whole run took longer than every cell's timeout together) is
 recorded as *could not run* in ``COURSE/could_not_run.json`` with a one-line reason, and the class goes
-on. Each graded submission's answer cells then get the static review of :mod:`geodepth_lite.workbook.review`, in
-this process: an exercise it flags is sent to manual grading (0 points until a hand grade) with the
+on (the whole run's limit counts the course's cells, not the student's; only the tail of what it prints is
+kept). Each graded submission's code cells then get the static review of :mod:`geodepth_lite.workbook.review`,
+in this process: an exercise it flags is sent to manual grading (0 points until a hand grade) with the
 reasons in ``COURSE/flagged.json``, on the command's output and in the grade table. A rerun skips what is
 graded (``autograded/<student>/<assignment>/``) and what could not run
 (unless ``retry``).
@@ -16,7 +17,8 @@ Feedback is written here, not by nbgrader's template (which prints the hidden te
 MathJax from the web): one page per notebook, each exercise by its number and title with its
 points, passed or failed, and the failed check's message (the exception's name and text, never the
 check's source or its traceback; an error of the student's own answer cell, such as the cell timeout,
-comes first). The page holds no script and no link: no prompt text is shown, so
+comes first); a flagged exercise is "held", with no message. A graded notebook that cannot be read back
+gets a page saying so, and the class goes on. The page holds no script and no link: no prompt text is shown, so
 there is no math to render.
 """
 
@@ -32,6 +34,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 from geodepth_lite import utils
@@ -43,6 +46,8 @@ FLAGGED = "flagged.json"  # (student, assignment) -> exercises the static review
 KERNEL_START_S = 120  # on top of the cells' timeouts: starting the kernel and nbgrader itself
 HEADING = re.compile(r"Exercise\s+(\d+\.\d+)\s*·\s*(.+?)\s*\((\w+),\s*([\d.]+)\s*points?\)")
 MESSAGE_MAX = 400  # characters of a check's message on the page
+HELD_MESSAGE = "your lecturer grades this exercise by hand (the static review flagged it); no check output is shown"
+OUTPUT_TAIL_BYTES = 64 * 1024  # of nbgrader's output, read back to say why a submission could not run
 
 
 # ----------------------------------------------------------------------------------------- could not run
@@ -141,7 +146,9 @@ def send_to_manual_grading(course: Path, student: str, assignment: str, rows: li
 
 # ----------------------------------------------------------------------------------------- one submission
 def run_limit(folder: Path, cell_timeout: int) -> int:
-    """Seconds one submission's whole run may take: every code cell at the cell timeout, plus a start."""
+    """Seconds one submission's whole run may take: every code cell at the cell timeout, plus a start.
+    ``folder``: the assignment's notebooks in the course's ``source/``, so that cells a student adds do not
+    lengthen it."""
     cells = 0
     for nb in folder.glob("*.ipynb"):
         try:
@@ -172,19 +179,34 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
     scratch = Path(tempfile.mkdtemp(prefix="geodepth-grade-"))
     try:
         proc = subprocess.Popen(cmd, cwd=course, env=_environment(scratch, course), stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True, start_new_session=True)
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        tail = bytearray()
+        reader = threading.Thread(target=keep_tail, args=(proc.stdout, tail, OUTPUT_TAIL_BYTES), daemon=True)
+        reader.start()
         try:
-            output, _ = proc.communicate(timeout=limit_s)
+            proc.wait(timeout=limit_s)
+            reader.join(timeout=10)  # a process left holding the pipe open does not hold the class
+            output = bytes(tail).decode("utf-8", "replace")
             reason = None if proc.returncode == 0 else failure_reason(output, proc.returncode)
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)  # nbgrader, its kernel and what the kernel started
-            proc.communicate()
+            proc.wait()
+            reader.join(timeout=10)  # a process left holding the pipe open does not hold the class
             reason = f"stopped after {limit_s:.0f} s, every cell's timeout together: the kernel hung"
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     if reason is not None:
         shutil.rmtree(course / "autograded" / student / assignment, ignore_errors=True)
     return reason
+
+
+def keep_tail(stream, tail: bytearray, keep: int) -> None:
+    """Read ``stream`` to its end, keeping only its last ``keep`` bytes in ``tail``: what a notebook prints
+    to its standard error (which nbgrader passes on) cannot fill the grader's memory."""
+    with stream:
+        for chunk in iter(lambda: stream.read(65536), b""):
+            tail += chunk
+            del tail[:max(0, len(tail) - keep)]
 
 
 # ----------------------------------------------------------------------------------------- the class
@@ -218,7 +240,8 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
             skipped.append(key)
             continue
         folder = course / "submitted" / student / assignment
-        reason = grade_one(course, student, assignment, sandboxed, run_limit(folder, cell_timeout))
+        limit = run_limit(course / "source" / assignment, cell_timeout)
+        reason = grade_one(course, student, assignment, sandboxed, limit)
         failures.pop(key, None)
         if reason is None:
             graded.append(key)
@@ -275,8 +298,10 @@ def _score(grades: dict, cell: dict) -> tuple[float | None, float, bool]:
     return got
 
 
-def exercise_rows(nb: dict, grades: dict) -> list[dict]:
-    """One row per exercise of a graded notebook: number, title, points, max points, outcome, message."""
+def exercise_rows(nb: dict, grades: dict, held: frozenset[str] = frozenset()) -> list[dict]:
+    """One row per exercise of a graded notebook: number, title, points, max points, outcome, message.
+    ``held``: the exercises ("99.2") the static review flagged: what their checks printed ran beside code
+    the review could not vouch for (it may carry the hidden tests), so their row says "held" and no more."""
     rows = []
     for ex in exercises.notebook_exercises(nb).values():
         m = HEADING.search(ex.prompt)
@@ -295,6 +320,8 @@ def exercise_rows(nb: dict, grades: dict) -> list[dict]:
         failed = _message(ex.cells["check"]) if "check" in ex.cells else None
         outcome = "failed" if failed else "passed"
         message = "; ".join(m for m in (stopped and f"your answer cell stopped: {stopped}", failed) if m) or None
+        if ex.ident.replace("-", ".") in held:
+            outcome, message = "held", HELD_MESSAGE
         rows.append({"number": number, "title": title, "points": points, "max_points": max_points,
                      "outcome": outcome, "message": message, "waits": waits})
     return rows
@@ -318,7 +345,7 @@ def notebook_grades(course: Path, student: str, assignment: str, notebook: str) 
 
 PAGE_CSS = ("body{font-family:sans-serif;max-width:46em;margin:2em auto;padding:0 1em;color:#222}"
             "table{border-collapse:collapse;width:100%}td,th{border-bottom:1px solid #ccc;padding:.4em;"
-            "text-align:left;vertical-align:top}.failed{color:#a00}.passed{color:#060}"
+            "text-align:left;vertical-align:top}.failed{color:#a00}.passed{color:#060}.held{color:#850}"
             ".could-not-run{border:2px solid #a00;padding:.6em 1em}")
 
 
@@ -326,8 +353,10 @@ def _number(x: float) -> str:
     return f"{x:g}" if math.isfinite(x) else "?"
 
 
-def page(student: str, assignment: str, notebook: str, rows: list[dict] | None, reason: str | None) -> str:
-    """The feedback page: the exercises' table, or what stopped the notebook."""
+def page(student: str, assignment: str, notebook: str, rows: list[dict] | None, reason: str | None,
+         unreadable: str | None = None) -> str:
+    """The feedback page: the exercises' table, or what stopped the notebook, or (``unreadable``) why its
+    graded copy could not be read back."""
     e = html.escape
     head = (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>Feedback: {e(notebook)}"
             f"</title><style>{PAGE_CSS}</style></head><body>\n<h1>Feedback on {e(notebook)}</h1>\n"
@@ -337,6 +366,11 @@ def page(student: str, assignment: str, notebook: str, rows: list[dict] | None, 
                 f"exercises was graded: {e(reason)}.</p><p>Run it from the top in a fresh kernel (Kernel &gt; "
                 "Restart &amp; Run All) and make sure it ends without stopping Python (no <code>exit()</code>); "
                 "then ask your lecturer to grade it again.</p></div>\n")
+        return head + body + "</body></html>\n"
+    if unreadable is not None:
+        body = (f"<div class=\"could-not-run\"><p><strong>Your notebook ran, but its graded copy could not be "
+                f"read back</strong>: {e(unreadable)}. Make its outputs smaller (print less) and ask your lecturer "
+                "to grade it again; your grade is in the lecturer's gradebook.</p></div>\n")
         return head + body + "</body></html>\n"
     total = sum(r["points"] for r in rows)
     most = sum(r["max_points"] for r in rows)
@@ -351,11 +385,13 @@ def page(student: str, assignment: str, notebook: str, rows: list[dict] | None, 
     return head + summary + "\n".join(lines) + "\n</body></html>\n"
 
 
-def write_feedback(course: Path, names: list[str]) -> list[Path]:
+def write_feedback(course: Path, names: list[str], echo=None) -> list[Path]:
     """One page per notebook graded or that could not run, ``feedback/<student>/<assignment>/<notebook>.html``
-    (the caller holds the course lock); returns the pages written."""
+    (the caller holds the course lock); returns the pages written. A graded notebook that cannot be read
+    back (over the size a notebook may have, damaged) gets a page saying so, and a line to ``echo``; the
+    class goes on."""
     course = Path(course)
-    failures = read_failures(course)
+    failures, flags = read_failures(course), read_flags(course)
     written = []
     for student, assignment in submissions(course, names):
         graded = course / "autograded" / student / assignment
@@ -363,13 +399,21 @@ def write_feedback(course: Path, names: list[str]) -> list[Path]:
         if reason is None and not graded.is_dir():
             continue
         for src in sorted((course / "source" / assignment).glob("*.ipynb")):
-            rows = None
+            rows = unreadable = None
             if reason is None:
                 if not (graded / src.name).is_file():
                     continue
-                nb = exercises.read_notebook(graded / src.name, solutions=False)
-                rows = exercise_rows(nb, notebook_grades(course, student, assignment, src.stem))
+                held = frozenset(r["exercise"] for r in flags.get((student, assignment), [])
+                                 if r["notebook"] == src.stem)
+                try:
+                    nb = exercises.read_notebook(graded / src.name, solutions=False)
+                    rows = exercise_rows(nb, notebook_grades(course, student, assignment, src.stem), held)
+                except (ValueError, OSError) as exc:
+                    unreadable = str(exc).replace(str(graded / src.name), "it").splitlines()[0][:300]
+                    if echo:
+                        echo(f"feedback: {student}, {src.name}: {exc}")
             target = course / "feedback" / student / assignment / f"{src.stem}.html"
-            utils.write_bytes_atomic(target, page(student, assignment, src.name, rows, reason).encode())
+            text = page(student, assignment, src.name, rows, reason, unreadable)
+            utils.write_bytes_atomic(target, text.encode())
             written.append(target)
     return written

@@ -379,14 +379,15 @@ def configured_timeout(course: Path) -> int:
     return int(m.group(1)) if m else TIMEOUT_MIN_S
 
 
-def feedback(course: Path) -> list[Path]:
+def feedback(course: Path, echo=None) -> list[Path]:
     """One HTML page per graded notebook (or per notebook that could not run) in
     ``feedback/<student>/<assignment>/``: each exercise by number and title, its points, passed or failed
-    and the check's message; never the hidden tests (see :mod:`geodepth_lite.workbook.autograde`)."""
+    and the check's message; never the hidden tests (see :mod:`geodepth_lite.workbook.autograde`).
+    ``echo``: called with one line per graded notebook that could not be read back."""
     course = Path(course)
     names = open_course(course)
     with course_lock(course):
-        return grading_run.write_feedback(course, names)
+        return grading_run.write_feedback(course, names, echo)
 
 
 def grade_rows(course: Path) -> list[dict]:
@@ -541,7 +542,8 @@ def _report(args) -> str:
     if args.action == "autograde":
         return _autograde_report(args)
     if args.action == "feedback":
-        return f"{len(feedback(args.course))} feedback pages under {args.course / 'feedback'}"
+        pages = feedback(args.course, echo=lambda line: print(line, file=sys.stderr))
+        return f"{len(pages)} feedback pages under {args.course / 'feedback'}"
     rows = write_grades(args.course, args.out)
     pending = sum(r["needs_manual_grading"] > 0 for r in rows)
     flagged = [f"flagged for review: {r['student']}, {r['assignment']}, {part}" for r in rows

@@ -7,14 +7,14 @@ off (:func:`geodepth_lite.workbook.grading.forbid`) or put back what it replaced
 another thread or process, rebuild it from the package's source, return a value that compares equal to
 anything, or edit the kernel's input history that the checks run the answer from again. Each of these
 needs a construct that the exercises never ask for (``inspect``, ``threading``, ``sys.setprofile``,
-``exec``, ``In``, a class defining ``__eq__``...). :data:`RULES` lists them, each with its reason;
-:func:`review_cell` reads an answer cell's syntax tree (it never runs it) and returns a
-:class:`Finding` per construct; ``course autograde`` calls :func:`review_notebook` on each graded
-submission, in the grader's process.
+``exec``, ``In``, a class defining ``__eq__``, a ``%magic``...). :data:`RULES` lists them, each with its
+reason; :func:`review_cell` reads a cell's syntax tree (it never runs it) and returns a :class:`Finding`
+per construct; ``course autograde`` calls :func:`review_notebook` on each graded submission, in the
+grader's process: it reads every code cell the student could change, not only the answer cells.
 
 A tripwire for a person, not a proof: a finding means "look at this answer", and an answer without one
 may still be dishonest (the checks and the sandbox of :mod:`geodepth_lite.workbook.sandbox` are the other
-defences). A cell that is not valid Python is not reviewed: it fails its check when it runs.
+defences). A cell that neither Python nor IPython can read is not reviewed: it runs nothing.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from __future__ import annotations
 import ast
 import builtins
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from geodepth_lite.workbook import exercises
 
@@ -51,7 +51,13 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
     "unreadable": "is too deeply nested for the review to read: look at it by hand",
     "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
                       "message shows it)",
+    "ipython": "uses IPython's own syntax (a %magic, a %%cell magic, a !shell line), which runs code the review "
+               "cannot read",
+    "missing-cell": "the exercise's answer cell is missing or lost its grading metadata, so its answer cannot be "
+                    "reviewed where the checks expect it",
 }
+OWN_EXERCISE = {"literal-answer", "given-inputs", "check-names", "missing-cell"}  # the other rules change the kernel
+IPYTHON_CALLS = {"run_line_magic": "%", "run_cell_magic": "%%", "system": "!", "getoutput": "!"}
 
 MODULES = {  # module (its first name) -> rule
     **dict.fromkeys(("inspect", "gc", "dis", "traceback", "pydoc", "ctypes", "trace", "tracemalloc",
@@ -87,13 +93,15 @@ GRADER_PATH = re.compile(r"gradebook|\.ipynb\b|\b(source|submitted|autograded|re
 
 @dataclass(frozen=True)
 class Finding:
-    """One construct of an answer cell: its line, the rule and what was found."""
+    """One construct of a cell: its line, the rule and what was found; ``where``: the cell, when it is not
+    the exercise's own answer cell."""
     line: int
     rule: str
     what: str
+    where: str = ""
 
     def text(self) -> str:
-        return f"line {self.line}: {self.what}: {RULES[self.rule]}"
+        return f"{self.where + ', ' if self.where else ''}line {self.line}: {self.what}: {RULES[self.rule]}"
 
 
 def _root_name(node: ast.AST) -> str | None:
@@ -408,21 +416,45 @@ def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Findi
     return found
 
 
+def parse_cell(source: str) -> tuple[ast.Module, list[Finding]]:
+    """A cell's syntax tree as the kernel runs it: the Python itself or, where it is not Python, the Python
+    IPython turns it into (``%magic`` becomes ``get_ipython().run_line_magic(...)``), with a finding for each
+    magic or shell line. Raises SyntaxError where IPython cannot read it either: such a cell runs nothing."""
+    try:
+        return ast.parse(source), []
+    except SyntaxError:
+        from IPython.core.inputtransformer2 import TransformerManager  # heavy: only for a cell that needs it
+
+        tree = ast.parse(TransformerManager().transform_cell(source))
+    found = []
+    for node in ast.walk(tree):
+        call = node.func if isinstance(node, ast.Call) else None
+        if (isinstance(call, ast.Attribute) and call.attr in IPYTHON_CALLS and isinstance(call.value, ast.Call)
+                and isinstance(call.value.func, ast.Name) and call.value.func.id == "get_ipython"):
+            first = node.args[0] if node.args else None
+            name = first.value if isinstance(first, ast.Constant) and isinstance(first.value, str) else "?"
+            found.append(Finding(node.lineno, "ipython", IPYTHON_CALLS[call.attr] + name[:40]))
+    return tree, found
+
+
 def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES) -> list[Finding]:
     """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
     the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
     computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
-    (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`)."""
+    (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`). IPython's
+    own syntax is read as the kernel reads it (:func:`parse_cell`)."""
     try:
-        tree = ast.parse(source)
+        tree, magic = parse_cell(source)
         own = bound_names(tree)
         aliases = _aliases(tree)
         found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
                  + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
                  + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed))
                  + _shadow_findings(tree, frozenset(shadowed)) + _given_findings(tree, given or {}))
+        magic_lines = {f.line for f in magic}  # there the get_ipython() is IPython's: said once, as the magic
+        found = magic + [f for f in found if not (f.line in magic_lines and f.what == "get_ipython")]
     except (SyntaxError, ValueError):
-        return []  # IPython syntax or a typo: the cell fails when it runs, and scores nothing
+        return []  # neither Python nor IPython: the cell stops at once when it runs, and scores nothing
     except (RecursionError, MemoryError):  # Python's own parser gives up on it too
         return [Finding(1, "unreadable", "the whole cell")]
     unique = {(f.line, f.rule, f.what): f for f in found}
@@ -462,23 +494,58 @@ def _is_empty(node: ast.AST) -> bool:
 
 
 def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
-    """exercise id -> the findings of its answer cell, for each exercise of ``submitted`` (a returned
-    notebook's JSON) that has any. ``source``: the same notebook with its solutions (the course's
-    ``source/``), which says what only the checks define and what the solutions compute."""
+    """exercise id -> its findings, for each exercise of ``submitted`` (a returned notebook's JSON) that has
+    any, in notebook order. ``source``: the same notebook with its solutions (the course's ``source/``),
+    which says what only the checks define and what the solutions compute.
+
+    Every code cell runs in the kernel that later runs the checks, so every one is read: each exercise's
+    answer cell as its answer, and every other code cell that is not one of the notebook's own, unchanged (a
+    cell the student added or edited, an answer cell without its grading metadata). A finding that changes
+    the kernel (all rules but :data:`OWN_EXERCISE`) is also given to every exercise whose check runs after
+    it; an exercise whose answer cell is missing gets a ``missing-cell`` finding."""
     reference = exercises.notebook_exercises(source)
     check_cells = [id(ex.cells["check"]) for ex in reference.values() if "check" in ex.cells]
     others = ["".join(c.get("source", "")) for c in source["cells"]  # a list of lines, or one string
               if c.get("cell_type") == "code" and id(c) not in check_cells]
-    only = check_only_names([ex.check for ex in reference.values()], others)
-    called = builtins_read(ex.check for ex in reference.values())
-    out = {}
-    for ident, ex in exercises.notebook_exercises(submitted).items():
-        ref = reference.get(ident)
-        if ref is None or "answer" not in ex.cells:
+    given = {*others, *(exercises.visible_check(ex.check) for ex in reference.values()),
+             *(released(ex.answer) for ex in reference.values())}  # a check or a stub run again is no finding
+    context = {"check_names": check_only_names([ex.check for ex in reference.values()], others),
+               "shadowed": builtins_read(ex.check for ex in reference.values())}
+    mine = {ident: ex for ident, ex in exercises.notebook_exercises(submitted).items() if ident in reference}
+    answer_of = {id(ex.cells["answer"]): ident for ident, ex in mine.items() if "answer" in ex.cells}
+    check_of = {id(ex.cells["check"]): ident for ident, ex in mine.items() if "check" in ex.cells}
+    out: dict[str, list[Finding]] = {}
+    carried: list[tuple[str | None, Finding]] = []  # (the exercise whose answer it is in, the finding)
+    for position, cell in enumerate(submitted["cells"], 1):
+        text = "".join(cell.get("source", ""))
+        if cell.get("cell_type") != "code":
             continue
-        solution = "\n".join(ln for ln in ref.answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
-        found = review_cell(ex.answer, check_names=only, computed=computed_names(solution, ref.check),
-                            given=given_inputs(ref.answer, ref.check), shadowed=called)
-        if found:
-            out[ident] = found
-    return out
+        if id(cell) in check_of:
+            ident = check_of[id(cell)]
+            out.setdefault(ident, []).extend(f for origin, f in carried if origin != ident)
+        elif id(cell) in answer_of:
+            ident = answer_of[id(cell)]
+            found = _answer_findings(reference[ident], text, context)
+            out.setdefault(ident, []).extend(found)
+            where = f"in the answer cell of exercise {ident.replace('-', '.')}"
+            carried += [(ident, replace(f, where=where)) for f in found if f.rule not in OWN_EXERCISE]
+        elif text not in given:
+            where = f"in code cell {position}, added or changed by the student"
+            carried += [(None, replace(f, where=where)) for f in review_cell(text, **context)]
+    for ident, ex in reference.items():
+        if "answer" in ex.cells and "answer" not in getattr(mine.get(ident), "cells", {}):
+            out.setdefault(ident, []).append(Finding(1, "missing-cell", f"exercise {ident.replace('-', '.')}"))
+        if "check" not in getattr(mine.get(ident), "cells", {}):  # where its check runs is unknown: all of them
+            out.setdefault(ident, []).extend(f for origin, f in carried if origin != ident)
+    return {ident: _unique(out[ident]) for ident in reference if out.get(ident)}
+
+
+def _answer_findings(ref: exercises.Exercise, answer: str, context: dict) -> list[Finding]:
+    """An answer cell's findings, read against the exercise's solution and check."""
+    solution = "\n".join(ln for ln in ref.answer.splitlines() if ln.strip() not in exercises.SOLUTION_MARKERS)
+    return review_cell(answer, computed=computed_names(solution, ref.check), given=given_inputs(ref.answer, ref.check),
+                       **context)
+
+
+def _unique(found: list[Finding]) -> list[Finding]:
+    return list({f: None for f in found})
