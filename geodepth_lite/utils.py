@@ -369,12 +369,14 @@ def remove_empty_dirs(folders: list[Path]) -> None:
 LOCK_NAME = ".lock"  # the lock file a writer holds in its run folder (see FolderLock)
 
 
-def claim_folder(path: str | os.PathLike, marker: str, command: str, own_prefixes: tuple[str, ...] = ()) -> None:
+def claim_folder(path: str | os.PathLike, marker: str, command: str, own_prefixes: tuple[str, ...] = (),
+                 option: str = "--out") -> None:
     """Refuse to write into ``path`` unless it is missing, empty, or marked as ``command``'s (its file
     ``marker``, written by :func:`mark_folder`): a file of that name, or a folder holding anything else
     (a user's files, a checkout's tracked folder), is a :class:`FileProblem` and nothing is written.
     The lock file, this project's temporary files and names starting with ``own_prefixes`` (what a
-    killed run of ``command`` may leave before it marks the folder) do not count."""
+    killed run of ``command`` may leave before it marks the folder) do not count. ``option``: the
+    command's option that names the folder, for the message."""
     path = Path(path)
     if os.path.lexists(path) and not path.is_dir():
         raise FileProblem(f"cannot write into {path}: it is a file, not a folder", path)
@@ -384,7 +386,7 @@ def claim_folder(path: str | os.PathLike, marker: str, command: str, own_prefixe
                     if p.name != LOCK_NAME and not p.name.startswith((TEMP_PREFIX, *own_prefixes)))
     if theirs:
         raise FileProblem(f"cannot write into {path}: the folder holds files {command} did not write ({theirs[0]}"
-                          f"{', ...' if len(theirs) > 1 else ''}); choose a new or empty --out", path)
+                          f"{', ...' if len(theirs) > 1 else ''}); choose a new or empty {option}", path)
 
 
 def mark_folder(path: str | os.PathLike, marker: str, command: str) -> None:

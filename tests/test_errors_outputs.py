@@ -31,6 +31,7 @@ from geodepth_lite import cli, utils
 from geodepth_lite.apps import bundle
 from geodepth_lite.core.model import DepthNet
 from geodepth_lite.evaluation import tables
+from geodepth_lite.training import checkpoint
 from geodepth_lite.workbook import exercises
 
 DEAD_PID = 2**22 + 1  # above Linux's largest pid_max: no process can have it
@@ -335,7 +336,7 @@ def test_a_killed_unbundles_temporary_file_goes_on_the_next_run(home, tmp_path, 
         p.write_bytes(bytes(23 * 1024))
     assert cli.main(["unbundle", str(_bundle(tmp_path / "b.zip", _good_members()))]) == 0
     assert not any(p.exists() for p in left)
-    assert sorted(os.listdir(run)) == [".lock", "checkpoint.pt", "log.json"]
+    assert sorted(os.listdir(run)) == [".lock", checkpoint.RUN_MARK, "checkpoint.pt", "log.json"]
 
 
 def test_a_member_named_after_a_checkout_file_is_refused(home, tmp_path, capsys, monkeypatch):
@@ -394,6 +395,37 @@ def test_train_keeps_the_users_tmp_files(tmp_path, capsys, smoke_root):
                      "--epochs", "1", "--run-dir", str(run), "--no-progress", "--no-verify"]) == 2
     one_line_error(capsys, "pass --resume")
     assert not ours.exists() and (run / ".notes.tmp").read_text() == "the user's"
+
+
+def test_train_refuses_a_run_dir_holding_someone_elses_files_and_owns_the_folders_it_made(tmp_path, capsys,
+                                                                                          smoke_root):
+    """--run-dir naming a folder of the user's (their own log.csv, which the run's logs would replace) or a
+    checkout's tracked folder: one line, exit 2, nothing written there, not even the lock file. A new or
+    empty folder is the run's, marked at once, so a run killed before its first checkpoint may start
+    again there."""
+    args = ["train", "--profile", "smoke", "--case", "1", "--dataset", str(smoke_root), "--image-size", "32",
+            "--epochs", "1", "--no-progress", "--no-verify", "--run-dir"]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "log.csv").write_text("epoch,my own measurements\n")
+    (mine / "notes.md").write_text("the user's")
+    before = {p.name: p.read_bytes() for p in mine.iterdir()}
+    assert cli.main([*args, str(mine)]) == 2
+    one_line_error(capsys, str(mine), "did not write (log.csv, ...); choose a new or empty --run-dir")
+    assert {p.name: p.read_bytes() for p in mine.iterdir()} == before
+    tracked = Path(__file__).resolve().parents[1] / "data_manifests"
+    listing = sorted(os.listdir(tracked))
+    assert cli.main([*args, str(tracked)]) == 2
+    one_line_error(capsys, str(tracked), "did not write")
+    assert sorted(os.listdir(tracked)) == listing
+    killed = tmp_path / "killed"  # what a run killed (kill -9) before its first checkpoint leaves
+    killed.mkdir()
+    utils.mark_folder(killed, checkpoint.RUN_MARK, "train")
+    (killed / utils.LOCK_NAME).write_text(str(DEAD_PID))
+    assert cli.main([*args, str(killed)]) == 0 and (killed / "checkpoint.pt").is_file()
+    assert cli.main([*args, str(tmp_path / "new")]) == 0
+    assert (tmp_path / "new" / checkpoint.RUN_MARK).is_file() and (tmp_path / "new" / "checkpoint.pt").is_file()
+    assert cli.main([*args, str(tmp_path / "new"), "--resume"]) == 0  # its own folder, again
 
 
 def test_only_a_gone_writers_temporary_files_are_stale(tmp_path):

@@ -44,6 +44,7 @@ from geodepth_lite.core.model import PADDINGS, DepthNet
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_CSV = "log.csv"
 LOG_JSON = "log.json"
+RUN_MARK = ".run"  # a run folder's mark (utils.mark_folder): training writes there again
 
 
 FORMAT = 2  # "format" entry: 2 = every entry a tensor or a plain type, so it loads with weights_only=True
@@ -715,18 +716,26 @@ def run_folder(run_dir: str | os.PathLike) -> Iterator[Path]:
     """A training run's folder for the length of the block: checked writable before any work, and
     locked (``utils.FolderLock``) so that a second writer is refused, naming this process.
 
+    A folder is a run's when it is new or empty, holds a checkpoint, or carries :data:`RUN_MARK`
+    (written here, under the lock, before any other file): any other folder holds someone else's files
+    (a ``log.csv`` of their own, a checkout's tracked folder), which the run's logs would replace, and is
+    refused in one line before anything is written.
+
     If the block fails before a checkpoint exists in a folder this call created, the folder is
-    removed again (with the lock file and logs), so a refused run leaves nothing behind.
+    removed again (with the lock file, the mark and logs), so a refused run leaves nothing behind.
     """
     run_dir = Path(run_dir)
     created = utils.missing_dirs(run_dir)
+    if not (run_dir / CHECKPOINT_NAME).is_file():
+        utils.claim_folder(run_dir, RUN_MARK, "train", option="--run-dir")
     utils.check_output_dir(run_dir)  # a file in the way, a read-only disk: named now, before any work
     lock = utils.FolderLock(run_dir).acquire()
     try:
+        utils.mark_folder(run_dir, RUN_MARK, "train")
         yield run_dir
     except BaseException:
         if created and not (run_dir / CHECKPOINT_NAME).exists():
-            for name in (utils.LOCK_NAME, LOG_CSV, LOG_JSON):
+            for name in (utils.LOCK_NAME, RUN_MARK, LOG_CSV, LOG_JSON):
                 (run_dir / name).unlink(missing_ok=True)
             utils.remove_empty_dirs(created)
         raise
