@@ -66,9 +66,16 @@ def test_train_on_a_read_only_or_full_disk(smoke_root, tmp_path, monkeypatch, ca
     argv = ["train", "--profile", "smoke", "--dataset", str(smoke_root), "--image-size", "32", "--run-dir", str(run),
             "--no-progress", "--no-verify"]
     assert cli.main(argv) == 2
-    # read-only: found by the probe before any work; full: at the first checkpoint's flush
-    one_line_error(capsys, "error: cannot write", str(run if where == "mkstemp" else run / "checkpoint.pt"), reason)
+    # read-only: found by the probe before any work; full: at the flush of the run folder's mark, written first
+    one_line_error(capsys, "error: cannot write", str(run if where == "mkstemp" else run / checkpoint.RUN_MARK),
+                   reason)
     assert not (run / "checkpoint.pt").exists()
+    if where == "fsync":  # a folder marked before: at the first checkpoint's flush
+        run.mkdir()  # (the refused run removed the folder it made)
+        (run / checkpoint.RUN_MARK).write_text("written by python -m geodepth_lite train\n")
+        assert cli.main(argv) == 2
+        one_line_error(capsys, "error: cannot write", str(run / "checkpoint.pt"), reason)
+        assert not (run / "checkpoint.pt").exists()
 
 
 def test_train_into_a_run_dir_that_is_a_file_stops_before_training(smoke_root, tmp_path, capsys):

@@ -731,7 +731,8 @@ def run_folder(run_dir: str | os.PathLike) -> Iterator[Path]:
     utils.check_output_dir(run_dir)  # a file in the way, a read-only disk: named now, before any work
     lock = utils.FolderLock(run_dir).acquire()
     try:
-        utils.mark_folder(run_dir, RUN_MARK, "train")
+        if not (run_dir / RUN_MARK).is_file():
+            utils.mark_folder(run_dir, RUN_MARK, "train")
         yield run_dir
     except BaseException:
         if created and not (run_dir / CHECKPOINT_NAME).exists():
