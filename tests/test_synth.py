@@ -175,3 +175,47 @@ def test_ensure_dataset_and_torch_dataset(tmp_path):
         SyntheticDepthDataset(root, "val")
     with pytest.raises(FileNotFoundError, match="does not exist"):
         SyntheticDepthDataset(tmp_path / "nowhere", "train")
+
+
+def test_a_dataset_folder_has_one_writer_and_ensure_dataset_waits_for_it(tmp_path, capsys, smoke_root, monkeypatch):
+    """Two notebooks asking for the same missing dataset at once: the second waits for the first, then finds
+    it complete and renders nothing; `synth --out` into a folder being written is refused in one line."""
+    import os
+    import shutil
+    import threading
+
+    from conftest import one_line_error
+
+    out = tmp_path / "scenario_smoke"
+    held, go, done = threading.Event(), threading.Event(), threading.Event()
+
+    def first_writer():
+        lock = synth.dataset_lock(out).acquire()
+        held.set()
+        go.wait(30)
+        shutil.copytree(smoke_root, out, dirs_exist_ok=True)  # the dataset, written while the lock is held
+        time.sleep(0.2)
+        lock.release()
+        done.set()
+
+    threading.Thread(target=first_writer).start()
+    assert held.wait(10)
+    assert cli.main(["synth", "--manifest", "scenario_smoke", "--out", str(out), "--no-progress"]) == 2
+    one_line_error(capsys, str(out), f"in use by process {os.getpid()}")
+    assert os.listdir(out) == [".lock"]
+
+    def rendered_again(*args, **kwargs):
+        raise AssertionError("the dataset was rendered again")
+
+    def wait_then_let_the_writer_go(lock, *args, **kwargs):  # the writer finishes only once this one waits
+        go.set()
+        return real_wait(lock, *args, **kwargs)
+
+    real_wait = synth.wait_for_lock
+    monkeypatch.setattr(synth, "wait_for_lock", wait_then_let_the_writer_go)
+    monkeypatch.setattr(synth, "_generate", rendered_again)
+    monkeypatch.setattr(synth, "generate", rendered_again)
+    assert synth.ensure_dataset("scenario_smoke", root=tmp_path, progress=False) == out
+    assert done.wait(10) and integrity.is_complete_by(out, mf.load_manifest("scenario_smoke"), None)
+    assert f"waiting for the process making the dataset (PID {os.getpid()}) holding {out}" in capsys.readouterr().out
+    assert not (out / ".lock").exists() and _files(out) == _files(smoke_root)

@@ -54,11 +54,14 @@ from geodepth_lite.data import tube as tb
 from geodepth_lite.data.bounds import read_npy
 from geodepth_lite.data.images import encode_npy, encode_png
 from geodepth_lite.utils import (
+    LOCK_NAME,
     FileProblem,
+    FolderLock,
     data_dir,
     make_dir,
     os_reason,
     remove_stale_temps,
+    wait_for_lock,
     write_bytes_atomic,
     write_files_atomic,
     write_json_atomic,
@@ -236,7 +239,7 @@ def _check_out_dir(out: Path, m: dict, overwrite: bool) -> None:
             _remove(out / f)
         return
     try:
-        not_empty = out.exists() and any(out.iterdir())
+        not_empty = out.exists() and any(p.name != LOCK_NAME for p in out.iterdir())  # the lock is this run's
     except OSError as exc:
         raise FileProblem(f"cannot read folder {out}: {os_reason(exc)}", out) from exc
     if not_empty and not overwrite:
@@ -505,9 +508,25 @@ def generate(m: dict, out: str | Path, *, overwrite: bool = False, progress: boo
     processes building the scenes ahead, tube, texture and poses (None or 0: none, the threads do
     it; they are spawned, so a calling script needs an ``if __name__ == "__main__":`` guard). The
     files do not depend on workers or processes. A folder holding another renderer's frames of
-    ``m`` is refused unless ``overwrite``.
+    ``m`` is refused unless ``overwrite``. The folder's lock is held while it writes: a second writer is
+    refused in one line naming the first (:func:`ensure_dataset` waits for it instead).
     """
-    out = Path(out)
+    lock = dataset_lock(out).acquire()
+    try:
+        return _generate(m, Path(out), overwrite=overwrite, progress=progress, counts=counts, renderer=renderer,
+                         device=device, workers=workers, processes=processes)
+    finally:
+        lock.release()
+
+
+def dataset_lock(out: str | Path) -> FolderLock:
+    """The lock of a dataset folder, its file taken away on release (the folder holds the dataset only)."""
+    return FolderLock(out, "dataset folder", remove_file=True)
+
+
+def _generate(m: dict, out: Path, *, overwrite: bool, progress: bool, counts: dict | None, renderer: str, device,
+              workers: int | None, processes: int | None) -> Path:
+    """:func:`generate` under the folder's lock."""
     kind = resolve_renderer(renderer)
     replaced = _prepare_out_dir(out, m, overwrite, renderer_record(kind, device))
     total, rendered = sum(m["splits"].values()), 0
@@ -546,10 +565,18 @@ def ensure_dataset(name: str, *, overrides: dict | None = None, root: str | Path
         stem += "-" + hashlib.sha256(json.dumps(overrides, sort_keys=True).encode()).hexdigest()[:8]
     out = Path(root) / stem if root is not None else data_dir() / stem
     wanted = None if renderer in (None, "auto") else renderer
-    if not integrity.is_complete_by(out, m, wanted):
-        _refuse_other_dataset(out, m, name, overrides)
-        # a partial dataset of the same manifest is completed
-        generate(m, out, progress=progress, renderer=renderer or "auto", device=device)
+    if integrity.is_complete_by(out, m, wanted):
+        return out
+    # another process making it (a second notebook, another run): wait for it, then look again
+    lock = wait_for_lock(dataset_lock(out), "the process making the dataset")
+    try:
+        if not integrity.is_complete_by(out, m, wanted):
+            _refuse_other_dataset(out, m, name, overrides)
+            # a partial dataset of the same manifest is completed
+            _generate(m, out, overwrite=False, progress=progress, counts=None, renderer=renderer or "auto",
+                      device=device, workers=None, processes=None)
+    finally:
+        lock.release()
     return out
 
 
