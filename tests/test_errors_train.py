@@ -133,6 +133,62 @@ def test_a_first_format_checkpoint_is_refused_then_converted_and_resumes_identic
         assert torch.equal(v, resumed["model"][k]), k
 
 
+@pytest.fixture(scope="module")
+def one_epoch_run(smoke_root, tmp_path_factory) -> Path:
+    """A smoke run of Case 1 after its first of two epochs, as a killed run leaves it."""
+    run = tmp_path_factory.mktemp("one_epoch") / "run"
+    train.fit(_smoke_cfg(smoke_root, epochs=1), run, progress=False)
+    state = torch.load(run / checkpoint.CHECKPOINT_NAME, weights_only=True)
+    state["cfg"] = dict(state["cfg"], epochs=2)
+    state["complete"] = False
+    torch.save(state, run / checkpoint.CHECKPOINT_NAME)
+    return run
+
+
+def _groups(change):
+    return lambda s: s["optimizer"].update(param_groups=[change(dict(g)) for g in s["optimizer"]["param_groups"]])
+
+
+def _first_moment(s):
+    key = next(iter(s["optimizer"]["state"]))
+    s["optimizer"]["state"][key] = dict(s["optimizer"]["state"][key], exp_avg=torch.zeros(3))
+
+
+RESUME_DAMAGE = {  # an entry of the training state changed -> what the refusal says (torch takes each as it is)
+    "epoch a word": (lambda s: s.update(epoch="1"), "its epoch is '1', not a count"),
+    "epoch NaN": (lambda s: s.update(epoch=float("nan")), "its epoch is 'nan', not a count"),
+    "history a number": (lambda s: s.update(history=5), "its history is not one record of numbers per epoch"),
+    "history of numbers": (lambda s: s.update(history=[1]), "its history is not one record of numbers per epoch"),
+    "learning rate a word": (_groups(lambda g: {**g, "lr": "x"}), "learning rate, eps, weight decay or betas"),
+    "one beta": (_groups(lambda g: {**g, "betas": (0.9,)}), "learning rate, eps, weight decay or betas"),
+    "a moment of another shape": (_first_moment, "moments are not shaped like the model's parameters"),
+    "schedule step a word": (lambda s: s["schedule"].update(last_epoch="a"), "schedule's step or base rates"),
+    "schedule rate a word": (lambda s: s["schedule"].update(base_lrs=["x"]), "schedule's step or base rates"),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(RESUME_DAMAGE))
+def test_a_damaged_training_state_is_refused_before_resuming(one_epoch_run, smoke_root, tmp_path, capsys, damage):
+    """Each of these ended as "this is a bug" (exit 1) at the first step or before: now one line naming the
+    checkpoint and the entry, exit 2, the run folder left as it was."""
+    run = Path(shutil.copytree(one_epoch_run, tmp_path / "run"))
+    state = torch.load(run / checkpoint.CHECKPOINT_NAME, weights_only=True)
+    change, said = RESUME_DAMAGE[damage]
+    change(state)
+    torch.save(state, run / checkpoint.CHECKPOINT_NAME)
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    assert cli.main(_train_argv(smoke_root, run, "--resume")) == 2
+    one_line_error(capsys, f"cannot resume {run / checkpoint.CHECKPOINT_NAME}: ", said)
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+
+
+def test_the_undamaged_training_state_resumes(one_epoch_run, smoke_root, tmp_path, capsys):
+    run = Path(shutil.copytree(one_epoch_run, tmp_path / "run"))
+    assert checkpoint.training_state_problem(torch.load(run / checkpoint.CHECKPOINT_NAME, weights_only=True)) is None
+    assert cli.main(_train_argv(smoke_root, run, "--resume")) == 0
+    assert "resuming" in capsys.readouterr().out
+
+
 def test_a_checkpoint_missing_tensors_is_named(smoke_root, tmp_path, capsys):
     ckpt = save_untrained_checkpoint(tmp_path / "partial.pt")
     state = torch.load(ckpt, weights_only=True)

@@ -678,6 +678,58 @@ def read_checkpoint(path: str | os.PathLike, *, for_resume: bool = False, limits
     return ckpt
 
 
+def _is_count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _is_number(value, finite: bool = True) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and (not finite or bool(np.isfinite(value))))
+
+
+def training_state_problem(state: dict, params: list[torch.Tensor] | None = None) -> str | None:
+    """What keeps a run from resuming from ``state`` (a checkpoint read ``for_resume``), in words, or None:
+    its epoch a count, its history one record of numbers per epoch, its optimizer's parameter groups (finite
+    ``lr``, ``eps``, ``weight_decay``, two ``betas``) and its Adam moments shaped like ``params`` (the model's,
+    in order; not checked when None), its schedule's epoch a count and one finite base rate per group.
+    torch's ``load_state_dict`` takes such entries as they are, and the run would stop at its first step."""
+    epoch, history = state["epoch"], state["history"]
+    if not _is_count(epoch):
+        return f"its epoch is {str(epoch)[:40]!r}, not a count"
+    if not isinstance(history, list) or len(history) != epoch or not all(
+            isinstance(row, dict) and all(isinstance(k, str) and _is_number(v, finite=False) for k, v in row.items())
+            for row in history):
+        return f"its history is not one record of numbers per epoch for its {epoch} epoch(s)"
+    opt = state["optimizer"]
+    groups = opt.get("param_groups") if isinstance(opt, dict) else None
+    if not isinstance(groups, list) or not groups or not all(isinstance(g, dict) for g in groups):
+        return "its optimizer has no parameter groups"
+    ids = []
+    for g in groups:
+        betas = g.get("betas")
+        if not all(_is_number(g.get(k)) for k in ("lr", "eps", "weight_decay")) or not (
+                isinstance(betas, (list, tuple)) and len(betas) == 2 and all(_is_number(b) for b in betas)):
+            return "its optimizer's learning rate, eps, weight decay or betas are not finite numbers"
+        ids += g.get("params") if isinstance(g.get("params"), list) else [None]
+    schedule = state["schedule"]
+    rates = schedule.get("base_lrs") if isinstance(schedule, dict) else None
+    if not (isinstance(schedule, dict) and _is_count(schedule.get("last_epoch")) and isinstance(rates, list)
+            and len(rates) == len(groups) and all(_is_number(r) for r in rates)):
+        return "its learning-rate schedule's step or base rates are not counts and finite numbers"
+    if params is None:
+        return None
+    if len(ids) != len(params) or not all(_is_count(i) for i in ids) or len(set(ids)) != len(ids):
+        return f"its optimizer holds {len(ids)} parameter(s), the model {len(params)}"
+    moments = opt.get("state")
+    shapes = dict(zip(ids, (tuple(t.shape) for t in params)))
+    if not isinstance(moments, dict) or not all(
+            k in shapes and isinstance(v, dict) and all(not isinstance(t, torch.Tensor) or t.ndim == 0
+                                                        or tuple(t.shape) == shapes[k] for t in v.values())
+            for k, v in moments.items()):
+        return "its optimizer's moments are not shaped like the model's parameters"
+    return None
+
+
 # What a checkpoint's config may ask of the network: an input side of at most MAX_INPUT_SIDE pixels
 # (image_size plus twice input_pad), so one frame's forward pass stays within a few GiB.
 MAX_INPUT_SIDE = 2048

@@ -283,6 +283,7 @@ class Trainer:
                                       "or choose another --run-dir")
             state = ckpt_io.read_checkpoint(self.ckpt_path, for_resume=True,
                                             limits=None if self.network is None else ckpt_io.ANY_NETWORK)
+            self.check_state(state)  # before its epoch is compared, and again with the model's parameters
             saved = config.validate_config(state["cfg"])  # keys added since it was saved: at their defaults
             if config.config_identity(saved) != config.config_identity(cfg):
                 diff = [k for k in config.IDENTITY_KEYS if saved.get(k) != cfg.get(k)]
@@ -351,9 +352,18 @@ class Trainer:
         ckpt_io.load_weights(self.model, ckpt["model"], source)
         return integrity.file_sha256(source)
 
+    def check_state(self, state: dict, params: list | None = None) -> None:
+        """One line naming the checkpoint when its training state cannot be resumed
+        (``checkpoint.training_state_problem``)."""
+        problem = ckpt_io.training_state_problem(state, params)
+        if problem:
+            raise UserError(f"cannot resume {self.ckpt_path}: {problem} (written by something other than train, "
+                             "or changed since)")
+
     def restore(self, state: dict) -> int:
         """Every state as it was after the checkpoint's last epoch; returns that epoch."""
         ckpt_io.load_weights(self.model, state["model"], self.ckpt_path)
+        self.check_state(state, list(self.model.parameters()))
         try:
             self.opt.load_state_dict(state["optimizer"])
             self.schedule.load_state_dict(state["schedule"])
