@@ -1008,7 +1008,7 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                        "    return p\n\n\ntext = (root / 'manifest.json').read_text()", {}),
     "grader-files": ("db = open('../../gradebook.db', 'rb').read()",
                      "sums = (root / 'checksums.sha256').read_text()", {}),
-    "unreadable": ("x = 1" + " + 1" * 100_000, "x = 1 + 1 + 1", {}),
+    "unreadable": ("x = 1" + " + 1" * 40_000, "x = 1 + 1 + 1", {}),  # nested too deep, within the size read
     "shadowed-builtin": ("abs = lambda x: 0.0", "def f(x):\n    max = x.max()\n    return max\n\n\ntype = 'wall'",
                          {"shadowed": {"abs", "max", "float"}}),  # the builtins the checks call
     "given-inputs": ("CASE1 = np.array([2.0])\nr = CASE1",
@@ -1063,6 +1063,17 @@ def test_the_literal_rule_spares_a_prediction_the_solution_writes_out_too():
 
 
 # ------------------------------------------------------------------------------------------ exact types
+def test_a_cell_too_long_to_parse_is_flagged_unread():
+    """A cell of a returned notebook (up to 64 MB) is parsed in the grader's process: past CELL_MAX_CHARS
+    it is not parsed at all (6 MB of ``x = 1`` lines took Python's parser 2.4 GB and 17 s), and flagged."""
+    from geodepth_lite.workbook import review
+
+    at_most = "x = 1\n" * (review.CELL_MAX_CHARS // 6)
+    assert review.review_cell(at_most) == []
+    (found,) = review.review_cell(at_most + "x = 1\n")
+    assert (found.rule, found.line) == ("unreadable", 1) and f"{review.CELL_MAX_CHARS:,} the review reads" in found.what
+
+
 def test_a_literal_answer_concerns_its_own_exercise_and_a_change_to_the_kernel_every_later_one():
     from geodepth_lite.workbook import review
 

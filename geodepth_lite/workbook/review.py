@@ -48,7 +48,7 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
                         "checks call it",
     "given-inputs": "changes the code the exercise gives (its inputs, from which the checks compute their "
                     "references)",
-    "unreadable": "is too deeply nested for the review to read: look at it by hand",
+    "unreadable": "is too large or too deeply nested for the review to read: look at it by hand",
     "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
                       "message shows it)",
     "ipython": "uses IPython's own syntax (a %magic, a %%cell magic, a !shell line), which runs code the review "
@@ -56,6 +56,7 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
     "missing-cell": "the exercise's answer cell is missing or lost its grading metadata, so its answer cannot be "
                     "reviewed where the checks expect it",
 }
+CELL_MAX_CHARS = 200_000  # a longer cell is not parsed but flagged (6 MB of `x = 1` lines: 2.4 GB to parse)
 OWN_EXERCISE = {"literal-answer", "given-inputs", "check-names", "missing-cell"}  # the other rules change the kernel
 IPYTHON_CALLS = {"run_line_magic": "%", "run_cell_magic": "%%", "system": "!", "getoutput": "!"}
 
@@ -443,6 +444,9 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
     computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
     (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`). IPython's
     own syntax is read as the kernel reads it (:func:`parse_cell`)."""
+    if len(source) > CELL_MAX_CHARS:
+        return [Finding(1, "unreadable", f"the whole cell ({len(source):,} characters, more than the "
+                                         f"{CELL_MAX_CHARS:,} the review reads)")]
     try:
         tree, magic = parse_cell(source)
         own = bound_names(tree)
