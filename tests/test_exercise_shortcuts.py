@@ -1016,6 +1016,8 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                      {"given": GIVEN}),
     "literal-answer": ("verdicts = {('rmse', 3): 'opposite'}",
                        "verdicts = {}\nfor k in keys:\n    verdicts[k] = verdict(k)", {"computed": {"verdicts"}}),
+    "kernel": ("import ipywidgets\nshell = ipywidgets.get_ipython()  # re-exported: not the bare name",
+               "import ipywidgets\nslider = ipywidgets.IntSlider()\nevents_seen = 3", {}),
     "ipython": ("%xmode Plain\nrate = 100 % 7", "rate = 100 % 7\nok = rate != 2  # not a shell line", {}),
 }
 NOTEBOOK_RULES = {"missing-cell"}  # found in a notebook, not in one cell: tests/test_exercises.py plants it

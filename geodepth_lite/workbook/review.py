@@ -51,6 +51,8 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
     "unreadable": "is too large or too deeply nested for the review to read: look at it by hand",
     "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
                       "message shows it)",
+    "kernel": "reaches the IPython shell that runs the checks (get_ipython, its hooks, transformers or "
+              "namespace), where a hook can change what every later check reports",
     "ipython": "uses IPython's own syntax (a %magic, a %%cell magic, a !shell line), which runs code the review "
                "cannot read",
     "missing-cell": "the exercise's answer cell is missing or lost its grading metadata, so its answer cannot be "
@@ -85,6 +87,10 @@ HISTORY_NAMES = re.compile(r"(In|Out|_ih|_oh|_dh|_i{1,3}|_i\d+|_\d+|get_ipython|
 KERNEL_NAMES = {"In", "Out", "_ih", "_oh", "_dh", "get_ipython", "__builtins__", "__main__"}  # even if assigned
 FRAME_ATTRIBUTES = re.compile(r"(f_back|f_globals|f_locals|f_builtins|f_code|f_trace|tb_frame|tb_next|"
                               r"gi_frame|cr_frame|ag_frame|co_code|co_consts|co_names)")
+KERNEL_ATTRIBUTES = {"get_ipython", "set_custom_exc", "input_transformers_post", "input_transformers_cleanup",
+                     "ast_transformers", "user_ns", "user_global_ns", "register_magic_function", "run_cell",
+                     "run_line_magic", "run_cell_magic", "history_manager", "showtraceback", "set_hook",
+                     "events"}  # the shell's handles, as attributes (ipywidgets.get_ipython) or strings (getattr)
 PLAIN_DUNDERS = {"__init__", "__name__", "__doc__", "__version__"}  # attributes an honest answer may use
 PLAIN_METHODS = {"__init__", "__post_init__", "__repr__", "__str__"}  # methods an honest class may define
 DUNDER = re.compile(r"__\w+__")
@@ -273,9 +279,13 @@ def _name_findings(tree: ast.AST, own: set[str], check_names: set[str]) -> list[
             if (DUNDER.fullmatch(node.attr) and node.attr not in PLAIN_DUNDERS) or FRAME_ATTRIBUTES.fullmatch(
                     node.attr):
                 found.append(Finding(node.lineno, "special-attribute", f".{node.attr}"))
+            elif node.attr in KERNEL_ATTRIBUTES:
+                found.append(Finding(node.lineno, "kernel", f".{node.attr}"))
         elif isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in prose:
             if DUNDER.fullmatch(node.value) and node.value not in PLAIN_DUNDERS:
                 found.append(Finding(node.lineno, "special-attribute", repr(node.value)))
+            elif node.value in KERNEL_ATTRIBUTES:
+                found.append(Finding(node.lineno, "kernel", repr(node.value)))
             elif PACKAGE_PATH.search(node.value):
                 found.append(Finding(node.lineno, "package-source", repr(node.value[:60])))
             elif GRADER_PATH.search(node.value):
