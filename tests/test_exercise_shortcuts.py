@@ -1016,7 +1016,8 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                      {"given": GIVEN}),
     "literal-answer": ("verdicts = {('rmse', 3): 'opposite'}",
                        "verdicts = {}\nfor k in keys:\n    verdicts[k] = verdict(k)", {"computed": {"verdicts"}}),
-    "kernel": ("import ipywidgets\nshell = ipywidgets.get_ipython()  # re-exported: not the bare name",
+    "kernel": ("import ipywidgets\nshell = ipywidgets.get_ipython()  # re-exported: not the bare name\n"
+               "from traitlets.config import Application\nshell = Application.instance().shell",
                "import ipywidgets\nslider = ipywidgets.IntSlider()\nevents_seen = 3", {}),
     "ipython": ("%xmode Plain\nrate = 100 % 7", "rate = 100 % 7\nok = rate != 2  # not a shell line", {}),
 }
@@ -1065,6 +1066,16 @@ def test_the_literal_rule_spares_a_prediction_the_solution_writes_out_too():
 
 
 # ------------------------------------------------------------------------------------------ exact types
+def test_each_road_to_the_shell_is_flagged_on_its_own():
+    """The kernel's shell reached without its bare name: each line of the planted case alone is flagged."""
+    from geodepth_lite.workbook import review
+
+    roads = ["import ipywidgets\nshell = ipywidgets.get_ipython()", "import matplotlib_inline.backend_inline as b\n"
+             "shell = getattr(b, 'get_ipython')()", "from traitlets.config import Application",
+             "shell = app.shell\nshell.events.register('post_run_cell', print)", "app.set_custom_exc((Exception,), f)"]
+    assert [sorted({f.rule for f in review.review_cell(road)}) for road in roads] == [["kernel"]] * len(roads)
+
+
 def test_a_cell_too_long_to_parse_is_flagged_unread():
     """A cell of a returned notebook (up to 64 MB) is parsed in the grader's process: past CELL_MAX_CHARS
     it is not parsed at all (6 MB of ``x = 1`` lines took Python's parser 2.4 GB and 17 s), and flagged."""

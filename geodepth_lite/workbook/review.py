@@ -70,6 +70,7 @@ MODULES = {  # module (its first name) -> rule
     **dict.fromkeys(("importlib", "runpy", "code", "codeop", "marshal", "zipimport"), "dynamic-code"),
     **dict.fromkeys(("builtins", "__main__", "__builtin__"), "namespace"),
     **dict.fromkeys(("IPython", "ipykernel", "jupyter_client"), "kernel-history"),
+    "traitlets": "kernel",  # traitlets.config.Application.instance().shell is the kernel's shell
     **dict.fromkeys(("linecache", "pkgutil"), "package-source"),
     "unittest": "special-method",  # unittest.mock.ANY is equal to anything
 }
@@ -90,7 +91,7 @@ FRAME_ATTRIBUTES = re.compile(r"(f_back|f_globals|f_locals|f_builtins|f_code|f_t
 KERNEL_ATTRIBUTES = {"get_ipython", "set_custom_exc", "input_transformers_post", "input_transformers_cleanup",
                      "ast_transformers", "user_ns", "user_global_ns", "register_magic_function", "run_cell",
                      "run_line_magic", "run_cell_magic", "history_manager", "showtraceback", "set_hook",
-                     "events"}  # the shell's handles, as attributes (ipywidgets.get_ipython) or strings (getattr)
+                     "events", "shell"}  # the shell's handles: attributes (ipywidgets.get_ipython), strings (getattr)
 PLAIN_DUNDERS = {"__init__", "__name__", "__doc__", "__version__"}  # attributes an honest answer may use
 PLAIN_METHODS = {"__init__", "__post_init__", "__repr__", "__str__"}  # methods an honest class may define
 DUNDER = re.compile(r"__\w+__")
