@@ -342,8 +342,8 @@ def feedback_leaks(pages: dict[str, str], root: Path) -> list[str]:
 def hostile_answer(root: Path, victim: str, port: int) -> str:
     """An answer to 99.1 (right: my_sum = 5) that first tries to read the solutions, the gradebook and
     another student's notebook, to list and write into the course folder, to reach a port listening
-    on this machine's loopback, and to find the hidden tests in a file of its working folder;
-    it prints one line per attempt, "done" or "blocked"."""
+    on this machine's loopback, to find the hidden tests in a file of its working folder and to hold
+    more memory than a 1 GiB limit allows; it prints one line per attempt, "done" or "blocked"."""
     victim_nb = root / "submitted" / victim / TINY / f"{TINY}.ipynb"
     attempts = {"read source": f"open({str(root / 'source' / TINY / f'{TINY}.ipynb')!r}, 'rb').read()",
                 "read gradebook": f"open({str(root / 'gradebook.db')!r}, 'rb').read()",
@@ -354,7 +354,8 @@ def hostile_answer(root: Path, victim: str, port: int) -> str:
                 "write course": f"open({str(root / 'planted.txt')!r}, 'w').write('x')",
                 "network": f"socket.create_connection(('127.0.0.1', {port}), timeout=2).close()",
                 "hidden tests in the working folder": "assert [f for f in os.listdir('.') if os.path.isfile(f) "
-                                                      "and b'square(-4)' in open(f, 'rb').read()]"}
+                                                      "and b'square(-4)' in open(f, 'rb').read()]",
+                "hold 1.5 GiB": "bytearray(1536 << 20)"}
     lines = ["import os", "import socket", ""]
     for what, code in attempts.items():
         lines += ["try:", f"    {code}", f"    print('done: {what}')", "except Exception:",
@@ -375,8 +376,9 @@ def _printed(notebook: Path) -> str:
 @pytest.mark.slow
 def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, tmp_path, capsys, needs_sandbox):
     """Three students: ana all right; bo's notebook ends Python (exit()) in exercise 99.2; cy's 99.1 is
-    right, but first tries to read the solutions, the gradebook and ana's notebook and to write into
-    the course folder, and cy's 99.2 returns a value equal to anything. ana and cy are graded, bo could not
+    right, but first tries to read the solutions, the gradebook and ana's notebook, to write into
+    the course folder and to hold 1.5 GiB (the kernels may hold 1 GiB), and cy's 99.2 returns a value equal
+    to anything. ana and cy are graded, bo could not
     run; cy's every attempt fails in the sandbox, and the static review sends cy's 99.1 (it imports socket),
     99.2 (a class defining __eq__, and the socket of 99.1 in the same kernel) and 99.3 (what 99.1 and 99.2
     left in the kernel) to manual grading, with the reasons in the grade table; cy's page shows their rows
@@ -399,13 +401,13 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     shutil.copytree(tiny_course, copy)
     outside = subprocess.run([sys.executable, "-c", hostile_answer(copy, "ana", port)], capture_output=True,
                              text=True, cwd=copy / "source" / TINY)  # a folder holding the hidden tests
-    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()] == ["done"] * 9, outside.stdout
+    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()] == ["done"] * 10, outside.stdout
     ana_nb = (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes()
     protected = {p: p.read_bytes() for p in tiny_course.rglob("*") if p.is_file() and "gradebook" not in p.name}
     capsys.readouterr()
 
     with listener:
-        assert cli.main(["course", "autograde", *run]) == 0
+        assert cli.main(["course", "autograde", "--kernel-memory", "1", *run]) == 0
     captured = capsys.readouterr()
     assert "autograded 2 submissions; 1 could not run; 0 graded before; 3 answers flagged for review" in captured.out
     (line,) = [ln for ln in captured.err.splitlines() if ln.startswith("could not run")]
@@ -416,7 +418,7 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     assert [ln for ln in printed.splitlines() if ln.startswith(("done", "blocked"))] == [
         f"blocked: {what}" for what in ("read source", "read gradebook", "read other student", "list course",
                                         "rewrite other student", "write gradebook", "write course", "network",
-                                        "hidden tests in the working folder")]
+                                        "hidden tests in the working folder", "hold 1.5 GiB")]
     assert (tiny_course / "submitted" / "ana" / TINY / f"{TINY}.ipynb").read_bytes() == ana_nb
     assert all(p.read_bytes() == data for p, data in protected.items()) and not (tiny_course / "planted.txt").exists()
     assert cli.main(["course", "feedback", *run]) == 0
@@ -646,6 +648,54 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
     assert str(tmp_path / "course") not in cmd  # not under anything bound: not there at all
     assert "--unshare-all" in cmd and "--clearenv" in cmd and cmd[-2:] == ["--", "python"]
     assert sandbox.readable_paths([root / "data_manifests"]).count(root / "data_manifests") == 0
+
+
+BOUNDED = """import resource
+try:
+    resource.setrlimit(resource.RLIMIT_DATA, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+    print("done: raise the memory limit")
+except (ValueError, OSError):
+    print("blocked: raise the memory limit")
+try:
+    block = bytearray(1536 << 20)
+    print("done: hold 1.5 GiB")
+except MemoryError:
+    print("blocked: hold 1.5 GiB")
+block = None
+for what, folder, mib, files in (("fill /tmp", "/tmp", 24, 3), ("write a big file", ".", 48, 1)):
+    try:
+        for k in range(files):
+            with open(f"{folder}/fill{k}", "wb") as f:
+                f.write(bytes(mib << 20))
+        print(f"done: {what}")
+    except OSError:
+        print(f"blocked: {what}")
+import numpy
+print("numpy", int(numpy.ones((1000, 1000)).sum()))
+"""
+
+
+def test_the_sandbox_bounds_memory_its_tmp_and_file_sizes(tmp_path, monkeypatch, needs_sandbox):
+    """Each process of a kernel holds at most its memory limit, which it cannot raise; /tmp (a tmpfs, held
+    in memory) and a file it writes are bounded too; a plain program still runs under those limits. The
+    same attempts all succeed without the sandbox's limits."""
+    monkeypatch.setattr(sandbox, "TMP_BYTES", 64 << 20)
+    monkeypatch.setattr(sandbox, "FILE_BYTES", 32 << 20)
+    outside = subprocess.run([sys.executable, "-c", BOUNDED], capture_output=True, text=True, cwd=tmp_path)
+    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()[:4]] == ["done"] * 4, outside.stdout
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    cmd = sandbox.bwrap_command([sys.executable, "-c", BOUNDED], tmp_path / "scratch", [], sandbox.memory_bytes(1))
+    inside = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert inside.returncode == 0, inside.stderr[-2000:]
+    assert inside.stdout.splitlines() == ["blocked: raise the memory limit", "blocked: hold 1.5 GiB",
+                                          "blocked: fill /tmp", "blocked: write a big file", "numpy 1000000"]
+
+
+@pytest.mark.parametrize("gib", [0.25, float("nan"), float("inf"), 1e6])
+def test_a_kernel_memory_limit_out_of_range_is_one_line(tiny_course, capsys, gib):
+    assert cli.main(["course", "autograde", "--course", str(tiny_course), "--kernel-memory", str(gib)]) == 2
+    assert "--kernel-memory" in one_line_error(capsys)
 
 
 def test_feedback_page_names_exercises_and_shows_messages_not_tests():

@@ -158,19 +158,22 @@ def run_limit(folder: Path, cell_timeout: int) -> int:
     return cell_timeout * max(cells, 1) + KERNEL_START_S
 
 
-def _environment(scratch: Path, course: Path) -> dict:
+def _environment(scratch: Path, course: Path, memory: int) -> dict:
     env = dict(os.environ)  # nbgrader runs alembic from this interpreter's scripts folder: first on PATH
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     env[sandbox.SCRATCH_ENV] = str(scratch)
     env[sandbox.HIDDEN_ENV] = str(Path(course).resolve())
+    env[sandbox.MEMORY_ENV] = str(int(memory))
     root = str(utils.package_parent())
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     return env
 
 
-def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limit_s: float) -> str | None:
-    """nbgrader's autograde of one submission in a process of its own; None when it is graded, else the
-    reason it could not run (its partial ``autograded/`` folder, made by this run, is removed)."""
+def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limit_s: float,
+              memory: int = sandbox.memory_bytes(sandbox.KERNEL_MEMORY_GIB)) -> str | None:
+    """nbgrader's autograde of one submission in a process of its own, each process of the kernel's holding
+    at most ``memory`` bytes of data; None when it is graded, else the reason it could not run (its partial
+    ``autograded/`` folder, made by this run, is removed)."""
     course = Path(course)
     cmd = [sys.executable, "-m", "nbgrader", "autograde", assignment, f"--student={student}",
            f"--CourseDirectory.root={course.resolve()}", "--log-level=WARN"]
@@ -178,7 +181,7 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
         cmd.append("--Execute.kernel_manager_class=geodepth_lite.workbook.sandbox_kernel.SandboxKernelManager")
     scratch = Path(tempfile.mkdtemp(prefix="geodepth-grade-"))
     try:
-        proc = subprocess.Popen(cmd, cwd=course, env=_environment(scratch, course), stdout=subprocess.PIPE,
+        proc = subprocess.Popen(cmd, cwd=course, env=_environment(scratch, course, memory), stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, start_new_session=True)
         tail = bytearray()
         reader = threading.Thread(target=keep_tail, args=(proc.stdout, tail, OUTPUT_TAIL_BYTES), daemon=True)
@@ -218,7 +221,7 @@ def submissions(course: Path, names: list[str]) -> list[tuple[str, str]]:
 
 
 def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed: bool = True, retry: bool = False,
-                echo=None) -> dict:
+                echo=None, memory: int = sandbox.memory_bytes(sandbox.KERNEL_MEMORY_GIB)) -> dict:
     """Grade every collected submission not graded yet (see the module docstring); the caller holds the
     course lock. ``cell_timeout``: the course's, in seconds; ``echo``: called with one line per
     submission that could not run and per exercise the static review flagged. Each submission graded is
@@ -241,7 +244,7 @@ def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed:
             continue
         folder = course / "submitted" / student / assignment
         limit = run_limit(course / "source" / assignment, cell_timeout)
-        reason = grade_one(course, student, assignment, sandboxed, limit)
+        reason = grade_one(course, student, assignment, sandboxed, limit, memory)
         failures.pop(key, None)
         if reason is None:
             graded.append(key)

@@ -36,7 +36,7 @@ from pathlib import Path
 from geodepth_lite import utils
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.workbook import autograde as grading_run
-from geodepth_lite.workbook import exercises
+from geodepth_lite.workbook import exercises, sandbox
 
 COURSE_ID = "geodepth"
 TIMEOUT_FACTOR = 3.0  # a student's laptop may be three times slower than the machine that executed notebooks/
@@ -357,19 +357,22 @@ def collect(course: Path, submissions: Path) -> dict:
 
 
 # ----------------------------------------------------------------------------------------- grade
-def autograde(course: Path, *, sandboxed: bool = True, retry: bool = False, echo=None) -> dict:
+def autograde(course: Path, *, sandboxed: bool = True, retry: bool = False, echo=None,
+              memory_gib: float = sandbox.KERNEL_MEMORY_GIB) -> dict:
     """nbgrader's ``autograde`` of each collected submission on its own, its kernel in a sandbox (see
     :mod:`geodepth_lite.workbook.autograde`): hidden tests put back, the notebook executed with the course's cell
     timeout. A submission graded before is left as it is; one whose kernel dies or hangs is recorded as
     "could not run" (``echo`` gets one line naming it) and the others are graded. Without bubblewrap it
-    refuses unless ``sandboxed`` is False. Returns graded, could_not_run and skipped submissions."""
+    refuses unless ``sandboxed`` is False. Each process of a sandboxed kernel holds at most ``memory_gib`` GiB
+    of data (:mod:`geodepth_lite.workbook.sandbox`). Returns graded, could_not_run and skipped submissions."""
     course = Path(course)
+    memory = sandbox.memory_bytes(memory_gib)
     names = open_course(course)
     if not (course / "gradebook.db").is_file():
         raise utils.FileProblem(f"cannot autograde {course}: no gradebook yet; run `course release` first", course)
     with course_lock(course):
         return grading_run.grade_class(course, names, configured_timeout(course), sandboxed=sandboxed, retry=retry,
-                                       echo=echo)
+                                       echo=echo, memory=memory)
 
 
 def configured_timeout(course: Path) -> int:
@@ -515,6 +518,9 @@ def add_arguments_course(p: argparse.ArgumentParser) -> None:
                                 "(they can then read the solutions and the gradebook: see docs/teaching.md)")
             a.add_argument("--retry", action="store_true",
                            help="grade again the submissions that could not run before")
+            a.add_argument("--kernel-memory", type=float, default=sandbox.KERNEL_MEMORY_GIB, metavar="GIB",
+                           help="the most memory (GiB of data) each process of a student's kernel may hold "
+                                f"in the sandbox (default: {sandbox.KERNEL_MEMORY_GIB:g})")
         if action == "grades":
             a.add_argument("--out", type=Path, default=Path("grades.csv"), help="the CSV (default: grades.csv)")
         if action == "edition":
@@ -559,7 +565,7 @@ def _autograde_report(args) -> str:
               "your rights and can read the solutions in source/, the hidden tests in gradebook.db and the other "
               "submissions, and change them", file=sys.stderr)
     info = autograde(args.course, sandboxed=not args.unsafe_no_sandbox, retry=args.retry,
-                     echo=lambda line: print(line, file=sys.stderr))
+                     echo=lambda line: print(line, file=sys.stderr), memory_gib=args.kernel_memory)
     if not info["graded"] and not info["could_not_run"]:
         return (f"nothing to autograde: {len(info['skipped'])} submissions graded before" if info["skipped"]
                 else "nothing to autograde: no submission collected")

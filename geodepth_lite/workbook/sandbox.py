@@ -18,7 +18,12 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   afterwards),
   an empty ``/tmp`` and the folder of its connection sockets;
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
-  namespace), the environment cleared but for a few variables.
+  namespace), the environment cleared but for a few variables;
+- bounded memory: each of its processes may hold at most ``memory_bytes`` of data (``RLIMIT_DATA``,
+  :data:`KERNEL_MEMORY_GIB` GiB unless the lecturer says otherwise), its ``/tmp`` (held in memory) at most
+  :data:`TMP_BYTES`, and no file it writes may grow past :data:`FILE_BYTES`. The limits are hard limits,
+  set by a small program that then becomes the kernel (:func:`limited`): the student's code can lower
+  them, never raise them.
 
 The kernel talks to the executor through Unix sockets in a private folder (``transport = ipc``), so it
 needs no network and never sees another kernel's connection file.
@@ -26,6 +31,7 @@ needs no network and never sees another kernel's connection file.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import subprocess
@@ -33,6 +39,7 @@ import sys
 from pathlib import Path
 
 from geodepth_lite import utils
+from geodepth_lite.core.errors import UserError
 
 SCRATCH_ENV = "GEODEPTH_SANDBOX_SCRATCH"  # the per-submission scratch folder the grader made
 HIDDEN_ENV = "GEODEPTH_SANDBOX_HIDE"  # os.pathsep-separated folders hidden inside the sandbox (the course)
@@ -41,6 +48,15 @@ REQUIRE_ENV = "GEODEPTH_REQUIRE_SANDBOX"  # "1": the tests fail, not skip, where
 CHECKOUT_READS = ("geodepth_lite", "data_manifests", "benchmarks", "pyproject.toml")
 WORKSPACE_READS = ("data", "runs")
 KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LITE_HOME", "MPLBACKEND")
+MEMORY_ENV = "GEODEPTH_SANDBOX_MEMORY"  # bytes of data each process of the kernel's may hold
+KERNEL_MEMORY_GIB = 4.0  # the default of ``course autograde --kernel-memory``
+TMP_BYTES = 1 << 30  # the sandbox's /tmp, a tmpfs: what is written there is held in memory
+FILE_BYTES = 1 << 30  # the largest file the kernel may write (its scratch folder is on the grader's disk)
+# run as `python -c LIMITS DATA FSIZE CORE ARGV...`: sets each as a hard limit, then becomes ARGV
+LIMITS = ("import os, resource, sys\n"
+          "for name, value in zip(('RLIMIT_DATA', 'RLIMIT_FSIZE', 'RLIMIT_CORE'), sys.argv[1:4]):\n"
+          "    resource.setrlimit(getattr(resource, name), (int(value), int(value)))\n"
+          "os.execv(sys.argv[4], sys.argv[4:])\n")
 
 
 def _package_root() -> Path:
@@ -72,8 +88,9 @@ def readable_paths(hidden: list[Path] = ()) -> list[Path]:
     return out
 
 
-def _system_binds() -> list[str]:
-    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", "--dev", "/dev", "--tmpfs", "/tmp"]
+def _system_binds(tmp_bytes: int | None = None) -> list[str]:
+    size = ["--size", str(tmp_bytes)] if tmp_bytes else []
+    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", "--dev", "/dev", *size, "--tmpfs", "/tmp"]
     for name in ("bin", "lib", "lib64", "sbin"):
         link = Path("/") / name
         if link.is_symlink():
@@ -83,9 +100,29 @@ def _system_binds() -> list[str]:
     return cmd
 
 
-def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path]) -> list[str]:
-    """``argv`` (a kernel's command) run inside bubblewrap: see the module docstring."""
-    cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv", *_system_binds()]
+def memory_bytes(gib: float) -> int:
+    """``gib`` GiB in bytes, for ``course autograde --kernel-memory``; a user's error below 0.5 GiB, where
+    Python and the package no longer start, above 65,536 GiB, or where it is not a number."""
+    if not (isinstance(gib, (int, float)) and math.isfinite(gib) and 0.5 <= gib <= 65536):
+        raise UserError(f"--kernel-memory {gib}: give the GiB each process of a student's kernel may hold, "
+                        f"from 0.5 to 65536 (default {KERNEL_MEMORY_GIB:g})")
+    return int(gib * (1 << 30))
+
+
+def limited(argv: list[str], memory: int) -> list[str]:
+    """``argv`` run with the sandbox's hard limits (see the module docstring): ``memory`` bytes of data per
+    process, files up to :data:`FILE_BYTES`, no core dump. The limits are set before the kernel starts, and a
+    process without ``CAP_SYS_RESOURCE`` (bubblewrap drops every capability) cannot raise a hard limit."""
+    exe = shutil.which(argv[0]) or argv[0]
+    return [sys.executable, "-c", LIMITS, str(int(memory)), str(FILE_BYTES), "0", exe, *argv[1:]]
+
+
+def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
+                  memory: int = int(KERNEL_MEMORY_GIB * (1 << 30))) -> list[str]:
+    """``argv`` (a kernel's command) run inside bubblewrap, ``memory`` bytes of data per process: see the
+    module docstring."""
+    cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv",
+           *_system_binds(tmp_bytes=TMP_BYTES)]
     for etc in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/passwd", "/etc/group", "/etc/fonts"):
         if Path(etc).exists():
             cmd += ["--ro-bind", etc, etc]
@@ -103,14 +140,14 @@ def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path]) -> list[st
     for key in KEPT_ENV:
         if key in os.environ and key != "MPLBACKEND":
             cmd += ["--setenv", key, os.environ[key]]
-    return cmd + ["--", *argv]
+    return cmd + ["--", *limited(argv, memory)]
 
 
 def unavailable() -> str | None:
     """Why no sandbox can be made here (one line), or None when bubblewrap runs a program in one."""
     if shutil.which("bwrap") is None:
         return "bubblewrap (bwrap) is not installed"
-    probe = ["bwrap", "--die-with-parent", "--unshare-all", *_system_binds()]
+    probe = ["bwrap", "--die-with-parent", "--unshare-all", *_system_binds(tmp_bytes=TMP_BYTES)]
     try:
         done = subprocess.run([*probe, "true"], capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired) as exc:

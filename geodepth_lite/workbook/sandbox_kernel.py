@@ -10,12 +10,13 @@ from pathlib import Path
 
 from jupyter_client.manager import AsyncKernelManager
 
-from geodepth_lite.workbook.sandbox import HIDDEN_ENV, SCRATCH_ENV, bwrap_command
+from geodepth_lite.workbook.sandbox import HIDDEN_ENV, KERNEL_MEMORY_GIB, MEMORY_ENV, SCRATCH_ENV, bwrap_command
 
 
 class SandboxKernelManager(AsyncKernelManager):
     """jupyter's kernel manager, the kernel started inside bubblewrap and reached over Unix sockets in
-    the scratch folder's ``kernel/`` (``$GEODEPTH_SANDBOX_SCRATCH``, made by ``course autograde``)."""
+    the scratch folder's ``kernel/`` (``$GEODEPTH_SANDBOX_SCRATCH``, made by ``course autograde``), with the
+    memory limit ``$GEODEPTH_SANDBOX_MEMORY`` (bytes) that ``course autograde`` passes on."""
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
@@ -43,4 +44,5 @@ class SandboxKernelManager(AsyncKernelManager):
                         and not (work / item.name).exists()):
                     shutil.copyfile(item, work / item.name)
         hidden = [Path(p) for p in os.environ.get(HIDDEN_ENV, "").split(os.pathsep) if p]
-        return bwrap_command(argv, self._scratch, hidden)
+        memory = int(os.environ.get(MEMORY_ENV) or KERNEL_MEMORY_GIB * (1 << 30))
+        return bwrap_command(argv, self._scratch, hidden, memory)
