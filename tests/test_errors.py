@@ -19,9 +19,9 @@ import torch
 from conftest import one_line_error, save_nan_checkpoint
 
 from geodepth_lite import cli, utils
-from geodepth_lite.data import datasets, synth
+from geodepth_lite.data import bounds, datasets, synth
 from geodepth_lite.data import manifest as mf
-from geodepth_lite.evaluation import evaluate
+from geodepth_lite.evaluation import baselines, evaluate
 from geodepth_lite.training import checkpoint, config, train
 
 
@@ -150,6 +150,35 @@ def test_a_damaged_dataset_file_is_named(smoke_copy, tmp_path, capsys, kind, rea
     assert cli.main(argv) == 2  # caught before training, by the checksums
     one_line_error(capsys, bad.name, "--no-verify")
     assert not (run / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("huge", [np.full((1,), 2**63, np.uint64), np.full((1,), 1e30, np.float32),
+                                  np.full((1,), -1e300, np.float64), np.full((1,), 1.5e6, np.float32)])
+def test_a_depth_map_with_a_depth_beyond_its_bound_is_named(smoke_copy, tmp_path, capsys, huge):
+    """A finite depth beyond bounds.MAX_DEPTH_VALUE is refused in one line naming the file: before, a uint64
+    2^63 trained a whole run on a loss of 3.5e18 and reported it as finished. NaN and inf still pass (they
+    mark pixels without depth), and so does a depth just inside the bound."""
+    rec = _first(smoke_copy, "train")
+    path = smoke_copy / rec["depth"]
+    shape = np.load(path).shape
+    depth = np.ones(shape, huge.dtype)
+    depth[0, :1] = huge
+    np.save(path, depth)
+    with pytest.raises(utils.FileProblem, match="beyond the 1e\\+06 a depth map may hold") as info:
+        datasets.SyntheticDepthDataset(smoke_copy, "train")[0]
+    assert info.value.path == path
+    with pytest.raises(utils.FileProblem, match="beyond the 1e\\+06"):
+        baselines.fit_mean_depth_map(smoke_copy, "train")
+    run = tmp_path / "run"
+    argv = ["train", "--profile", "smoke", "--dataset", str(smoke_copy), "--image-size", "32", "--run-dir", str(run),
+            "--no-progress", "--no-verify"]
+    assert cli.main(argv) == 2
+    one_line_error(capsys, "error: cannot use", str(path), "beyond the 1e+06")
+    assert not (run / "checkpoint.pt").exists()
+    depth = np.ones(shape, np.float32)
+    depth[0, :3] = [np.nan, np.inf, bounds.MAX_DEPTH_VALUE]
+    np.save(path, depth)
+    assert float(datasets.SyntheticDepthDataset(smoke_copy, "train")[0]["depth"][0, 0, 2]) == 1e6
 
 
 def test_a_damaged_public_dataset_file_is_named(tmp_path):

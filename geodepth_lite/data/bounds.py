@@ -131,6 +131,9 @@ def check_zip_directory(path: str | os.PathLike, max_members: int, what: str) ->
 
 MAX_MANIFEST_BYTES = 4 * 2**20  # a manifest file (data_manifests/*.json, a dataset's manifest.json), at most
 MAX_DATASET_FILE_BYTES = 2**30  # a file a dataset names (frame, depth map, frames.jsonl, checksummed file)
+# a depth map's finite values, at most (in its own unit): no endoscope sees a million millimetres, and a
+# value such as 2^63 trains on a loss of 10^18 (NaN and inf are kept: they mark pixels without depth)
+MAX_DEPTH_VALUE = 1e6
 
 
 def inside_folder(root: str | os.PathLike, rel: str) -> Path | None:
@@ -227,3 +230,18 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
     if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
         raise FileProblem(f"cannot read {path}: not a numeric array", path)
     return a
+
+
+def read_depth_npy(path: str | os.PathLike) -> np.ndarray:
+    """A depth map from a ``.npy`` file (:func:`read_npy`) whose finite values lie within
+    +-``MAX_DEPTH_VALUE``; NaN and inf pass (they mark pixels without depth). A :class:`FileProblem`
+    naming the file otherwise."""
+    depth = read_npy(path)
+    finite = depth[np.isfinite(depth)] if depth.dtype.kind == "f" else depth
+    if finite.size:
+        lo, hi = float(finite.min()), float(finite.max())
+        if max(hi, -lo) > MAX_DEPTH_VALUE:
+            raise FileProblem(f"cannot use {path}: it holds the depth {hi if hi > -lo else lo:.4g}, beyond the "
+                              f"{MAX_DEPTH_VALUE:.0e} a depth map may hold (NaN or inf mark a pixel without depth)",
+                              path)
+    return depth

@@ -117,13 +117,13 @@ def fit_mean_depth_map(root: str | os.PathLike, split: str = "train", image_size
     """``mean_depth_map`` of every frame of a synthetic dataset split (``SyntheticDepthDataset(root,
     split, image_size)``), reading the depth files one at a time (RGB images are not decoded).
 
-    Each file is read as the dataset reads it (``bounds.read_npy``: never unpickled), so a damaged
+    Each file is read as the dataset reads it (``bounds.read_depth_npy``: never unpickled), so a damaged
     or foreign depth file is a :class:`utils.FileProblem` naming it."""
     ds = SyntheticDepthDataset(root, split, image_size=image_size)
 
     def depths():
         for rec in ds.frames:
-            d = bounds.read_npy(ds.root / rec["depth"])
+            d = bounds.read_depth_npy(ds.root / rec["depth"])
             yield d if ds.size is None else _resize_depth(d, ds.size)  # as ds[i]["depth"], without the image
 
     return mean_depth_map(depths())

@@ -31,7 +31,7 @@ from geodepth_lite.core import camera as cam
 from geodepth_lite.core.errors import UserError
 from geodepth_lite.data.images import read_rgb
 from geodepth_lite.data.integrity import read_frames
-from geodepth_lite.data.bounds import read_npy
+from geodepth_lite.data.bounds import read_depth_npy
 from geodepth_lite.utils import FileProblem
 
 
@@ -90,7 +90,7 @@ class SyntheticDepthDataset(torch.utils.data.Dataset):
         rec = self.frames[i]
         rgb = read_rgb(self.root / rec["rgb"])  # a damaged file is named (utils.FileProblem)
         depth_path = self.root / rec["depth"]
-        depth = read_npy(depth_path)
+        depth = read_depth_npy(depth_path)
         if depth.ndim != 2 or depth.shape != rgb.shape[:2]:
             raise FileProblem(f"cannot use {depth_path}: a depth map of shape {depth.shape} for an image of "
                               f"{rgb.shape[1]} x {rgb.shape[0]} pixels (it must be H x W, the image's size)",
