@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from geodepth_lite import cli
+from geodepth_lite import cli, utils
 from geodepth_lite.apps import bundle
 from geodepth_lite.training import checkpoint, config, run_cache
 
@@ -183,3 +183,21 @@ def test_bundle_replaces_only_a_bundle_and_packs_only_manifests(smoke_runs, tmp_
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0] and "this is a bug" not in err[0], err
         assert not out.exists()
+
+
+def test_a_bundle_into_a_folder_another_writer_holds_is_refused_unwritten(smoke_runs, tmp_path, monkeypatch, capsys):
+    """While another process writes the folder (its lock held: a second bundle, train, synth), bundle is
+    refused in one line naming that process, and writes nothing; once it is free, the bundle is written
+    and the lock file is gone."""
+    home, _ = smoke_runs
+    _use(monkeypatch, home)
+    out = tmp_path / "shared"
+    out.mkdir()
+    target = out / "class.zip"
+    with utils.FolderLock(out, "folder of the bundle"):
+        assert cli.main(["bundle", "--profile", "smoke", "--out", str(target)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"in use by process {os.getpid()}" in err[0] and str(out) in err[0], err
+        assert sorted(p.name for p in out.iterdir()) == [utils.LOCK_NAME]
+    assert cli.main(["bundle", "--profile", "smoke", "--out", str(target)]) == 0
+    assert bundle.is_bundle(target) and sorted(p.name for p in out.iterdir()) == ["class.zip"]

@@ -91,9 +91,16 @@ def _dataset_of(ckpt: dict, folder: Path) -> str:
 
 def make_bundle(profile: str, out: str | Path | None = None) -> Path:
     """Pack every complete run of ``profile`` into a zip file (default ``<profile>-models.zip`` in
-    the workspace); returns its path. Each checkpoint is read once; unfinished runs are left out."""
+    the workspace); returns its path. Each checkpoint is read once; unfinished runs are left out. The
+    folder it is written into is locked while it packs (one line naming the other writer): two bundles
+    never write one folder at once."""
     config.get_profile(profile)
     target = Path(out) if out else utils.workspace() / f"{profile}-models.zip"
+    with utils.FolderLock(target.parent, "folder of the bundle", remove_file=True):
+        return _pack(profile, target)
+
+
+def _pack(profile: str, target: Path) -> Path:
     if os.path.lexists(target) and not is_bundle(target):  # replaced only when it is an earlier bundle
         raise utils.FileProblem(f"cannot write {target}: it exists and is not a class bundle (bundle replaces only "
                                 "a bundle it wrote); choose another --out", target)
