@@ -458,6 +458,38 @@ def test_a_dead_kernel_and_a_hostile_notebook_fail_only_themselves(tiny_course, 
     assert "nothing to autograde: 3 submissions graded before" in capsys.readouterr().out
 
 
+@pytest.mark.slow
+def test_what_a_kernel_prints_is_bounded_in_the_grader_and_the_grade_holds(tiny_course, tmp_path, capsys,
+                                                                           needs_sandbox):
+    """The kernel's output reaches nbgrader's process (the lecturer's), which kept all of it: 600 MB printed
+    took it to 2,700 MB. pat's right 99.1 prints 20 MiB in 1 MiB messages: graded as ana (all right), the
+    graded copy keeps 16 MiB of that cell's output and says it cut the rest. flo's prints 40 MiB at once,
+    a message over sandbox.FRAME_BYTES: zmq drops it unread, flo's run could not finish, and says why."""
+    config = tiny_course / course.CONFIG
+    config.write_text(config.read_text().replace(f"timeout = {course.TIMEOUT_MIN_S}", "timeout = 20"))
+    course.release(tiny_course)
+    released = tiny_course / "release" / TINY / f"{TINY}.ipynb"
+    right = {n: _solution(a) for n, (a, _) in ANSWERS.items()}
+    flood = "line = 'x' * (1 << 20)\nfor _ in range(20):\n    print(line, flush=True)\n"
+    burst = f"print('x' * ({sandbox.FRAME_BYTES} + (8 << 20)))\n"
+    subs = _submissions(tmp_path, {f"{who}/{TINY}.ipynb": _returned(released, answers) for who, answers in
+                                   (("ana", right), ("pat", {**right, 1: flood + right[1]}),
+                                    ("flo", {**right, 1: burst + right[1]}))})
+    course.collect(tiny_course, subs)
+    capsys.readouterr()
+    assert cli.main(["course", "autograde", "--course", str(tiny_course)]) == 0
+    captured = capsys.readouterr()
+    assert "autograded 2 submissions; 1 could not run" in captured.out
+    (line,) = [ln for ln in captured.err.splitlines() if ln.startswith("could not run")]
+    assert line.startswith(f"could not run: flo, {TINY}.ipynb: a cell's output stopped reaching the grader")
+    graded = tiny_course / "autograded" / "pat" / TINY / f"{TINY}.ipynb"
+    assert graded.stat().st_size < sandbox.CELL_OUTPUT_BYTES + (1 << 20)
+    assert sandbox.OUTPUT_CUT.format(limit=sandbox.CELL_OUTPUT_BYTES >> 20) in _printed(graded)
+    assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), "--course", str(tiny_course)]) == 0
+    rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
+    assert rows["pat"]["points"] == rows["ana"]["points"] == "5.0" and rows["flo"]["points"] == "0.0"
+
+
 def _grade_by_hand(root: Path, student: str, grade_id: str, score: float) -> None:
     from nbgrader.api import Gradebook
 
@@ -646,7 +678,12 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
     where = cmd.index(str(inside))
     assert cmd[where - 1] == "--tmpfs" and cmd.index("--ro-bind", cmd.index(str(root / "data_manifests")) - 1) < where
     assert str(tmp_path / "course") not in cmd  # not under anything bound: not there at all
-    assert "--unshare-all" in cmd and "--clearenv" in cmd and cmd[-2:] == ["--", "python"]
+    assert "--unshare-all" in cmd and "--clearenv" in cmd
+    # the kernel's command, after the program that sets the hard limits (4 GiB of data by default) and becomes it
+    assert cmd[cmd.index("--") + 1:] == [sys.executable, "-c", sandbox.LIMITS, str(4 << 30), str(sandbox.FILE_BYTES),
+                                         "0", shutil.which("python") or "python"]
+    where = cmd.index("/tmp")  # its /tmp: a tmpfs of bounded size
+    assert cmd[where - 3:where] == ["--size", str(sandbox.TMP_BYTES), "--tmpfs"]
     assert sandbox.readable_paths([root / "data_manifests"]).count(root / "data_manifests") == 0
 
 
@@ -783,7 +820,8 @@ def test_a_rerun_skips_what_is_graded_and_retry_runs_the_failed_again(tmp_path, 
     (root / autograde.FAILURES).write_text(json.dumps([{"student": "bo", "assignment": TINY, "reason": "died"}]))
     calls = []
 
-    def stand_in(course_dir, student, assignment, sandboxed, limit_s):
+    def stand_in(course_dir, student, assignment, sandboxed, limit_s, memory):
+        assert memory == sandbox.memory_bytes(sandbox.KERNEL_MEMORY_GIB)
         calls.append((student, limit_s))
         return "the kernel died again" if student == "bo" else None
 
@@ -812,10 +850,11 @@ def test_the_run_limit_counts_the_courses_cells_not_the_cells_a_student_adds(tmp
     (root / "submitted" / "ana" / TINY).mkdir(parents=True)
     (root / "submitted" / "ana" / TINY / f"{TINY}.ipynb").write_text(json.dumps(released))
     limits = []
-    monkeypatch.setattr(autograde, "grade_one", lambda c, s, a, sb, limit_s: limits.append(limit_s) or "stand-in")
+    monkeypatch.setattr(autograde, "grade_one", lambda c, s, a, sb, limit_s, memory: limits.append((limit_s, memory))
+                        or "stand-in")
     monkeypatch.setattr(sandbox, "unavailable", lambda: None)
-    autograde.grade_class(root, [TINY], 8)
-    assert limits == [8 * ours + autograde.KERNEL_START_S] and ours < 40
+    autograde.grade_class(root, [TINY], 8, memory=sandbox.memory_bytes(2))
+    assert limits == [(8 * ours + autograde.KERNEL_START_S, 2 << 30)] and ours < 40
 
 
 def test_what_a_notebook_prints_is_kept_to_its_tail_in_the_grader(tmp_path, monkeypatch):

@@ -73,7 +73,11 @@ def failure_reason(output: str, returncode: int) -> str:
     lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
     for pattern, why in (("DeadKernelError", "the kernel died (the notebook ended Python, crashed or ran out of "
                                              "memory)"),
-                         ("Kernel died", "the kernel died"), ("CellTimeoutError", "a cell ran past the timeout")):
+                         ("Kernel died", "the kernel died"),
+                         ("Timeout waiting for IOPub output", "a cell's output stopped reaching the grader (more "
+                                                              f"than {sandbox.FRAME_BYTES >> 20} MiB printed at once "
+                                                              "is dropped, with what follows it)"),
+                         ("CellTimeoutError", "a cell ran past the timeout")):
         hit = next((ln for ln in reversed(lines) if pattern in ln), None)
         if hit:
             return f"{why}: {hit[-200:]}"

@@ -156,3 +156,94 @@ def unavailable() -> str | None:
         lines = (done.stderr or done.stdout).strip().splitlines()
         return f"bubblewrap cannot make a sandbox here ({lines[-1] if lines else f'exit {done.returncode}'})"
     return None
+
+
+# ----------------------------------------------------------------------------------------- what the kernel sends
+# The kernel's messages reach nbgrader's process (the lecturer's), which keeps every output in the notebook it
+# writes: 600 MB printed took it to 2,700 MB. These bound what it receives and keeps of one kernel.
+# one part of a message, at most: zmq drops a larger one unread (MAXMSGSIZE), and what the kernel sends
+# next until it reconnects, so the cell waits for its end in vain and the submission could not run
+FRAME_BYTES = 32 << 20
+CELL_OUTPUT_BYTES = 16 << 20  # the outputs kept of one cell (the lessons' largest: about 3 MB)
+NOTEBOOK_OUTPUT_BYTES = 48 << 20  # of one notebook's cells together
+DECIDING_BYTES = 4096  # an output past the budget that decides a grade is kept, cut to this many characters
+DECIDING_KEPT = 8  # such outputs per cell
+OUTPUT_CUT = "[output cut: over the grader's limit of {limit} MiB; what decides the grade is kept]\n"
+_BUDGETED = ("stream", "display_data", "execute_result", "error", "update_display_data", "comm_open", "comm_msg")
+
+
+def message_bytes(content) -> int:
+    """About how many bytes ``content`` (a kernel message's, decoded) holds: its text and numbers, walked
+    without recursion, so that a deeply nested message costs no stack."""
+    counted, todo = 0, [content]
+    while todo:
+        item = todo.pop()
+        if isinstance(item, (str, bytes, bytearray, memoryview)):
+            counted += len(item)
+        elif isinstance(item, dict):
+            todo.extend(item.keys())
+            todo.extend(item.values())
+            counted += 2
+        elif isinstance(item, (list, tuple)):
+            todo.extend(item)
+            counted += 2
+        else:
+            counted += 8
+    return counted
+
+
+def deciding(msg: dict) -> bool:
+    """Whether nbgrader reads ``msg``'s output to grade a cell: an error, a standard-error stream (both give
+    0 points), an execute result (partial credit)."""
+    kind, content = msg.get("msg_type"), msg.get("content") or {}
+    return kind in ("error", "execute_result") or (kind == "stream" and content.get("name") == "stderr")
+
+
+def _cut(value, keep: int):
+    if isinstance(value, str):
+        return value[:keep]
+    if isinstance(value, list):
+        return [_cut(v, keep) for v in value[:20]]
+    if isinstance(value, dict):
+        return {k: _cut(v, keep) for k, v in list(value.items())[:20] if isinstance(k, str)}
+    return value
+
+
+class OutputBudget:
+    """What nbgrader's process keeps of one kernel's output messages (:meth:`admit`): a cell's outputs up
+    to :data:`CELL_OUTPUT_BYTES`, the notebook's up to :data:`NOTEBOOK_OUTPUT_BYTES`. Past either, a cell
+    gets one line saying its output was cut, and only the outputs that decide its grade (:func:`deciding`,
+    the first :data:`DECIDING_KEPT`, each cut to :data:`DECIDING_BYTES`) are kept, so that the grade is the
+    one the whole output would give: nbgrader grades a cell by its first error, standard-error stream or
+    execute result."""
+
+    def __init__(self, cell_bytes: int = CELL_OUTPUT_BYTES, notebook_bytes: int = NOTEBOOK_OUTPUT_BYTES):
+        self.cell_bytes, self.notebook_bytes = cell_bytes, notebook_bytes
+        self.total = 0
+        self.cells: dict[str, int] = {}
+        self.kept: dict[str, int] = {}  # deciding outputs kept past the budget, per cell
+
+    def admit(self, msg: dict) -> dict | None:
+        """``msg`` as nbgrader's process may keep it, a shorter copy, a note that the cell's output was cut,
+        or None: dropped."""
+        if msg.get("msg_type") not in _BUDGETED:
+            return msg
+        cell = str((msg.get("parent_header") or {}).get("msg_id"))
+        size = message_bytes(msg.get("content")) + message_bytes(msg.get("buffers") or [])
+        used = self.cells.get(cell, 0)
+        if used >= 0 and used + size <= self.cell_bytes and self.total + size <= self.notebook_bytes:
+            self.cells[cell] = used + size
+            self.total += size
+            return msg
+        if used >= 0:  # the first message past the budget: the cell's note, then only what decides
+            self.cells[cell] = -1
+            if deciding(msg):
+                self.kept[cell] = 1
+                return dict(msg, content=_cut(msg["content"], DECIDING_BYTES), buffers=[])
+            limit = min(self.cell_bytes, self.notebook_bytes) >> 20
+            return dict(msg, msg_type="stream", header=dict(msg.get("header") or {}, msg_type="stream"),
+                        content={"name": "stdout", "text": OUTPUT_CUT.format(limit=limit)}, buffers=[])
+        if deciding(msg) and self.kept.get(cell, 0) < DECIDING_KEPT:
+            self.kept[cell] = self.kept.get(cell, 0) + 1
+            return dict(msg, content=_cut(msg["content"], DECIDING_BYTES), buffers=[])
+        return None

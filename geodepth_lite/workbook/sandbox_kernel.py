@@ -8,25 +8,59 @@ import os
 import shutil
 from pathlib import Path
 
+import zmq
+from jupyter_client.asynchronous import AsyncKernelClient
+from jupyter_client.channels import AsyncZMQSocketChannel
 from jupyter_client.manager import AsyncKernelManager
+from traitlets import Type
 
-from geodepth_lite.workbook.sandbox import HIDDEN_ENV, KERNEL_MEMORY_GIB, MEMORY_ENV, SCRATCH_ENV, bwrap_command
+from geodepth_lite.workbook import sandbox
+from geodepth_lite.workbook.sandbox import OutputBudget
+
+
+class BudgetedIOPubChannel(AsyncZMQSocketChannel):
+    """The kernel's output channel, each message passed through an :class:`OutputBudget` first: what it
+    drops never reaches nbgrader's notebook."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.budget = OutputBudget()
+
+    async def get_msg(self, timeout: float | None = None) -> dict:
+        while True:
+            kept = self.budget.admit(await super().get_msg(timeout))
+            if kept is not None:
+                return kept
+
+
+class BoundedKernelClient(AsyncKernelClient):
+    """jupyter's client for the sandboxed kernel: its sockets drop a message part over
+    :data:`~geodepth_lite.workbook.sandbox.FRAME_BYTES` unread (zmq's ``MAXMSGSIZE``), and its output
+    channel keeps to an :class:`OutputBudget`."""
+
+    iopub_channel_class = Type(BudgetedIOPubChannel)
+
+    def _create_connected_socket(self, channel: str, identity: bytes | None = None):
+        self.context.setsockopt(zmq.MAXMSGSIZE, sandbox.FRAME_BYTES)  # a default of the sockets made from now on
+        return super()._create_connected_socket(channel, identity)
 
 
 class SandboxKernelManager(AsyncKernelManager):
     """jupyter's kernel manager, the kernel started inside bubblewrap and reached over Unix sockets in
     the scratch folder's ``kernel/`` (``$GEODEPTH_SANDBOX_SCRATCH``, made by ``course autograde``), with the
-    memory limit ``$GEODEPTH_SANDBOX_MEMORY`` (bytes) that ``course autograde`` passes on."""
+    memory limit ``$GEODEPTH_SANDBOX_MEMORY`` (bytes) that ``course autograde`` passes on, and talked to by a
+    :class:`BoundedKernelClient`."""
 
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
-        scratch = os.environ.get(SCRATCH_ENV)
+        scratch = os.environ.get(sandbox.SCRATCH_ENV)
         if not scratch:
-            raise RuntimeError(f"cannot start a sandboxed kernel: ${SCRATCH_ENV} names no scratch folder")
+            raise RuntimeError(f"cannot start a sandboxed kernel: ${sandbox.SCRATCH_ENV} names no scratch folder")
         self._scratch = Path(scratch)
         (self._scratch / "kernel").mkdir(parents=True, exist_ok=True)
         (self._scratch / "work").mkdir(parents=True, exist_ok=True)
         self.transport = "ipc"
+        self.client_factory = BoundedKernelClient  # what the kernel sends is bounded in this process too
         self.connection_file = str(self._scratch / "kernel" / "connection.json")
         self.ip = str(self._scratch / "kernel" / "socket")
 
@@ -43,6 +77,6 @@ class SandboxKernelManager(AsyncKernelManager):
                 if (item.is_file() and not item.is_symlink() and item.suffix != ".ipynb"
                         and not (work / item.name).exists()):
                     shutil.copyfile(item, work / item.name)
-        hidden = [Path(p) for p in os.environ.get(HIDDEN_ENV, "").split(os.pathsep) if p]
-        memory = int(os.environ.get(MEMORY_ENV) or KERNEL_MEMORY_GIB * (1 << 30))
-        return bwrap_command(argv, self._scratch, hidden, memory)
+        hidden = [Path(p) for p in os.environ.get(sandbox.HIDDEN_ENV, "").split(os.pathsep) if p]
+        memory = int(os.environ.get(sandbox.MEMORY_ENV) or sandbox.KERNEL_MEMORY_GIB * (1 << 30))
+        return sandbox.bwrap_command(argv, self._scratch, hidden, memory)
