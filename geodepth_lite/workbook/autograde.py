@@ -174,7 +174,7 @@ def _environment(scratch: Path, course: Path, memory: int) -> dict:
 
 
 def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limit_s: float,
-              memory: int = sandbox.memory_bytes(sandbox.KERNEL_MEMORY_GIB)) -> str | None:
+              memory: int = sandbox.KERNEL_MEMORY_BYTES) -> str | None:
     """nbgrader's autograde of one submission in a process of its own, each process of the kernel's holding
     at most ``memory`` bytes of data; None when it is graded, else the reason it could not run (its partial
     ``autograded/`` folder, made by this run, is removed)."""
@@ -225,7 +225,7 @@ def submissions(course: Path, names: list[str]) -> list[tuple[str, str]]:
 
 
 def grade_class(course: Path, names: list[str], cell_timeout: int, *, sandboxed: bool = True, retry: bool = False,
-                echo=None, memory: int = sandbox.memory_bytes(sandbox.KERNEL_MEMORY_GIB)) -> dict:
+                echo=None, memory: int = sandbox.KERNEL_MEMORY_BYTES) -> dict:
     """Grade every collected submission not graded yet (see the module docstring); the caller holds the
     course lock. ``cell_timeout``: the course's, in seconds; ``echo``: called with one line per
     submission that could not run and per exercise the static review flagged. Each submission graded is

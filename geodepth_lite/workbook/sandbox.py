@@ -50,6 +50,7 @@ WORKSPACE_READS = ("data", "runs")
 KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LITE_HOME", "MPLBACKEND")
 MEMORY_ENV = "GEODEPTH_SANDBOX_MEMORY"  # bytes of data each process of the kernel's may hold
 KERNEL_MEMORY_GIB = 4.0  # the default of ``course autograde --kernel-memory``
+KERNEL_MEMORY_BYTES = int(KERNEL_MEMORY_GIB * (1 << 30))  # the same, in bytes
 TMP_BYTES = 1 << 30  # the sandbox's /tmp, a tmpfs: what is written there is held in memory
 FILE_BYTES = 1 << 30  # the largest file the kernel may write (its scratch folder is on the grader's disk)
 # run as `python -c LIMITS DATA FSIZE CORE ARGV...`: sets each as a hard limit, then becomes ARGV
@@ -118,7 +119,7 @@ def limited(argv: list[str], memory: int) -> list[str]:
 
 
 def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
-                  memory: int = int(KERNEL_MEMORY_GIB * (1 << 30))) -> list[str]:
+                  memory: int = KERNEL_MEMORY_BYTES) -> list[str]:
     """``argv`` (a kernel's command) run inside bubblewrap, ``memory`` bytes of data per process: see the
     module docstring."""
     cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv",

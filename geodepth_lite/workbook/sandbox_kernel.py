@@ -78,5 +78,5 @@ class SandboxKernelManager(AsyncKernelManager):
                         and not (work / item.name).exists()):
                     shutil.copyfile(item, work / item.name)
         hidden = [Path(p) for p in os.environ.get(sandbox.HIDDEN_ENV, "").split(os.pathsep) if p]
-        memory = int(os.environ.get(sandbox.MEMORY_ENV) or sandbox.KERNEL_MEMORY_GIB * (1 << 30))
+        memory = int(os.environ.get(sandbox.MEMORY_ENV) or sandbox.KERNEL_MEMORY_BYTES)
         return sandbox.bwrap_command(argv, self._scratch, hidden, memory)
