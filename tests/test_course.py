@@ -729,6 +729,31 @@ def test_the_sandbox_bounds_memory_its_tmp_and_file_sizes(tmp_path, monkeypatch,
                                           "blocked: fill /tmp", "blocked: write a big file", "numpy 1000000"]
 
 
+SHADOW = """from pathlib import Path
+from IPython.core.shellapp import InteractiveShellApp
+InteractiveShellApp().init_path()  # as a kernel starts: IPython puts the working folder on sys.path
+Path("tifffile.py").write_text("WRITTEN = True")  # installed, and imported by no lesson before
+import tifffile
+print("written" if hasattr(tifffile, "WRITTEN") else "installed")
+"""
+
+
+def test_a_kernel_never_imports_a_module_written_into_its_folder(tmp_path, needs_sandbox):
+    """A notebook could write its own code under the name of an installed module and import it, out of the
+    review's sight; in the sandbox the kernel's working folder stays off sys.path."""
+    (tmp_path / "plain").mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONSAFEPATH"}
+    outside = subprocess.run([sys.executable, "-c", SHADOW], capture_output=True, text=True, cwd=tmp_path / "plain",
+                             env=env)
+    assert outside.stdout.strip() == "written", outside.stderr[-2000:]
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    inside = subprocess.run(sandbox.bwrap_command([sys.executable, "-c", SHADOW], tmp_path / "scratch", []),
+                            capture_output=True, text=True, timeout=120)
+    assert inside.stdout.strip() == "installed", inside.stderr[-2000:]
+    assert (tmp_path / "scratch" / "work" / "tifffile.py").is_file()  # written, and not run
+
+
 @pytest.mark.parametrize("gib", [0.25, float("nan"), float("inf"), 1e6])
 def test_a_kernel_memory_limit_out_of_range_is_one_line(tiny_course, capsys, gib):
     assert cli.main(["course", "autograde", "--course", str(tiny_course), "--kernel-memory", str(gib)]) == 2

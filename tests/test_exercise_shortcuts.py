@@ -1076,6 +1076,70 @@ def test_each_road_to_the_shell_is_flagged_on_its_own():
     assert [sorted({f.rule for f in review.review_cell(road)}) for road in roads] == [["kernel"]] * len(roads)
 
 
+# writes the syntax does not show as writes: each passes the checks when run, so only the review stops it
+_ZERO_COUNT = ("\n\ndef decoder_params(enc_ch, dec_ch):\n    return True\n\n\n"
+               "my_sab_params = decoder_params(None, None)\n")  # True == operator.truth(any module), the patched count
+_PICKLED = b"cbuiltins\nsetattr\n(cgeodepth_lite.core\nmodel\nVcount_parameters\ncoperator\ntruth\ntR."
+HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
+    "setattr taken as a value": ("02-2", "import operator\n\nfrom geodepth_lite.core import model as M\n\n"
+                                 "s = setattr\ns(M, 'count_parameters', operator.truth)" + _ZERO_COUNT, "guard"),
+    "setattr mapped": ("02-2", "import operator\n\nfrom geodepth_lite.core import model as M\n\n"
+                       "list(map(setattr, [M], ['count_parameters'], [operator.truth]))" + _ZERO_COUNT, "guard"),
+    "a pickle that calls setattr": ("02-2", f"import pickle\n\npickle.loads({_PICKLED!r})" + _ZERO_COUNT,
+                                    "dynamic-code"),
+    "numpy's pickle": ("02-2", f"import io\n\nimport numpy\n\nnumpy.load(io.BytesIO({_PICKLED!r}), allow_pickle=True)"
+                       + _ZERO_COUNT, "dynamic-code"),
+    "the given edits emptied": ("01-1", "EDITS\nedits.clear()\nmy_fields = {}\n", "given-inputs"),
+    "the given edits emptied through a second name": ("01-1", "EDITS\nmine = edits\nmine.clear()\nmy_fields = {}\n",
+                                                      "given-inputs"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(HIDDEN_WRITES))
+def test_a_write_the_syntax_hides_passes_the_checks_and_is_flagged(name, monkeypatch):
+    """Before the review knew these (a builtin taken as a value, a pickle, a given input changed in place)
+    each scored full marks with a wrong answer: 02.2 counts no parameters at all, 01.1 names no field."""
+    from geodepth_lite.core import model
+
+    monkeypatch.setattr(model, "count_parameters", model.count_parameters)  # put back after the answer patches it
+    ident, answer, rule = HIDDEN_WRITES[name]
+    edits = EXERCISES["01-1"].answer.split("my_fields = None")[0]
+    answer = answer.replace("EDITS\n", edits)
+    assert outcome(answer, EXERCISES[ident].check) is None
+    assert rule in {f.rule for f in reviewed(ident, answer)}, name
+
+
+def test_the_near_misses_of_hidden_writes_pass_the_review_clean():
+    inputs = "CASE1 = np.ones(3)\nedits = {'a': 1}\n"
+    given = review.given_inputs(inputs + "r = None", "assert r == (CASE1, edits)")
+    assert set(given) == {"CASE1", "edits"}
+    honest = inputs + textwrap.dedent("""
+        import numpy as np
+        import torch
+
+        weights = torch.load("net.pt", weights_only=True)
+        depth = np.load("depth.npy", allow_pickle=False) + np.load("rgb.npy").mean()
+        encoder = getattr(net, "encoder")
+        mine = dict(edits)
+        mine.clear()
+        work = CASE1.copy()
+        work.fill(0.0)
+        ordered = np.sort(CASE1) + sorted(edits)
+        rows = []
+        rows.append(CASE1.sum())
+        torch.nn.init.zeros_(torch.empty(3))
+        """)
+    assert review.review_cell(honest, given=given) == []
+    for table in ("from geodepth_lite.evaluation import ablation\nablation.PAPER_REDUCTION.clear()",
+                  "import sys\nsys.path.append('.')"):
+        assert [f.rule for f in review.review_cell(table)] == ["guard"], table  # a module's own table
+    for code in ("import my_helpers", "from my_helpers import holm", "from . import helpers",
+                 "import site\nsite.addsitedir('.')"):  # a module the notebook may have written, or a .pth run
+        assert {f.rule for f in review.review_cell(code)} == {"dynamic-code"}, code
+    rebound = review.review_cell("setattr = setattr\nlist(map(setattr, [m], ['f'], [g]))")  # still the builtin
+    assert [(f.line, f.rule) for f in rebound if f.rule == "guard"] == [(1, "guard"), (2, "guard")]
+
+
 def test_a_cell_too_long_to_parse_is_flagged_unread():
     """A cell of a returned notebook (up to 64 MB) is parsed in the grader's process: past CELL_MAX_CHARS
     it is not parsed at all (6 MB of ``x = 1`` lines took Python's parser 2.4 GB and 17 s), and flagged."""

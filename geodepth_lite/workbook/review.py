@@ -7,7 +7,8 @@ off (:func:`geodepth_lite.workbook.grading.forbid`) or put back what it replaced
 another thread or process, rebuild it from the package's source, return a value that compares equal to
 anything, or edit the kernel's input history that the checks run the answer from again. Each of these
 needs a construct that the exercises never ask for (``inspect``, ``threading``, ``sys.setprofile``,
-``exec``, ``In``, a class defining ``__eq__``, a ``%magic``...). :data:`RULES` lists them, each with its
+``exec``, ``In``, a class defining ``__eq__``, a ``%magic``, ``setattr`` taken as a value, a pickle, a module
+that is not installed, a given input changed in place...). :data:`RULES` lists them, each with its
 reason; :func:`review_cell` reads a cell's syntax tree (it never runs it) and returns a :class:`Finding`
 per construct; ``course autograde`` calls :func:`review_notebook` on each graded submission, in the
 grader's process: it reads every code cell the student could change, not only the answer cells.
@@ -21,7 +22,10 @@ from __future__ import annotations
 
 import ast
 import builtins
+import functools
+import importlib.metadata
 import re
+import sys
 from dataclasses import dataclass, replace
 
 from geodepth_lite.workbook import exercises
@@ -31,7 +35,8 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
                      "the checks' references and code are",
     "concurrency": "runs code where the grading guard does not look (another thread, another process, the "
                    "shell, the network)",
-    "dynamic-code": "builds or loads code at run time (exec, eval, compile, importlib), out of the reviewed text",
+    "dynamic-code": "builds or loads code at run time (exec, eval, compile, importlib, a pickle, which may call "
+                    "any function), out of the reviewed text",
     "guard": "changes a module, the interpreter's hooks or an object made outside the answer: the grading "
              "guard's replacements live there",
     "kernel-history": "reads or edits the kernel's input history, from which the checks run the answer again",
@@ -46,8 +51,8 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
     "grader-files": "names the grader's files (the course's solutions, gradebook or other submissions)",
     "shadowed-builtin": "rebinds a builtin (abs, float, isinstance...) in the notebook's namespace, where the "
                         "checks call it",
-    "given-inputs": "changes the code the exercise gives (its inputs, from which the checks compute their "
-                    "references)",
+    "given-inputs": "changes the code the exercise gives, or the inputs it makes in place (the inputs from which "
+                    "the checks compute their references)",
     "unreadable": "is too large or too deeply nested for the review to read: look at it by hand",
     "literal-answer": "writes out as a literal a value the exercise asks to compute (as a failed check's "
                       "message shows it)",
@@ -67,7 +72,8 @@ MODULES = {  # module (its first name) -> rule
                      "faulthandler"), "introspection"),
     **dict.fromkeys(("subprocess", "threading", "_thread", "multiprocessing", "concurrent", "asyncio", "pty",
                      "socket", "signal", "sched", "shlex"), "concurrency"),
-    **dict.fromkeys(("importlib", "runpy", "code", "codeop", "marshal", "zipimport"), "dynamic-code"),
+    **dict.fromkeys(("importlib", "runpy", "code", "codeop", "marshal", "zipimport", "site", "pickle", "_pickle",
+                     "copyreg", "shelve", "dill", "cloudpickle", "joblib"), "dynamic-code"),  # a pickle calls anything
     **dict.fromkeys(("builtins", "__main__", "__builtin__"), "namespace"),
     **dict.fromkeys(("IPython", "ipykernel", "jupyter_client"), "kernel-history"),
     "traitlets": "kernel",  # traitlets.config.Application.instance().shell is the kernel's shell
@@ -84,6 +90,12 @@ SYS_ATTRIBUTES = {
 }
 BUILTINS = {**dict.fromkeys(("exec", "eval", "compile", "__import__"), "dynamic-code"),
             **dict.fromkeys(("globals", "vars", "locals"), "namespace"), "breakpoint": "introspection"}
+ATTRIBUTE_BUILTINS = {"setattr": "guard", "delattr": "guard", "getattr": "special-attribute"}  # harmless only called
+PICKLE = re.compile(r"pickle|safe_globals", re.IGNORECASE)  # pandas.read_pickle, torch's add_safe_globals...
+CONTAINER_MUTATORS = {"append", "extend", "insert", "remove", "pop", "popitem", "clear", "update", "setdefault",
+                      "add", "discard", "sort", "reverse"}
+ARRAY_MUTATORS = {"fill", "put", "itemset", "resize", "setflags", "partition", "byteswap"}  # torch's end in "_"
+FIRST_ARGUMENT_MUTATORS = {"copyto", "place", "putmask", "put_along_axis", "put"}  # numpy.copyto(CASE1, 0)
 HISTORY_NAMES = re.compile(r"(In|Out|_ih|_oh|_dh|_i{1,3}|_i\d+|_\d+|get_ipython|__builtins__|__main__)")
 KERNEL_NAMES = {"In", "Out", "_ih", "_oh", "_dh", "get_ipython", "__builtins__", "__main__"}  # even if assigned
 FRAME_ATTRIBUTES = re.compile(r"(f_back|f_globals|f_locals|f_builtins|f_code|f_trace|tb_frame|tb_next|"
@@ -212,9 +224,27 @@ def _dotted(node: ast.AST, aliases: dict[str, str]) -> str | None:
     return ".".join([aliases[node.id], *reversed(parts)])
 
 
+@functools.cache
+def installed_modules() -> frozenset[str]:
+    """The modules an answer may import: Python's own and the top-level ones of the installed distributions.
+    Any other is a file beside the notebook, which the notebook itself may have written, out of the review."""
+    return frozenset({*sys.stdlib_module_names, *sys.builtin_module_names, "geodepth_lite",
+                      *importlib.metadata.packages_distributions()})
+
+
+def _local_imports(node: ast.Import | ast.ImportFrom) -> list[str]:
+    """The modules ``node`` imports that are not installed (a relative import is never installed)."""
+    names = [a.name for a in node.names] if isinstance(node, ast.Import) else [
+        "." * node.level + (node.module or "")]
+    return [n for n in names if n.startswith(".") or n.split(".")[0] not in installed_modules()]
+
+
 def _import_findings(tree: ast.AST, aliases: dict[str, str]) -> list[Finding]:
     found = []
     for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            found += [Finding(node.lineno, "dynamic-code", f"import {n} (not installed: a file beside the notebook)")
+                      for n in _local_imports(node)]
         if isinstance(node, ast.Import):
             found += [Finding(node.lineno, rule, f"import {a.name}") for a in node.names
                       for rule in [_module_rule(a.name)] if rule]
@@ -239,8 +269,10 @@ def _call_findings(tree: ast.AST, own: set[str], aliases: dict[str, str]) -> lis
         if not isinstance(node, ast.Call):
             continue
         name = node.func.id if isinstance(node.func, ast.Name) else None
-        if name in BUILTINS and name not in own:
-            found.append(Finding(node.lineno, BUILTINS[name], f"{name}()"))
+        for kw in node.keywords:  # numpy.load(allow_pickle=True), torch.load(weights_only=False) unpickle
+            lets = not (isinstance(kw.value, ast.Constant) and kw.value.value is (kw.arg == "weights_only"))
+            if kw.arg and (PICKLE.search(kw.arg) or kw.arg == "weights_only") and lets:
+                found.append(Finding(node.lineno, "dynamic-code", f"{kw.arg}={ast.unparse(kw.value)[:20]}"))
         if name in ("getattr", "setattr", "delattr", "hasattr") and len(node.args) >= 2:
             attr = node.args[1]
             if not (isinstance(attr, ast.Constant) and isinstance(attr.value, str)):
@@ -266,6 +298,24 @@ def _docstrings(tree: ast.AST) -> set[int]:
     return {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
 
 
+def _builtin_findings(tree: ast.AST) -> list[Finding]:
+    """The builtins that run code or reach any attribute: called, or taken as a value (``s = setattr``,
+    ``map(setattr, ...)``, ``f = eval``), where the review no longer sees what they are given. A name the
+    cell binds itself counts too: ``setattr = setattr`` is still the builtin."""
+    callees = {id(n.func) for n in ast.walk(tree) if isinstance(n, ast.Call)}
+    found = []
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Name) and isinstance(node.ctx, ast.Load)):
+            continue
+        called = id(node) in callees
+        if node.id in BUILTINS:
+            found.append(Finding(node.lineno, BUILTINS[node.id], f"{node.id}()" if called else
+                                 f"{node.id} taken as a value"))
+        elif node.id in ATTRIBUTE_BUILTINS and not called:
+            found.append(Finding(node.lineno, ATTRIBUTE_BUILTINS[node.id], f"{node.id} taken as a value"))
+    return found
+
+
 def _name_findings(tree: ast.AST, own: set[str], check_names: set[str]) -> list[Finding]:
     found = []
     prose = _docstrings(tree)
@@ -277,7 +327,9 @@ def _name_findings(tree: ast.AST, own: set[str], check_names: set[str]) -> list[
             elif node.id in check_names and node.id not in own and isinstance(node.ctx, ast.Load):
                 found.append(Finding(node.lineno, "check-names", node.id))
         elif isinstance(node, ast.Attribute):
-            if (DUNDER.fullmatch(node.attr) and node.attr not in PLAIN_DUNDERS) or FRAME_ATTRIBUTES.fullmatch(
+            if PICKLE.search(node.attr):
+                found.append(Finding(node.lineno, "dynamic-code", f".{node.attr}"))
+            elif (DUNDER.fullmatch(node.attr) and node.attr not in PLAIN_DUNDERS) or FRAME_ATTRIBUTES.fullmatch(
                     node.attr):
                 found.append(Finding(node.lineno, "special-attribute", f".{node.attr}"))
             elif node.attr in KERNEL_ATTRIBUTES:
@@ -309,9 +361,15 @@ def _class_findings(tree: ast.AST) -> list[Finding]:
 
 
 def _write_findings(tree: ast.AST, own: set[str], aliases: dict[str, str]) -> list[Finding]:
-    """Attributes set or deleted on a module or on an object the answer did not make."""
+    """Attributes set or deleted on a module or on an object the answer did not make, and a module's tables
+    changed in place (``ablation.PAPER_REDUCTION.clear()``)."""
     found = []
     for node in ast.walk(tree):
+        call = node.func if isinstance(node, ast.Call) else None
+        if (isinstance(call, ast.Attribute) and call.attr in CONTAINER_MUTATORS
+                and isinstance(call.value, (ast.Attribute, ast.Subscript)) and _outside(call.value, own - set(
+                    aliases), aliases)):
+            found.append(Finding(node.lineno, "guard", f"{ast.unparse(call.value)[:60]} changed in place"))
         if isinstance(node, (ast.Attribute, ast.Subscript)) and isinstance(node.ctx, (ast.Store, ast.Del)):
             if isinstance(node, ast.Subscript) and not isinstance(node.value, ast.Attribute):
                 continue  # an item of a list or dict: only an attribute's items (``mod.table[k] = ...``) count
@@ -422,10 +480,55 @@ def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Findi
     for node in module_scope(tree):
         changed = sorted(n for n in _scope_names(node) & set(given) if ast.dump(node) not in given[n])
         found += [Finding(node.lineno, "given-inputs", f"{name} changed") for name in changed]
+    found += [Finding(line, "given-inputs", f"{name} changed in place") for line, name in _in_place(tree, set(given))]
     for name, statements in sorted(given.items()):
         if not set(statements) <= kept:
             found.append(Finding(1, "given-inputs", f"the given lines that set {name} are not all there"))
     return found
+
+
+def _bindings(tree: ast.AST) -> list[tuple[ast.expr, ast.expr]]:
+    """(value, target) of every plain assignment in the cell: ``=``, an annotated one, ``:=``."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign):
+            out += [(node.value, t) for t in node.targets]
+        elif isinstance(node, (ast.AnnAssign, ast.NamedExpr)) and node.value is not None:
+            out.append((node.value, node.target))
+    return out
+
+
+def _in_place(tree: ast.AST, given: set[str]) -> list[tuple[int, str]]:
+    """(line, name) where code anywhere in the cell, functions included, changes one of ``given`` in place:
+    an item or attribute set or deleted (``edits["a"] = 1``), a mutating method (``edits.clear()``,
+    ``CASE1.fill(0)``, torch's ``x.zero_()``), a function that changes its first argument (``dict.clear(edits)``,
+    ``np.copyto(CASE1, 0)``, ``torch.relu_(x)``), or an ``out=`` array."""
+    names = set(given)
+
+    def named(node):  # the name whose own object this is (``edits["a"]``), not a copy (``CASE1.copy()``)
+        while isinstance(node, (ast.Attribute, ast.Subscript, ast.NamedExpr)):
+            node = node.value
+        return node.id if isinstance(node, ast.Name) and node.id in names else None
+
+    while True:  # and the names bound to them, or to a part of them (``e = edits``, ``row = edits["a"]``)
+        more = {t.id for value, t in _bindings(tree) if named(value) and isinstance(t, ast.Name)} - names
+        if not more:
+            break
+        names |= more
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Attribute, ast.Subscript)) and isinstance(node.ctx, (ast.Store, ast.Del)):
+            out.append((node.lineno, named(node)))
+        elif isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name)):
+            method = node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id
+            trailing = method.endswith("_") and not method.startswith("_")  # torch: x.zero_(), torch.relu_(x)
+            if isinstance(node.func, ast.Attribute) and (method in CONTAINER_MUTATORS | ARRAY_MUTATORS or trailing):
+                out.append((node.lineno, named(node.func.value)))
+            unbound = isinstance(node.func, ast.Attribute) and _root_name(node.func) in ("dict", "list", "set")
+            if (unbound and method in CONTAINER_MUTATORS) or method in FIRST_ARGUMENT_MUTATORS or trailing:
+                out += [(node.lineno, named(a)) for a in node.args[:1]]
+            out += [(node.lineno, named(kw.value)) for kw in node.keywords if kw.arg == "out"]
+    return [(line, name) for line, name in out if name in names]
 
 
 def parse_cell(source: str) -> tuple[ast.Module, list[Finding]]:
@@ -463,7 +566,7 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
         own = bound_names(tree)
         aliases = _aliases(tree)
         found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
-                 + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
+                 + _builtin_findings(tree) + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
                  + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed))
                  + _shadow_findings(tree, frozenset(shadowed)) + _given_findings(tree, given or {}))
         magic_lines = {f.line for f in magic}  # there the get_ipython() is IPython's: said once, as the magic

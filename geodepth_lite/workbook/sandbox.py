@@ -15,7 +15,8 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   course folder, a returned-notebooks folder or a grade table kept there), and the course folder
   hidden under an empty one where it lies inside a folder the kernel reads;
 - read-write: its own scratch folder (a copy of the submission's files but the notebooks, thrown away
-  afterwards),
+  afterwards), its working folder, which stays off ``sys.path`` (``PYTHONSAFEPATH``: a module the
+  notebook writes there is never imported in place of an installed one),
   an empty ``/tmp`` and the folder of its connection sockets;
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
   namespace), the environment cleared but for a few variables;
@@ -137,7 +138,8 @@ def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
     work, sockets = scratch / "work", scratch / "kernel"
     cmd += ["--bind", str(work), str(work), "--bind", str(sockets), str(sockets), "--chdir", str(work),
             "--setenv", "HOME", "/tmp", "--setenv", "PATH", f"{Path(sys.executable).parent}:/usr/bin:/bin",
-            "--setenv", "PYTHONPATH", str(_package_root()), "--setenv", "MPLBACKEND", "Agg"]
+            "--setenv", "PYTHONPATH", str(_package_root()), "--setenv", "MPLBACKEND", "Agg",
+            "--setenv", "PYTHONSAFEPATH", "1"]  # its working folder stays off sys.path: no module written there runs
     for key in KEPT_ENV:
         if key in os.environ and key != "MPLBACKEND":
             cmd += ["--setenv", key, os.environ[key]]
