@@ -1092,19 +1092,25 @@ HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
     "the given edits emptied": ("01-1", "EDITS\nedits.clear()\nmy_fields = {}\n", "given-inputs"),
     "the given edits emptied through a second name": ("01-1", "EDITS\nmine = edits\nmine.clear()\nmy_fields = {}\n",
                                                       "given-inputs"),
+    "the given error map flattened through views": ("06-1", "EDITS\nflat = abs_mean.reshape(-1)\nflat[:] = 1.0\n"
+                                                     "np.asarray(count)[:] = 1.0\nbands = dict.fromkeys("
+                                                     "['top', 'bottom', 'left', 'right', 'centre'], 1.0)\n"
+                                                     "ratios = dict.fromkeys(['top', 'bottom', 'left', 'right'], 1.0)\n"
+                                                     "worst = max(ratios, key=ratios.get)\n", "given-inputs"),
 }
 
 
 @pytest.mark.parametrize("name", sorted(HIDDEN_WRITES))
 def test_a_write_the_syntax_hides_passes_the_checks_and_is_flagged(name, monkeypatch):
     """Before the review knew these (a builtin taken as a value, a pickle, a given input changed in place)
-    each scored full marks with a wrong answer: 02.2 counts no parameters at all, 01.1 names no field."""
+    each scored full marks with a wrong answer: 02.2 counts no parameters at all, 01.1 names no field, 06.1
+    measures an error map made flat."""
     from geodepth_lite.core import model
 
     monkeypatch.setattr(model, "count_parameters", model.count_parameters)  # put back after the answer patches it
     ident, answer, rule = HIDDEN_WRITES[name]
-    edits = EXERCISES["01-1"].answer.split("my_fields = None")[0]
-    answer = answer.replace("EDITS\n", edits)
+    given = EXERCISES[ident].answer.split({"01-1": "my_fields = None", "06-1": "bands, ratios"}.get(ident, "\0"))[0]
+    answer = answer.replace("EDITS\n", given)
     assert outcome(answer, EXERCISES[ident].check) is None
     assert rule in {f.rule for f in reviewed(ident, answer)}, name
 

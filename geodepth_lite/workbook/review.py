@@ -96,6 +96,8 @@ CONTAINER_MUTATORS = {"append", "extend", "insert", "remove", "pop", "popitem", 
                       "add", "discard", "sort", "reverse"}
 ARRAY_MUTATORS = {"fill", "put", "itemset", "resize", "setflags", "partition", "byteswap"}  # torch's end in "_"
 FIRST_ARGUMENT_MUTATORS = {"copyto", "place", "putmask", "put_along_axis", "put"}  # numpy.copyto(CASE1, 0)
+SHARING_CALLS = {"view", "reshape", "ravel", "squeeze", "unsqueeze", "swapaxes", "transpose", "permute", "expand",
+                 "narrow", "asarray", "asanyarray", "as_strided", "from_numpy", "as_tensor", "values", "items"}
 HISTORY_NAMES = re.compile(r"(In|Out|_ih|_oh|_dh|_i{1,3}|_i\d+|_\d+|get_ipython|__builtins__|__main__)")
 KERNEL_NAMES = {"In", "Out", "_ih", "_oh", "_dh", "get_ipython", "__builtins__", "__main__"}  # even if assigned
 FRAME_ATTRIBUTES = re.compile(r"(f_back|f_globals|f_locals|f_builtins|f_code|f_trace|tb_frame|tb_next|"
@@ -488,13 +490,16 @@ def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Findi
 
 
 def _bindings(tree: ast.AST) -> list[tuple[ast.expr, ast.expr]]:
-    """(value, target) of every plain assignment in the cell: ``=``, an annotated one, ``:=``."""
+    """(value, name) for every name the cell binds to a value: ``=``, an annotated one, ``:=``, and a
+    loop's or comprehension's names (the value then is what they run over)."""
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Assign):
             out += [(node.value, t) for t in node.targets]
         elif isinstance(node, (ast.AnnAssign, ast.NamedExpr)) and node.value is not None:
             out.append((node.value, node.target))
+        elif isinstance(node, (ast.For, ast.AsyncFor, ast.comprehension)):
+            out += [(node.iter, n) for n in ast.walk(node.target) if isinstance(n, ast.Name)]
     return out
 
 
@@ -505,12 +510,18 @@ def _in_place(tree: ast.AST, given: set[str]) -> list[tuple[int, str]]:
     ``np.copyto(CASE1, 0)``, ``torch.relu_(x)``), or an ``out=`` array."""
     names = set(given)
 
-    def named(node):  # the name whose own object this is (``edits["a"]``), not a copy (``CASE1.copy()``)
-        while isinstance(node, (ast.Attribute, ast.Subscript, ast.NamedExpr)):
-            node = node.value
-        return node.id if isinstance(node, ast.Name) and node.id in names else None
+    def named(node):  # the name whose own object this is: a part of it (``edits["a"]``), a view of its memory
+        while True:   # (``CASE1.reshape(-1)``, ``np.asarray(CASE1)``), never a copy (``CASE1.copy()``)
+            if isinstance(node, (ast.Attribute, ast.Subscript, ast.NamedExpr)):
+                node = node.value
+            elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
+                  and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in SHARING_CALLS):
+                node = node.func.value if isinstance(node.func, ast.Attribute) and named(
+                    node.func.value) else (node.args[0] if node.args else None)
+            else:
+                return node.id if isinstance(node, ast.Name) and node.id in names else None
 
-    while True:  # and the names bound to them, or to a part of them (``e = edits``, ``row = edits["a"]``)
+    while True:  # and the names bound to them (``e = edits``, ``row = edits["a"]``, ``for v in edits.values()``)
         more = {t.id for value, t in _bindings(tree) if named(value) and isinstance(t, ast.Name)} - names
         if not more:
             break
