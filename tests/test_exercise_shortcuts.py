@@ -1097,6 +1097,9 @@ HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
                                                      "['top', 'bottom', 'left', 'right', 'centre'], 1.0)\n"
                                                      "ratios = dict.fromkeys(['top', 'bottom', 'left', 'right'], 1.0)\n"
                                                      "worst = max(ratios, key=ratios.get)\n", "given-inputs"),
+    "every network's output zeroed by a global hook": (
+        "02-3", "import torch\n\n_hook = torch.nn.modules.module.register_module_forward_hook("
+                "lambda mod, inp, out: out * 0)\n\n\ndef spatial_attention(x, weight):\n    return x * 0\n", "guard"),
 }
 
 
@@ -1104,10 +1107,13 @@ HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
 def test_a_write_the_syntax_hides_passes_the_checks_and_is_flagged(name, monkeypatch):
     """Before the review knew these (a builtin taken as a value, a pickle, a given input changed in place)
     each scored full marks with a wrong answer: 02.2 counts no parameters at all, 01.1 names no field, 06.1
-    measures an error map made flat."""
+    measures an error map made flat, 02.3 returns zeros after every network's output was made zero."""
+    import torch
+
     from geodepth_lite.core import model
 
     monkeypatch.setattr(model, "count_parameters", model.count_parameters)  # put back after the answer patches it
+    monkeypatch.setattr(torch.nn.modules.module, "_global_forward_hooks", collections.OrderedDict())  # and the hook
     ident, answer, rule = HIDDEN_WRITES[name]
     given = EXERCISES[ident].answer.split({"01-1": "my_fields = None", "06-1": "bands, ratios"}.get(ident, "\0"))[0]
     answer = answer.replace("EDITS\n", given)
@@ -1142,6 +1148,8 @@ def test_the_near_misses_of_hidden_writes_pass_the_review_clean():
     for code in ("import my_helpers", "from my_helpers import holm", "from . import helpers",
                  "import site\nsite.addsitedir('.')"):  # a module the notebook may have written, or a .pth run
         assert {f.rule for f in review.review_cell(code)} == {"dynamic-code"}, code
+    for table in ("import torch\n\nlib = torch.library.Library('aten', 'IMPL')", "from torch import _C"):
+        assert {f.rule for f in review.review_cell(table)} == {"guard"}, table  # an operator replaced everywhere
     rebound = review.review_cell("setattr = setattr\nlist(map(setattr, [m], ['f'], [g]))")  # still the builtin
     assert [(f.line, f.rule) for f in rebound if f.rule == "guard"] == [(1, "guard"), (2, "guard")]
 

@@ -81,6 +81,9 @@ MODULES = {  # module (its first name) -> rule
     "unittest": "special-method",  # unittest.mock.ANY is equal to anything
 }
 SUBMODULES = {"multiprocessing": "concurrency", "threading": "concurrency", "subprocess": "concurrency"}
+# a library's global hooks and operator tables: torch's register_module_forward_hook changes what every network
+# computes, the checks' own too; torch.library replaces an operator everywhere; torch._C reaches both
+GLOBAL_HOOKS = re.compile(r".*hook.*|library|_C", re.IGNORECASE)
 OS_CALLS = re.compile(r"(system|popen|fork\w*|exec\w*|spawn\w*|posix_spawn\w*|kill\w*|_exit|startfile)")
 SYS_ATTRIBUTES = {
     **dict.fromkeys(("setprofile", "settrace", "getprofile", "gettrace", "monitoring", "addaudithook",
@@ -208,6 +211,8 @@ def _module_rule(dotted: str) -> str | None:
     hit = next((SUBMODULES[p] for p in parts[1:] if p in SUBMODULES), None)
     if hit:
         return hit
+    if any(GLOBAL_HOOKS.fullmatch(p) for p in parts[1:]):
+        return "guard"
     if parts[0] == "os" and len(parts) > 1 and OS_CALLS.fullmatch(parts[1]):
         return "concurrency"
     if parts[0] == "sys" and len(parts) > 1:
