@@ -688,6 +688,7 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
 
 
 BOUNDED = """import resource
+from pathlib import Path
 try:
     resource.setrlimit(resource.RLIMIT_DATA, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
     print("done: raise the memory limit")
@@ -699,7 +700,8 @@ try:
 except MemoryError:
     print("blocked: hold 1.5 GiB")
 block = None
-for what, folder, mib, files in (("fill /tmp", "/tmp", 24, 3), ("write a big file", ".", 48, 1)):
+for what, folder, mib, files in (("fill /tmp", "/tmp", 24, 3), ("write a big file", ".", 48, 1),
+                                 ("fill the working folder", ".", 24, 3)):  # no file too big, too many of them
     try:
         for k in range(files):
             with open(f"{folder}/fill{k}", "wb") as f:
@@ -707,6 +709,8 @@ for what, folder, mib, files in (("fill /tmp", "/tmp", 24, 3), ("write a big fil
         print(f"done: {what}")
     except OSError:
         print(f"blocked: {what}")
+    for k in range(files):
+        Path(f"{folder}/fill{k}").unlink(missing_ok=True)
 import numpy
 print("numpy", int(numpy.ones((1000, 1000)).sum()))
 """
@@ -719,14 +723,28 @@ def test_the_sandbox_bounds_memory_its_tmp_and_file_sizes(tmp_path, monkeypatch,
     monkeypatch.setattr(sandbox, "TMP_BYTES", 64 << 20)
     monkeypatch.setattr(sandbox, "FILE_BYTES", 32 << 20)
     outside = subprocess.run([sys.executable, "-c", BOUNDED], capture_output=True, text=True, cwd=tmp_path)
-    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()[:4]] == ["done"] * 4, outside.stdout
+    assert [ln.split(":")[0] for ln in outside.stdout.splitlines()[:5]] == ["done"] * 5, outside.stdout
     for name in ("work", "kernel"):
         (tmp_path / "scratch" / name).mkdir(parents=True)
     cmd = sandbox.bwrap_command([sys.executable, "-c", BOUNDED], tmp_path / "scratch", [], sandbox.memory_bytes(1))
     inside = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert inside.returncode == 0, inside.stderr[-2000:]
     assert inside.stdout.splitlines() == ["blocked: raise the memory limit", "blocked: hold 1.5 GiB",
-                                          "blocked: fill /tmp", "blocked: write a big file", "numpy 1000000"]
+                                          "blocked: fill /tmp", "blocked: write a big file",
+                                          "blocked: fill the working folder", "numpy 1000000"]
+    assert sorted(p.name for p in (tmp_path / "scratch").rglob("*")) == ["kernel", "work"]  # nothing on disk
+
+
+def test_the_kernel_reads_the_submissions_own_files_in_its_working_folder(tmp_path, needs_sandbox):
+    """The working folder lies in the sandbox's /tmp, yet holds the submission's files at their names."""
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    (tmp_path / "scratch" / "work" / "my data.csv").write_text("depth\n1.5\n")
+    code = "import os; print(os.getcwd(), sorted(os.listdir('.')), open('my data.csv').read().split())"
+    inside = subprocess.run(sandbox.bwrap_command([sys.executable, "-c", code], tmp_path / "scratch", []),
+                            capture_output=True, text=True, timeout=120)
+    assert inside.stdout.split(" ", 1) == [str(sandbox.WORK_INSIDE), "['my data.csv'] ['depth', '1.5']\n"], (
+        inside.stdout, inside.stderr[-2000:])
 
 
 SHADOW = """from pathlib import Path
@@ -751,7 +769,6 @@ def test_a_kernel_never_imports_a_module_written_into_its_folder(tmp_path, needs
     inside = subprocess.run(sandbox.bwrap_command([sys.executable, "-c", SHADOW], tmp_path / "scratch", []),
                             capture_output=True, text=True, timeout=120)
     assert inside.stdout.strip() == "installed", inside.stderr[-2000:]
-    assert (tmp_path / "scratch" / "work" / "tifffile.py").is_file()  # written, and not run
 
 
 @pytest.mark.parametrize("gib", [0.25, float("nan"), float("inf"), 1e6])

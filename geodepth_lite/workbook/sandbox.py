@@ -14,10 +14,12 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   workspace (``data/``, ``runs/``); nothing else of the checkout (no ``tests/``, ``.git``, nor a
   course folder, a returned-notebooks folder or a grade table kept there), and the course folder
   hidden under an empty one where it lies inside a folder the kernel reads;
-- read-write: its own scratch folder (a copy of the submission's files but the notebooks, thrown away
-  afterwards), its working folder, which stays off ``sys.path`` (``PYTHONSAFEPATH``: a module the
-  notebook writes there is never imported in place of an installed one),
-  an empty ``/tmp`` and the folder of its connection sockets;
+- read-write: an empty ``/tmp`` and, inside it, its working folder (:data:`WORK_INSIDE`), which holds
+  a copy of each of the submission's files but the notebooks (on the grader's disk, thrown away
+  afterwards) and whatever the kernel writes there (in ``/tmp``, so bounded with it: a notebook cannot
+  fill the grader's disk with files); that folder stays off ``sys.path`` (``PYTHONSAFEPATH``: a module
+  the notebook writes there is never imported in place of an installed one); and the folder of its
+  connection sockets;
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
   namespace), the environment cleared but for a few variables;
 - bounded memory: each of its processes may hold at most ``memory_bytes`` of data (``RLIMIT_DATA``,
@@ -53,7 +55,8 @@ MEMORY_ENV = "GEODEPTH_SANDBOX_MEMORY"  # bytes of data each process of the kern
 KERNEL_MEMORY_GIB = 4.0  # the default of ``course autograde --kernel-memory``
 KERNEL_MEMORY_BYTES = int(KERNEL_MEMORY_GIB * (1 << 30))  # the same, in bytes
 TMP_BYTES = 1 << 30  # the sandbox's /tmp, a tmpfs: what is written there is held in memory
-FILE_BYTES = 1 << 30  # the largest file the kernel may write (its scratch folder is on the grader's disk)
+FILE_BYTES = 1 << 30  # the largest file the kernel may write (its copies of the submission's files are on disk)
+WORK_INSIDE = Path("/tmp/work")  # the kernel's working folder, inside its /tmp
 # run as `python -c LIMITS DATA FSIZE CORE ARGV...`: sets each as a hard limit, then becomes ARGV
 LIMITS = ("import os, resource, sys\n"
           "for name, value in zip(('RLIMIT_DATA', 'RLIMIT_FSIZE', 'RLIMIT_CORE'), sys.argv[1:4]):\n"
@@ -136,7 +139,10 @@ def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
         if _inside(path, readable):
             cmd += ["--tmpfs", str(path)]
     work, sockets = scratch / "work", scratch / "kernel"
-    cmd += ["--bind", str(work), str(work), "--bind", str(sockets), str(sockets), "--chdir", str(work),
+    cmd += ["--dir", str(WORK_INSIDE)]  # in its bounded /tmp: a file it writes there counts in TMP_BYTES, not on disk
+    for item in sorted(work.iterdir()) if work.is_dir() else []:  # the submission's own files, at their names
+        cmd += ["--bind", str(item), str(WORK_INSIDE / item.name)]
+    cmd += ["--bind", str(sockets), str(sockets), "--chdir", str(WORK_INSIDE),
             "--setenv", "HOME", "/tmp", "--setenv", "PATH", f"{Path(sys.executable).parent}:/usr/bin:/bin",
             "--setenv", "PYTHONPATH", str(_package_root()), "--setenv", "MPLBACKEND", "Agg",
             "--setenv", "PYTHONSAFEPATH", "1"]  # its working folder stays off sys.path: no module written there runs
