@@ -1092,6 +1092,8 @@ HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
     "the given edits emptied": ("01-1", "EDITS\nedits.clear()\nmy_fields = {}\n", "given-inputs"),
     "the given edits emptied through a second name": ("01-1", "EDITS\nmine = edits\nmine.clear()\nmy_fields = {}\n",
                                                       "given-inputs"),
+    "the given edits emptied by a function of the answer's": ("01-1", "EDITS\n\n\ndef wipe(d):\n    d.clear()\n\n\n"
+                                                              "wipe(edits)\nmy_fields = {}\n", "given-inputs"),
     "the given error map flattened through views": ("06-1", "EDITS\nflat = abs_mean.reshape(-1)\nflat[:] = 1.0\n"
                                                      "np.asarray(count)[:] = 1.0\nbands = dict.fromkeys("
                                                      "['top', 'bottom', 'left', 'right', 'centre'], 1.0)\n"

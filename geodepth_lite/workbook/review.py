@@ -512,8 +512,10 @@ def _in_place(tree: ast.AST, given: set[str]) -> list[tuple[int, str]]:
     """(line, name) where code anywhere in the cell, functions included, changes one of ``given`` in place:
     an item or attribute set or deleted (``edits["a"] = 1``), a mutating method (``edits.clear()``,
     ``CASE1.fill(0)``, torch's ``x.zero_()``), a function that changes its first argument (``dict.clear(edits)``,
-    ``np.copyto(CASE1, 0)``, ``torch.relu_(x)``), or an ``out=`` array."""
+    ``np.copyto(CASE1, 0)``, ``torch.relu_(x)``), a function of the cell's own that changes the argument
+    (``def wipe(d): d.clear()`` then ``wipe(edits)``), or an ``out=`` array."""
     names = set(given)
+    mutating = _mutating_functions(tree)
 
     def named(node):  # the name whose own object this is: a part of it (``edits["a"]``), a view of its memory
         while True:   # (``CASE1.reshape(-1)``, ``np.asarray(CASE1)``), never a copy (``CASE1.copy()``)
@@ -526,11 +528,14 @@ def _in_place(tree: ast.AST, given: set[str]) -> list[tuple[int, str]]:
             else:
                 return node.id if isinstance(node, ast.Name) and node.id in names else None
 
-    while True:  # and the names bound to them (``e = edits``, ``row = edits["a"]``, ``for v in edits.values()``)
-        more = {t.id for value, t in _bindings(tree) if named(value) and isinstance(t, ast.Name)} - names
+    origin = {name: name for name in names}  # and the names bound to them, by the given name they stand for
+    while True:  # (``e = edits``, ``row = edits["a"]``, ``for v in edits.values()``)
+        more = {t.id: origin[named(value)] for value, t in _bindings(tree)
+                if named(value) and isinstance(t, ast.Name) and t.id not in names}
         if not more:
             break
-        names |= more
+        names |= set(more)
+        origin.update(more)
     out = []
     for node in ast.walk(tree):
         if isinstance(node, (ast.Attribute, ast.Subscript)) and isinstance(node.ctx, (ast.Store, ast.Del)):
@@ -543,8 +548,23 @@ def _in_place(tree: ast.AST, given: set[str]) -> list[tuple[int, str]]:
             unbound = isinstance(node.func, ast.Attribute) and _root_name(node.func) in ("dict", "list", "set")
             if (unbound and method in CONTAINER_MUTATORS) or method in FIRST_ARGUMENT_MUTATORS or trailing:
                 out += [(node.lineno, named(a)) for a in node.args[:1]]
-            out += [(node.lineno, named(kw.value)) for kw in node.keywords if kw.arg == "out"]
-    return [(line, name) for line, name in out if name in names]
+            spots = mutating.get(method, set()) if isinstance(node.func, ast.Name) else set()
+            out += [(node.lineno, named(a)) for i, a in enumerate(node.args) if i in spots]
+            out += [(node.lineno, named(kw.value)) for kw in node.keywords if kw.arg == "out" or kw.arg in spots]
+    return [(line, origin[name]) for line, name in out if name in names]
+
+
+def _mutating_functions(tree: ast.AST) -> dict[str, set]:
+    """function name -> the positions and names of its parameters that it changes in place, for each function
+    the code defines inside ``tree`` (``def wipe(d): d.clear()`` -> ``{0, "d"}``)."""
+    out = {}
+    for fn in ast.walk(tree):
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)) and fn is not tree:
+            params = [*fn.args.posonlyargs, *fn.args.args]
+            own = {a.arg for a in [*params, *fn.args.kwonlyargs]}
+            changed = {name for _, name in _in_place(fn, own)} & own
+            out[fn.name] = changed | {i for i, a in enumerate(params) if a.arg in changed}
+    return out
 
 
 def parse_cell(source: str) -> tuple[ast.Module, list[Finding]]:
