@@ -771,6 +771,98 @@ def test_a_kernel_never_imports_a_module_written_into_its_folder(tmp_path, needs
     assert inside.stdout.strip() == "installed", inside.stderr[-2000:]
 
 
+# a stand-in kernel: it starts `n` processes that each hold `mib` MiB (written, so in memory), or that share
+# them (forked after the parent wrote them), prints their exit statuses and ends
+HOLDERS = """import os, sys, time
+n, mib, shared = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "shared"
+block = b"x" * (mib << 20) if shared else None
+kids = []
+for _ in range(n):
+    pid = os.fork()
+    if pid == 0:
+        mine = block if shared else b"y" * (mib << 20)
+        time.sleep(6)
+        os._exit(0)
+    kids.append(pid)
+print(sorted(os.waitstatus_to_exitcode(os.waitpid(k, 0)[1]) for k in kids))
+"""
+
+
+def _watched(n, mib, shared, memory, processes=sandbox.PROCESSES_MAX):
+    proc = subprocess.Popen([sys.executable, "-c", HOLDERS, str(n), str(mib), shared], stdout=subprocess.PIPE,
+                            text=True)
+    watch = autograde.KernelWatch(proc.pid, memory, processes)
+    watch.start()
+    out = proc.communicate(timeout=60)[0]
+    watch.stop()
+    return out.strip(), watch.reason
+
+
+def test_the_watch_stops_a_kernel_whose_processes_hold_too_much_together():
+    """RLIMIT_DATA bounds each process; the watch bounds what they hold together. Three processes of 120 MiB
+    each are killed under a limit of 256 MiB, not under 1 GiB; three that share one 120 MiB block (forked
+    after it was written: 480 MiB resident in all, counted once) are left alone under 256 MiB; eight
+    processes are killed where six are the most."""
+    assert _watched(3, 120, "own", 1 << 30) == ("[0, 0, 0]", None)
+    out, why = _watched(3, 120, "own", 256 << 20)
+    assert out == "[-9, -9, -9]" and why.startswith("its processes held ") and "over the limit of 0.25 GiB" in why
+    assert _watched(3, 120, "shared", 256 << 20) == ("[0, 0, 0]", None)
+    out, why = _watched(8, 1, "own", 1 << 30, processes=6)
+    assert out == "[-9, -9, -9, -9, -9, -9, -9, -9]" and why == "it started more than 6 processes at once"
+
+
+def test_the_watch_stops_a_fork_bomb_in_the_sandbox(tmp_path, needs_sandbox):
+    """Processes that fork until there are 2,048 of them, each then sleeping: in the sandbox, watched, they
+    are killed (bubblewrap ends with SIGKILL's status) once they pass PROCESSES_MAX, and the reason says so."""
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    bomb = "import os, time\nfor _ in range(11):\n    os.fork()\ntime.sleep(30)\n"
+    proc = subprocess.Popen(sandbox.bwrap_command([sys.executable, "-c", bomb], tmp_path / "scratch", []))
+    watch = autograde.KernelWatch(proc.pid, sandbox.KERNEL_MEMORY_BYTES)
+    watch.start()
+    proc.wait(timeout=120)
+    watch.stop()
+    assert (proc.returncode, watch.reason) == (128 + signal.SIGKILL, "it started more than 64 processes at once")
+
+
+def test_the_lecturers_page_states_the_kernels_limits_as_the_sandbox_sets_them():
+    text = " ".join((Path(__file__).parent.parent / "docs" / "teaching.md").read_text().split())
+    stated = [f"each of its processes at most {sandbox.KERNEL_MEMORY_GIB:g} GiB of data",
+              f"holds the same {sandbox.KERNEL_MEMORY_GIB:g} GiB with all its processes together, and has at most "
+              f"{sandbox.PROCESSES_MAX} processes at once", f"hold every {sandbox.WATCH_S:g} s (`sandbox.WATCH_S`;",
+              f"outgrow the limit by what it writes in {sandbox.WATCH_S:g} s"]
+    assert [s for s in stated if s not in text] == []
+    # the check can fail: a page that still says 32 processes is caught
+    assert stated[1] not in text.replace(f"at most {sandbox.PROCESSES_MAX} processes", "at most 32 processes")
+
+
+HOG = ("import subprocess, sys\n\nhold = 'block = b\"x\" * (400 << 20); import time; time.sleep(30)'\n"
+       "kids = [subprocess.Popen([sys.executable, '-c', hold]) for _ in range(3)]\n"
+       "print([k.wait() for k in kids])\nmy_sum = 5")
+
+
+@pytest.mark.slow
+def test_a_kernel_whose_processes_hold_too_much_together_could_not_run(tiny_course, tmp_path, capsys,
+                                                                       needs_sandbox):
+    """bo's answer starts three processes of 400 MiB, each under the kernels' 1 GiB: together they are over
+    it, so the grader stops bo's kernel and says why; ana, graded in the same class, keeps her points."""
+    course.release(tiny_course)
+    released = tiny_course / "release" / TINY / f"{TINY}.ipynb"
+    right = {n: _solution(a) for n, (a, _) in ANSWERS.items()}
+    subs = _submissions(tmp_path, {f"{who}/{TINY}.ipynb": _returned(released, answers)
+                                   for who, answers in (("ana", right), ("bo", {**right, 1: HOG}))})
+    course.collect(tiny_course, subs)
+    capsys.readouterr()
+    assert cli.main(["course", "autograde", "--kernel-memory", "1", "--course", str(tiny_course)]) == 0
+    (line,) = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("could not run")]
+    assert line.startswith(f"could not run: bo, {TINY}.ipynb: the grader stopped the kernel: its processes held ")
+    assert line.endswith("GiB together, over the limit of 1 GiB (--kernel-memory)")
+    assert cli.main(["course", "grades", "--out", str(tmp_path / "grades.csv"), "--course", str(tiny_course)]) == 0
+    rows = {r["student"]: r for r in csv.DictReader((tmp_path / "grades.csv").open())}
+    assert (float(rows["ana"]["points"]), rows["ana"]["could_not_run"]) == (5.0, "")
+    assert rows["bo"]["could_not_run"].startswith("the grader stopped the kernel")
+
+
 @pytest.mark.parametrize("gib", [0.25, float("nan"), float("inf"), 1e6])
 def test_a_kernel_memory_limit_out_of_range_is_one_line(tiny_course, capsys, gib):
     assert cli.main(["course", "autograde", "--course", str(tiny_course), "--kernel-memory", str(gib)]) == 2

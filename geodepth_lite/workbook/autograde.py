@@ -175,9 +175,9 @@ def _environment(scratch: Path, course: Path, memory: int) -> dict:
 
 def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limit_s: float,
               memory: int = sandbox.KERNEL_MEMORY_BYTES) -> str | None:
-    """nbgrader's autograde of one submission in a process of its own, each process of the kernel's holding
-    at most ``memory`` bytes of data; None when it is graded, else the reason it could not run (its partial
-    ``autograded/`` folder, made by this run, is removed)."""
+    """nbgrader's autograde of one submission in a process of its own, the kernel's processes holding at most
+    ``memory`` bytes (each of data, and all together: :class:`KernelWatch`); None when it is graded, else the
+    reason it could not run (its partial ``autograded/`` folder, made by this run, is removed)."""
     course = Path(course)
     cmd = [sys.executable, "-m", "nbgrader", "autograde", assignment, f"--student={student}",
            f"--CourseDirectory.root={course.resolve()}", "--log-level=WARN"]
@@ -190,6 +190,8 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
         tail = bytearray()
         reader = threading.Thread(target=keep_tail, args=(proc.stdout, tail, OUTPUT_TAIL_BYTES), daemon=True)
         reader.start()
+        watch = KernelWatch(proc.pid, memory)
+        watch.start()
         try:
             proc.wait(timeout=limit_s)
             reader.join(timeout=10)  # a process left holding the pipe open does not hold the class
@@ -200,11 +202,46 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
             proc.wait()
             reader.join(timeout=10)  # a process left holding the pipe open does not hold the class
             reason = f"stopped after {limit_s:.0f} s, every cell's timeout together: the kernel hung"
+        finally:
+            watch.stop()
+        if watch.reason is not None:  # the kernel died because the watch stopped it: say why
+            reason = f"the grader stopped the kernel: {watch.reason}"
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     if reason is not None:
         shutil.rmtree(course / "autograded" / student / assignment, ignore_errors=True)
     return reason
+
+
+class KernelWatch(threading.Thread):
+    """Every :data:`~geodepth_lite.workbook.sandbox.WATCH_S` seconds, what the processes under nbgrader's
+    (``root``: the sandboxed kernel and whatever it started) hold together; past ``memory`` bytes or
+    :data:`~geodepth_lite.workbook.sandbox.PROCESSES_MAX` processes, each is killed (bubblewrap first, which
+    ends its PID namespace) and :attr:`reason` says why. RLIMIT_DATA bounds each process; this bounds their
+    sum, from outside the sandbox, where the student's code cannot reach it."""
+
+    def __init__(self, root: int, memory: int, processes: int = sandbox.PROCESSES_MAX):
+        super().__init__(daemon=True)
+        self.root, self.memory, self.processes = root, memory, processes
+        self.reason: str | None = None
+        self._done = threading.Event()
+
+    def run(self) -> None:
+        while not self._done.wait(sandbox.WATCH_S):
+            pids = sandbox.descendants(self.root)
+            why = sandbox.over_limits(pids, self.memory, self.processes)
+            if why is None:
+                continue
+            self.reason = self.reason or why
+            for pid in pids:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except OSError:
+                    pass  # ended already
+
+    def stop(self) -> None:
+        self._done.set()
+        self.join(timeout=10)
 
 
 def keep_tail(stream, tail: bytearray, keep: int) -> None:

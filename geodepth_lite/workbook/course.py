@@ -363,8 +363,9 @@ def autograde(course: Path, *, sandboxed: bool = True, retry: bool = False, echo
     :mod:`geodepth_lite.workbook.autograde`): hidden tests put back, the notebook executed with the course's cell
     timeout. A submission graded before is left as it is; one whose kernel dies or hangs is recorded as
     "could not run" (``echo`` gets one line naming it) and the others are graded. Without bubblewrap it
-    refuses unless ``sandboxed`` is False. Each process of a sandboxed kernel holds at most ``memory_gib`` GiB
-    of data (:mod:`geodepth_lite.workbook.sandbox`). Returns graded, could_not_run and skipped submissions."""
+    refuses unless ``sandboxed`` is False. A sandboxed kernel holds at most ``memory_gib`` GiB, its processes
+    together and each of them (:mod:`geodepth_lite.workbook.sandbox`). Returns graded, could_not_run and
+    skipped submissions."""
     course = Path(course)
     memory = sandbox.memory_bytes(memory_gib)
     names = open_course(course)
@@ -519,8 +520,8 @@ def add_arguments_course(p: argparse.ArgumentParser) -> None:
             a.add_argument("--retry", action="store_true",
                            help="grade again the submissions that could not run before")
             a.add_argument("--kernel-memory", type=float, default=sandbox.KERNEL_MEMORY_GIB, metavar="GIB",
-                           help="the most memory (GiB of data) each process of a student's kernel may hold "
-                                f"in the sandbox (default: {sandbox.KERNEL_MEMORY_GIB:g})")
+                           help="the most memory (GiB) a student's kernel may hold in the sandbox, its processes "
+                                f"together (default: {sandbox.KERNEL_MEMORY_GIB:g})")
         if action == "grades":
             a.add_argument("--out", type=Path, default=Path("grades.csv"), help="the CSV (default: grades.csv)")
         if action == "edition":

@@ -26,7 +26,9 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   :data:`KERNEL_MEMORY_GIB` GiB unless the lecturer says otherwise), its ``/tmp`` (held in memory) at most
   :data:`TMP_BYTES`, and no file it writes may grow past :data:`FILE_BYTES`. The limits are hard limits,
   set by a small program that then becomes the kernel (:func:`limited`): the student's code can lower
-  them, never raise them.
+  them, never raise them. Its processes together may hold at most ``memory_bytes`` too, and be at most
+  :data:`PROCESSES_MAX`: the grader watches that from outside (:func:`over_limits`) and stops the kernel
+  past either.
 
 The kernel talks to the executor through Unix sockets in a private folder (``transport = ipc``), so it
 needs no network and never sees another kernel's connection file.
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -51,7 +54,7 @@ REQUIRE_ENV = "GEODEPTH_REQUIRE_SANDBOX"  # "1": the tests fail, not skip, where
 CHECKOUT_READS = ("geodepth_lite", "data_manifests", "benchmarks", "pyproject.toml")
 WORKSPACE_READS = ("data", "runs")
 KEPT_ENV = ("LANG", "LC_ALL", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "GEODEPTH_LITE_HOME", "MPLBACKEND")
-MEMORY_ENV = "GEODEPTH_SANDBOX_MEMORY"  # bytes of data each process of the kernel's may hold
+MEMORY_ENV = "GEODEPTH_SANDBOX_MEMORY"  # bytes of data each process of the kernel's may hold (and all together)
 KERNEL_MEMORY_GIB = 4.0  # the default of ``course autograde --kernel-memory``
 KERNEL_MEMORY_BYTES = int(KERNEL_MEMORY_GIB * (1 << 30))  # the same, in bytes
 TMP_BYTES = 1 << 30  # the sandbox's /tmp, a tmpfs: what is written there is held in memory
@@ -109,7 +112,7 @@ def memory_bytes(gib: float) -> int:
     """``gib`` GiB in bytes, for ``course autograde --kernel-memory``; a user's error below 0.5 GiB, where
     Python and the package no longer start, above 65,536 GiB, or where it is not a number."""
     if not (isinstance(gib, (int, float)) and math.isfinite(gib) and 0.5 <= gib <= 65536):
-        raise UserError(f"--kernel-memory {gib}: give the GiB each process of a student's kernel may hold, "
+        raise UserError(f"--kernel-memory {gib}: give the GiB a student's kernel may hold, its processes together, "
                         f"from 0.5 to 65536 (default {KERNEL_MEMORY_GIB:g})")
     return int(gib * (1 << 30))
 
@@ -165,6 +168,81 @@ def unavailable() -> str | None:
         lines = (done.stderr or done.stdout).strip().splitlines()
         return f"bubblewrap cannot make a sandbox here ({lines[-1] if lines else f'exit {done.returncode}'})"
     return None
+
+
+# ----------------------------------------------------------------------------------------- its processes together
+# RLIMIT_DATA bounds each process; what a kernel's processes hold together is watched from outside the sandbox
+# by the grader (:class:`geodepth_lite.workbook.autograde.KernelWatch`), which stops the kernel past these
+PROCESSES_MAX = 64  # processes of one kernel at once, bubblewrap's included
+WATCH_S = 0.2  # how often the grader adds up what they hold
+_PSS = re.compile(rb"^Pss:\s+(\d+) kB", re.M)
+
+
+def _parents() -> dict[int, int]:
+    """pid -> parent pid of every process this machine shows in /proc."""
+    out = {}
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit():
+            try:
+                with open(f"/proc/{entry.name}/stat", "rb") as f:
+                    stat = f.read(4096)
+                # "pid (name) state ppid ...": a name may hold spaces and parentheses, so read after the last ")"
+                out[int(entry.name)] = int(stat[stat.rindex(b")") + 2:].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue  # ended while it was read
+    return out
+
+
+def descendants(root: int) -> list[int]:
+    """Every living process descended from ``root`` (``root`` not among them), parents before children. In
+    the sandbox's PID namespace an orphan goes to the namespace's first process, so none leaves the tree."""
+    children: dict[int, list[int]] = {}
+    for pid, ppid in _parents().items():
+        children.setdefault(ppid, []).append(pid)
+    out, todo = [], list(children.get(root, []))
+    while todo:
+        pid = todo.pop(0)
+        out.append(pid)
+        todo.extend(children.get(pid, []))
+    return out
+
+
+def resident_bytes(pid: int) -> int:
+    """What ``pid`` has in memory (its resident size; 0 once it has ended). Pages it shares with another
+    process (a forked worker's, a library's) count in both."""
+    try:
+        with open(f"/proc/{pid}/statm", "rb") as f:
+            return int(f.read(4096).split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def held_bytes(pid: int) -> int:
+    """``pid``'s share of memory (its proportional set size: a page shared by n processes counts 1/n in each),
+    or its resident size where that cannot be read; 0 once it has ended."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup", "rb") as f:
+            found = _PSS.search(f.read(1 << 16))
+        if found:
+            return int(found.group(1)) * 1024
+    except OSError:
+        pass
+    return resident_bytes(pid)
+
+
+def over_limits(pids: list[int], memory: int, processes: int = PROCESSES_MAX) -> str | None:
+    """Why the processes ``pids`` (a kernel's) are past their limits together, in words, or None: more than
+    ``processes`` of them, or more than ``memory`` bytes held (their resident sizes are added first, which is
+    cheap; their shares only where that sum is over, shared pages then counted once)."""
+    if len(pids) > processes:
+        return f"it started more than {processes} processes at once"
+    if sum(resident_bytes(p) for p in pids) <= memory:
+        return None
+    held = sum(held_bytes(p) for p in pids)
+    if held <= memory:
+        return None
+    return (f"its processes held {held / (1 << 30):.2f} GiB together, over the limit of "
+            f"{memory / (1 << 30):g} GiB (--kernel-memory)")
 
 
 # ----------------------------------------------------------------------------------------- what the kernel sends
