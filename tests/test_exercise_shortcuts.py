@@ -13,6 +13,7 @@ The answers are the exercise's answer cell with its solution regions replaced; e
 in a fresh namespace (``exercises.run_exercise``), in-process.
 """
 
+import ast
 import collections
 import copy
 import json
@@ -920,8 +921,9 @@ def test_each_shortcut_loses_its_points_or_is_flagged_with_its_reason(family, ki
 # the shortcuts that pass every check when run: without the review they would score silently
 PASS_THE_CHECKS = [("guard off", "function"), ("out of the guard's sight", "function"), ("edited history", "function"),
                    ("guard off", "value"), ("edited history", "value"), ("pasted values", "value"),
-                   ("equal to anything", "set"), ("the checks' tools or inputs changed", "function"),
-                   ("the checks' tools or inputs changed", "value")]
+                   ("equal to anything", "set"), ("the checks' tools or inputs changed", "function")]
+# the shortcuts that once passed every check, and now pass the visible checks only: the answer keys fail them
+MISS_THE_KEYS = [("the checks' tools or inputs changed", "value")]
 
 
 @pytest.mark.parametrize("family, kind", PASS_THE_CHECKS)
@@ -931,16 +933,30 @@ def test_the_flag_is_needed_where_the_shortcut_passes_the_checks(family, kind):
     assert sys.getprofile() is None  # the guard put back what the shortcut turned off
 
 
+@pytest.mark.parametrize("family, kind", MISS_THE_KEYS)
+def test_a_shortcut_that_passes_the_visible_checks_misses_the_answer_key(family, kind):
+    ident, answer, rule = family_answer((family, kind))
+    check = EXERCISES[ident].check
+    assert outcome(answer, check.split("### BEGIN HIDDEN TESTS")[0]) is None and rule is not None
+    assert isinstance(outcome(answer, check), AssertionError)
+
+
 @pytest.mark.parametrize("family, kind", [("equal to anything", "function"), ("equal to anything", "value")])
 def test_an_answer_equal_to_anything_fails_the_exact_types(family, kind, monkeypatch):
     """A subclass overriding ``==`` fails where the checks see the answer through the package (a function
-    under ``grading.forbid``, a value through ``grading.rerun_answer``); without the type check it passes."""
+    under ``grading.forbid``, a value through ``grading.rerun_answer``); without that type check the value
+    passes, and the function still fails 02.2's answer key, which checks the counts' exact type itself."""
     ident, answer, _ = family_answer((family, kind))
     failed = outcome(answer, EXERCISES[ident].check)
     assert isinstance(failed, AssertionError) and "compare types as well as values" in str(failed), failed
     assert ("Always (a subclass of int)" if kind == "function" else "Word (a subclass of str)") in str(failed)
     monkeypatch.setattr(grading, "foreign_value", lambda value, budget=None: None)
-    assert outcome(answer, EXERCISES[ident].check) is None
+    without = outcome(answer, EXERCISES[ident].check)
+    if kind == "function":
+        assert isinstance(without, AssertionError) and "compare types" not in str(without), without
+        assert outcome(answer, EXERCISES[ident].check.replace("_b.type(_n) is _b.int", "True")) is None
+    else:
+        assert without is None
 
 
 def test_the_solutions_and_ordinary_constructs_pass_the_review_clean():
@@ -1105,11 +1121,18 @@ HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
 }
 
 
+def _given(ident: str) -> str:
+    """The part of an exercise's answer cell that sets its given inputs (01.1's edits, 06.1's error map)."""
+    return EXERCISES[ident].answer.split({"01-1": "my_fields = None", "06-1": "bands, ratios"}.get(ident, "\0"))[0]
+
+
 @pytest.mark.parametrize("name", sorted(HIDDEN_WRITES))
-def test_a_write_the_syntax_hides_passes_the_checks_and_is_flagged(name, monkeypatch):
-    """Before the review knew these (a builtin taken as a value, a pickle, a given input changed in place)
-    each scored full marks with a wrong answer: 02.2 counts no parameters at all, 01.1 names no field, 06.1
-    measures an error map made flat, 02.3 returns zeros after every network's output was made zero."""
+def test_a_write_the_syntax_hides_is_flagged_and_misses_the_answer_key(name, monkeypatch):
+    """Each of these (a builtin taken as a value, a pickle, a given input changed in place) once scored full
+    marks with a wrong answer: 02.2 counts no parameters at all, 01.1 names no field, 06.1 measures an error
+    map made flat, 02.3 returns zeros after every network's output was made zero. Each still passes the
+    visible checks, which compare with the package in the student's kernel; the static review flags it, and
+    the hidden tests, which compare with answer keys fixed in the notebook, fail it."""
     import torch
 
     from geodepth_lite.core import model
@@ -1117,10 +1140,92 @@ def test_a_write_the_syntax_hides_passes_the_checks_and_is_flagged(name, monkeyp
     monkeypatch.setattr(model, "count_parameters", model.count_parameters)  # put back after the answer patches it
     monkeypatch.setattr(torch.nn.modules.module, "_global_forward_hooks", collections.OrderedDict())  # and the hook
     ident, answer, rule = HIDDEN_WRITES[name]
-    given = EXERCISES[ident].answer.split({"01-1": "my_fields = None", "06-1": "bands, ratios"}.get(ident, "\0"))[0]
-    answer = answer.replace("EDITS\n", given)
-    assert outcome(answer, EXERCISES[ident].check) is None
+    answer = answer.replace("EDITS\n", _given(ident))
+    check = EXERCISES[ident].check
+    assert outcome(answer, check.split("### BEGIN HIDDEN TESTS")[0]) is None
+    assert isinstance(outcome(answer, check), AssertionError), name
     assert rule in {f.rule for f in reviewed(ident, answer)}, name
+
+
+def _keys(ident: str) -> dict:
+    """The literals an exercise's hidden tests compare with: each name of ``_KEY...``, ``_want`` and ``_cases``."""
+    found = {}
+    for node in ast.walk(ast.parse(EXERCISES[ident].check.split("### BEGIN HIDDEN TESTS")[1])):
+        if isinstance(node, ast.Assign) and len(node.targets) == 1:
+            target, value = node.targets[0], node.value
+            pairs = (zip(target.elts, value.elts) if isinstance(target, ast.Tuple) and isinstance(value, ast.Tuple)
+                     else [(target, value)])
+            for name, literal in pairs:
+                if isinstance(name, ast.Name) and name.id.startswith(("_KEY", "_want", "_cases")):
+                    try:
+                        found[name.id] = ast.literal_eval(literal)
+                    except ValueError:
+                        continue  # computed in the kernel, not a key
+    return found
+
+
+def _computed_keys(ident: str) -> dict:
+    """What the package computes for the keys of ``ident``'s hidden tests, here, outside any student's kernel."""
+    import numpy as np
+    import torch
+
+    from geodepth_lite.core import model as M
+    from geodepth_lite.data import manifest
+    from geodepth_lite.evaluation.border import border_bands
+
+    given: dict = {}
+    exec(_given(ident), given)  # noqa: S102 - the notebook's own cell
+    if ident == "01-1":
+        named = {}
+        for letter, edit in given["edits"].items():
+            with pytest.raises(ValueError) as err:
+                manifest.load_manifest("scenario_smoke", edit)
+            named[letter] = re.search(r"(?:field|key|split) '([^']+)'", str(err.value)).group(1)
+        return {"_KEY": named}
+    if ident == "02-2":
+        cases = _keys(ident)["_cases"]
+        return {"_want": [M.count_parameters(M.DepthDecoder(e, d)) for e, d in cases]}
+    if ident == "02-3":
+        g = torch.Generator().manual_seed(2023)
+        w, x = torch.randn(1, 2, 3, 3, generator=g), torch.randn(1, 5, 9, 7, generator=g)
+        sab = M.SpatialAttention(kernel_size=3).double()
+        with torch.no_grad():
+            sab.conv.weight.copy_(w.double())
+            y = sab(x.double())
+        return {"_KEY_SUM": float(y.sum()), "_KEY_SQUARES": float((y * y).sum()), "_KEY_COLUMN": y[0, :, 4, 3].tolist()}
+    count, abs_mean = given["count"], given["abs_mean"]
+    bands, ratios = border_bands(np.where(count > 0, abs_mean, 0.0) * count, count)
+    return {"_KEY_BANDS": bands, "_KEY_RATIOS": ratios}
+
+
+@pytest.mark.parametrize("ident", ["01-1", "02-2", "02-3", "06-1"])
+def test_the_answer_keys_of_the_hidden_tests_are_what_the_package_computes(ident):
+    """A key is fixed in the notebook, so no answer can move it in the kernel; here it is recomputed from the
+    package (to the digits the notebook writes), so it cannot drift from what the lessons teach."""
+    keys, computed = _keys(ident), _computed_keys(ident)
+    keys.pop("_cases", None)  # the inputs of 02.2's key, which _computed_keys reads
+    assert sorted(keys) == sorted(computed) != []
+    for name, value in computed.items():
+        if isinstance(value, dict):
+            assert sorted(keys[name]) == sorted(value), name
+            for k, v in value.items():
+                assert keys[name][k] == (v if isinstance(v, str) else pytest.approx(float(v), rel=0, abs=1e-12)), name
+        else:
+            assert keys[name] == pytest.approx(value, rel=0, abs=1e-9), name
+
+
+def test_an_answer_key_off_by_a_little_fails_the_solution():
+    """The keys decide: the solution of 02.2 fails a key whose second count is that of the package's own decoder
+    widths on the second case's encoder (a count a careless key would hold), and 06.1's fails a band moved by 1e-8;
+    both pass their keys as written."""
+    from geodepth_lite.core import model as M
+
+    careless = M.count_parameters(M.DepthDecoder((16, 24, 40, 80, 160), M.DECODER_CHANNELS))
+    for ident, right, wrong in (("02-2", "_want = [320645, 67281]", f"_want = [320645, {careless}]"),
+                                ("06-1", '"centre": 0.12480682350187267', '"centre": 0.12480683350187267')):
+        check = EXERCISES[ident].check
+        assert right in check and outcome(solution(ident), check) is None
+        assert isinstance(outcome(solution(ident), check.replace(right, wrong)), AssertionError), ident
 
 
 def test_the_near_misses_of_hidden_writes_pass_the_review_clean():
