@@ -1147,6 +1147,39 @@ def test_a_write_the_syntax_hides_is_flagged_and_misses_the_answer_key(name, mon
     assert rule in {f.rule for f in reviewed(ident, answer)}, name
 
 
+# exercise -> a wrong answer that puts itself in the package, where the checks find their reference
+REFERENCE_REPLACED = {
+    "03-2": "import torch\n\nfrom geodepth_lite.core import losses as L\n\n\n"
+            "def my_smoothness(pred, image):  # the edges of the brightest channel, not the mean of the three\n"
+            "    ix = (image[..., :, 1:] - image[..., :, :-1]).abs().amax(dim=1, keepdim=True)\n"
+            "    iy = (image[..., 1:, :] - image[..., :-1, :]).abs().amax(dim=1, keepdim=True)\n"
+            "    dx = pred[..., :, 1:] - pred[..., :, :-1]\n    dy = pred[..., 1:, :] - pred[..., :-1, :]\n"
+            "    return (torch.exp(-ix) * dx).pow(2).mean() + (torch.exp(-iy) * dy).pow(2).mean()\n\n\n"
+            "L.smoothness_loss = my_smoothness\n",
+    "04-2": "from geodepth_lite.core import metrics\n" + solution("04-2").replace(  # a ratio of exactly 1.25 counted
+        '"a1": np.mean(worst < 1.25)', '"a1": np.mean(worst <= 1.25)')
+            + "\nmetrics.compute_depth_metrics = my_depth_metrics\n",
+}
+
+
+@pytest.mark.parametrize("name", sorted(REFERENCE_REPLACED))
+def test_a_wrong_answer_put_in_the_package_misses_the_key_of_the_reference(name, monkeypatch):
+    """The checks of 03.2 and 04.2 compute their reference with the package, in the kernel: a wrong answer that
+    replaces the package's function with itself passes the visible checks; the hidden tests' keys of those
+    references fail it, and the review flags it."""
+    from geodepth_lite.core import losses, metrics
+
+    monkeypatch.setattr(losses, "smoothness_loss", losses.smoothness_loss)  # put back after the answer replaces it
+    monkeypatch.setattr(metrics, "compute_depth_metrics", metrics.compute_depth_metrics)
+    ident, answer = name, REFERENCE_REPLACED[name]
+    assert "worst <= 1.25" in REFERENCE_REPLACED["04-2"]  # the mistake was made
+    check = EXERCISES[ident].check
+    assert outcome(answer, check.split("### BEGIN HIDDEN TESTS")[0]) is None
+    failed = outcome(answer, check)
+    assert isinstance(failed, AssertionError) and "the reference moved" in str(failed), failed
+    assert "guard" in {f.rule for f in reviewed(ident, answer)}
+
+
 def _keys(ident: str) -> dict:
     """The literals an exercise's hidden tests compare with: each name of ``_KEY...``, ``_want`` and ``_cases``."""
     found = {}
