@@ -920,10 +920,11 @@ def test_each_shortcut_loses_its_points_or_is_flagged_with_its_reason(family, ki
 
 # the shortcuts that pass every check when run: without the review they would score silently
 PASS_THE_CHECKS = [("guard off", "function"), ("out of the guard's sight", "function"), ("edited history", "function"),
-                   ("guard off", "value"), ("edited history", "value"), ("pasted values", "value"),
-                   ("equal to anything", "set"), ("the checks' tools or inputs changed", "function")]
+                   ("guard off", "value"), ("edited history", "value"), ("pasted values", "value")]
 # the shortcuts that once passed every check, and now pass the visible checks only: the answer keys fail them
-MISS_THE_KEYS = [("the checks' tools or inputs changed", "value")]
+# (06.1's and 03.1's by their exact types and values; 07.2's because its hidden tube is not made by tube_depth)
+MISS_THE_KEYS = [("the checks' tools or inputs changed", "value"), ("equal to anything", "set"),
+                 ("the checks' tools or inputs changed", "function")]
 
 
 @pytest.mark.parametrize("family, kind", PASS_THE_CHECKS)
@@ -944,19 +945,20 @@ def test_a_shortcut_that_passes_the_visible_checks_misses_the_answer_key(family,
 @pytest.mark.parametrize("family, kind", [("equal to anything", "function"), ("equal to anything", "value")])
 def test_an_answer_equal_to_anything_fails_the_exact_types(family, kind, monkeypatch):
     """A subclass overriding ``==`` fails where the checks see the answer through the package (a function
-    under ``grading.forbid``, a value through ``grading.rerun_answer``); without that type check the value
-    passes, and the function still fails 02.2's answer key, which checks the counts' exact type itself."""
+    under ``grading.forbid``, a value through ``grading.rerun_answer``); without that type check each still
+    fails its answer key (02.2's counts, 05.3's verdicts), which checks the exact types itself, and passes
+    where the key's type check is taken out too."""
     ident, answer, _ = family_answer((family, kind))
     failed = outcome(answer, EXERCISES[ident].check)
     assert isinstance(failed, AssertionError) and "compare types as well as values" in str(failed), failed
     assert ("Always (a subclass of int)" if kind == "function" else "Word (a subclass of str)") in str(failed)
     monkeypatch.setattr(grading, "foreign_value", lambda value, budget=None: None)
     without = outcome(answer, EXERCISES[ident].check)
-    if kind == "function":
-        assert isinstance(without, AssertionError) and "compare types" not in str(without), without
-        assert outcome(answer, EXERCISES[ident].check.replace("_b.type(_n) is _b.int", "True")) is None
-    else:
-        assert without is None
+    assert isinstance(without, AssertionError) and "compare types" not in str(without), without
+    typed = "_b.type(_n) is _b.int" if kind == "function" else "and _b.type(_v) is _b.str for _k, _v in"
+    untyped = "True" if kind == "function" else "for _k, _v in"
+    assert EXERCISES[ident].check.count(typed) == 1
+    assert outcome(answer, EXERCISES[ident].check.replace(typed, untyped)) is None
 
 
 def test_the_solutions_and_ordinary_constructs_pass_the_review_clean():
@@ -1122,8 +1124,11 @@ HIDDEN_WRITES = {  # name -> (exercise, answer, the rule that flags it)
 
 
 def _given(ident: str) -> str:
-    """The part of an exercise's answer cell that sets its given inputs (01.1's edits, 06.1's error map)."""
-    return EXERCISES[ident].answer.split({"01-1": "my_fields = None", "06-1": "bands, ratios"}.get(ident, "\0"))[0]
+    """The part of an exercise's answer cell that sets its given inputs (01.1's edits, 06.1's error map...)."""
+    ends = {"01-1": "my_fields = None", "01-2": "my_report = None", "05-1": "r, rel, p, rel_low, rel_high = None",
+            "05-3": "verdicts = None", "06-1": "bands, ratios", "06-2": "change_abs_rel, change_rmse = None",
+            "07-2": "def fit_tube", "07-3": "frame_ratios, ratio_cv = None"}
+    return EXERCISES[ident].answer.split(ends.get(ident, "\0"))[0]
 
 
 @pytest.mark.parametrize("name", sorted(HIDDEN_WRITES))
@@ -1199,39 +1204,154 @@ def _keys(ident: str) -> dict:
 
 def _computed_keys(ident: str) -> dict:
     """What the package computes for the keys of ``ident``'s hidden tests, here, outside any student's kernel."""
+    given: dict = {}
+    exec(_given(ident), given)  # noqa: S102 - the notebook's own cell
+    return {"01-1": _fields_key, "01-2": _integrity_keys, "01-3": _cylinder_key, "02-2": _counts_key,
+            "02-3": _attention_keys, "03-1": _offset_key, "05-1": _paired_key, "05-3": _verdicts_key,
+            "06-1": _bands_keys, "06-2": _held_out_key, "07-2": _tube_key, "07-3": _ratios_keys}[ident](ident, given)
+
+
+def _fields_key(ident, given):
+    from geodepth_lite.data import manifest
+
+    named = {}
+    for letter, edit in given["edits"].items():
+        with pytest.raises(ValueError) as err:
+            manifest.load_manifest("scenario_smoke", edit)
+        named[letter] = re.search(r"(?:field|key|split) '([^']+)'", str(err.value)).group(1)
+    return {"_KEY": named}
+
+
+def _integrity_keys(ident, given):
+    from geodepth_lite.data import integrity
+
+    counts = integrity.frame_counts(given["root"], given["m"])
+    return {"_KEY_REPORT": integrity.verify(given["root"]), "_KEY_COUNTS": counts}
+
+
+def _cylinder_key(ident, given):
+    """01.3's two depth maps ray by ray: the positive root of (z x - a)^2 + (z y)^2 = R^2, found by numpy's
+    polynomial solver for each pixel, not by the formula the solution writes."""
     import numpy as np
+
+    K = np.array([[30.0, 0.0, 9.3], [0.0, 27.0, 13.7], [0.0, 0.0, 1.0]])  # the hidden tests' camera
+    keys = {}
+    for radius, a in _keys(ident)["_KEY_DEPTHS"]:
+        depth = np.zeros((20, 28))
+        for v in range(20):
+            for u in range(28):
+                x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+                depth[v, u] = max(np.roots([x * x + y * y, -2 * a * x, a * a - radius * radius]).real)
+        keys[(radius, a)] = (float(depth.sum()), float((depth * depth).sum()), float(depth[7, 11]))
+    return {"_KEY_DEPTHS": keys}
+
+
+def _counts_key(ident, given):
+    from geodepth_lite.core import model as M
+
+    return {"_want": [M.count_parameters(M.DepthDecoder(e, d)) for e, d in _keys(ident)["_cases"]]}
+
+
+def _attention_keys(ident, given):
     import torch
 
     from geodepth_lite.core import model as M
-    from geodepth_lite.data import manifest
+
+    g = torch.Generator().manual_seed(2023)
+    w, x = torch.randn(1, 2, 3, 3, generator=g), torch.randn(1, 5, 9, 7, generator=g)
+    sab = M.SpatialAttention(kernel_size=3).double()
+    with torch.no_grad():
+        sab.conv.weight.copy_(w.double())
+        y = sab(x.double())
+    return {"_KEY_SUM": float(y.sum()), "_KEY_SQUARES": float((y * y).sum()), "_KEY_COLUMN": y[0, :, 4, 3].tolist()}
+
+
+def _offset_key(ident, given):
+    """03.1: the terms whose value a constant offset of the prediction leaves unchanged, on inputs of its own."""
+    import torch
+
+    from geodepth_lite.core import camera, losses
+
+    g = torch.Generator().manual_seed(5)
+    gt, pred = (1.5 + torch.rand(2, 1, 12, 10, generator=g, dtype=torch.float64) for _ in range(2))
+    inputs = losses.LossInputs(gt=gt, image=torch.rand(2, 3, 12, 10, generator=g, dtype=torch.float64),
+                               K=torch.as_tensor(camera.intrinsics(10, 12)),
+                               spec=losses.LossSpec(sdf=losses.SDFOptions(grid=(4, 4, 4))))
+    return {"_KEY": {name for name, term in losses.LOSS_TERMS.items()
+                     if abs(float(term.fn(pred + 0.7, inputs)) - float(term.fn(pred, inputs))) < 1e-9}}
+
+
+def _paired_key(ident, given):
+    from geodepth_lite.evaluation import ablation
+
+    scores = {(c, s): {"test split": {"rmse": float(given[f"CASE{c}"][s])}} for c in (1, 3) for s in range(3)}
+    ref = ablation.paired({"seeds": [0, 1, 2], "scores": scores}, "rmse", "test split", 3, level=given["LEVEL"])
+    return {"_KEY": {"r": list(ref["rel_diffs"]), **{k: ref[k] for k in ("rel", "p", "rel_low", "rel_high")}}}
+
+
+def _verdicts_key(ident, given):
+    from geodepth_lite.evaluation import ablation
+
+    return {"_KEY": {(m, c): q["verdict"] for _, m, c, q in ablation.comparisons(given["toy_result"])}}
+
+
+def _bands_keys(ident, given):
+    import numpy as np
+
     from geodepth_lite.evaluation.border import border_bands
 
-    given: dict = {}
-    exec(_given(ident), given)  # noqa: S102 - the notebook's own cell
-    if ident == "01-1":
-        named = {}
-        for letter, edit in given["edits"].items():
-            with pytest.raises(ValueError) as err:
-                manifest.load_manifest("scenario_smoke", edit)
-            named[letter] = re.search(r"(?:field|key|split) '([^']+)'", str(err.value)).group(1)
-        return {"_KEY": named}
-    if ident == "02-2":
-        cases = _keys(ident)["_cases"]
-        return {"_want": [M.count_parameters(M.DepthDecoder(e, d)) for e, d in cases]}
-    if ident == "02-3":
-        g = torch.Generator().manual_seed(2023)
-        w, x = torch.randn(1, 2, 3, 3, generator=g), torch.randn(1, 5, 9, 7, generator=g)
-        sab = M.SpatialAttention(kernel_size=3).double()
-        with torch.no_grad():
-            sab.conv.weight.copy_(w.double())
-            y = sab(x.double())
-        return {"_KEY_SUM": float(y.sum()), "_KEY_SQUARES": float((y * y).sum()), "_KEY_COLUMN": y[0, :, 4, 3].tolist()}
     count, abs_mean = given["count"], given["abs_mean"]
     bands, ratios = border_bands(np.where(count > 0, abs_mean, 0.0) * count, count)
     return {"_KEY_BANDS": bands, "_KEY_RATIOS": ratios}
 
 
-@pytest.mark.parametrize("ident", ["01-1", "02-2", "02-3", "06-1"])
+def _held_out_key(ident, given):
+    """06.2: the held-out group against the colon frames, scored by the package's protocol."""
+    from geodepth_lite.core import metrics
+    from geodepth_lite.evaluation import evaluate
+
+    rows = [dict(metrics.compute_depth_metrics(p, g), organ=o)
+            for g, p, o in zip(given["test_gt"], given["test_pred"], given["test_organ"])]
+    held = evaluate.summarize([metrics.compute_depth_metrics(p, g) for g, p in zip(given["heldout_gt"],
+                                                                                   given["heldout_pred"])])
+    colon = evaluate.summarize(rows, by="organ")["colon"]
+    return {"_KEY": {f"change_{k}": 100 * (held[k] / colon[k] - 1) for k in ("abs_rel", "rmse")}}
+
+
+def _ratios_keys(ident, given):
+    from geodepth_lite.views import recon
+
+    ratios = recon.median_scale_ratios(given["pred_frames"], given["gt_frames"])
+    return {"_KEY_RATIOS": ratios.tolist(), "_KEY_CV": float(ratios.std() / ratios.mean())}
+
+
+def _tube_key(ident, given):
+    """07.2: the hidden tube's depth made by the notebook's own tube_depth (the hidden test writes it out)."""
+    import numpy as np
+
+    K = np.array([[60.0, 0.0, 35.2], [0.0, 48.0, 20.7], [0.0, 0.0, 1.0]])
+    return {"_KEY_SUM": float(given["tube_depth"](K, 45, 70, 2.4, 0.9, 0.5).sum())}
+
+
+def _close(key, value) -> bool:
+    """A key meets a computed value: strings and containers exactly, numbers to 1e-9 (1e-10 of their size
+    where that is more: the sums of 01.3 and 07.2), as far as the notebook writes their digits."""
+    if isinstance(value, dict):
+        return type(key) is dict and sorted(key, key=repr) == sorted(value, key=repr) and all(
+            _close(key[k], v) for k, v in value.items())
+    if isinstance(value, (list, tuple)):
+        return type(key) in (list, tuple) and len(key) == len(value) and all(map(_close, key, value))
+    if isinstance(value, set):
+        return key == value
+    if isinstance(value, str):
+        return key == value and type(key) is str
+    return type(key) in (int, float) and abs(key - float(value)) <= max(1e-9, 1e-10 * abs(float(value)))
+
+
+KEYED = ["01-1", "01-2", "01-3", "02-2", "02-3", "03-1", "05-1", "05-3", "06-1", "06-2", "07-2", "07-3"]
+
+
+@pytest.mark.parametrize("ident", KEYED)
 def test_the_answer_keys_of_the_hidden_tests_are_what_the_package_computes(ident):
     """A key is fixed in the notebook, so no answer can move it in the kernel; here it is recomputed from the
     package (to the digits the notebook writes), so it cannot drift from what the lessons teach."""
@@ -1239,23 +1359,54 @@ def test_the_answer_keys_of_the_hidden_tests_are_what_the_package_computes(ident
     keys.pop("_cases", None)  # the inputs of 02.2's key, which _computed_keys reads
     assert sorted(keys) == sorted(computed) != []
     for name, value in computed.items():
-        if isinstance(value, dict):
-            assert sorted(keys[name]) == sorted(value), name
-            for k, v in value.items():
-                assert keys[name][k] == (v if isinstance(v, str) else pytest.approx(float(v), rel=0, abs=1e-12)), name
-        else:
-            assert keys[name] == pytest.approx(value, rel=0, abs=1e-9), name
+        assert _close(keys[name], value), (name, keys[name], value)
+
+
+def _compares_with_a_key(node: ast.Assert) -> bool:
+    """An assertion of a hidden test that compares with a key: through Python's own builtins (``_b``), with a
+    name ``_KEY...``/``_want...``, or saying "the reference moved"."""
+    names = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+    return ("_b" in names or any(n.startswith(("_KEY", "_want")) for n in names)
+            or "the reference moved" in ast.unparse(node))
+
+
+def test_every_exercise_graded_automatically_holds_a_key():
+    """Each hidden test of an exercise with points compares with a key fixed in the notebook (the answer's, or
+    its reference's: "the reference moved") through Python's own builtins, as docs/teaching.md says; the
+    tests above check the keys' values."""
+    from geodepth_lite.workbook import book
+
+    graded = sorted(set(EXERCISES) - OPEN)
+    hidden = {i: EXERCISES[i].check.split("### BEGIN HIDDEN TESTS")[-1] for i in graded}
+    unkeyed = [i for i, text in hidden.items() if "import builtins as _b" not in text or not any(
+        _compares_with_a_key(node) for node in ast.walk(ast.parse(text)) if isinstance(node, ast.Assert))]
+    assert unkeyed == [] and len(graded) >= 20
+    stated = " ".join((book.DOCS_DIR / "teaching.md").read_text(encoding="utf-8").split())
+    assert f"each of the {len(graded)} exercises graded automatically holds its answer or its reference" in stated
+
+
+def test_a_key_that_differs_from_the_package_is_told_apart():
+    """The comparison above can fail: a key one step off in each kind it holds."""
+    keys = _computed_keys("05-3")["_KEY"]
+    assert _close(dict(keys), keys) and not _close({**keys, ("rmse", 3): "undecided"}, keys)
+    assert not _close([1.0, 2.0 + 1e-8], [1.0, 2.0]) and not _close({"a": 1}, {"b": 1}) and _close(2e4, 2e4 + 1e-6)
+    assert not _close("2", 2.0) and not _close({"grad"}, {"grad", "normal"})
 
 
 def test_an_answer_key_off_by_a_little_fails_the_solution():
     """The keys decide: the solution of 02.2 fails a key whose second count is that of the package's own decoder
-    widths on the second case's encoder (a count a careless key would hold), and 06.1's fails a band moved by 1e-8;
-    both pass their keys as written."""
+    widths on the second case's encoder (a count a careless key would hold), 06.1's fails a band moved by 1e-8,
+    05.1's a mean and 06.2's a change moved by 1e-5 (the tolerance is 1e-6), 07.2's a depth sum moved by 1e-3;
+    each passes its key
+    as written."""
     from geodepth_lite.core import model as M
 
     careless = M.count_parameters(M.DepthDecoder((16, 24, 40, 80, 160), M.DECODER_CHANNELS))
     for ident, right, wrong in (("02-2", "_want = [320645, 67281]", f"_want = [320645, {careless}]"),
-                                ("06-1", '"centre": 0.12480682350187267', '"centre": 0.12480683350187267')):
+                                ("06-1", '"centre": 0.12480682350187267', '"centre": 0.12480683350187267'),
+                                ("05-1", '"rel": -2.860775968404454', '"rel": -2.860765968404454'),
+                                ("06-2", '"change_rmse": 32.857000073368425', '"change_rmse": 32.857010073368425'),
+                                ("07-2", "_KEY_SUM = 20845.51709324175", "_KEY_SUM = 20845.51809324175")):
         check = EXERCISES[ident].check
         assert right in check and outcome(solution(ident), check) is None
         assert isinstance(outcome(solution(ident), check.replace(right, wrong)), AssertionError), ident
