@@ -771,6 +771,44 @@ def test_a_kernel_never_imports_a_module_written_into_its_folder(tmp_path, needs
     assert inside.stdout.strip() == "installed", inside.stderr[-2000:]
 
 
+# what a kernel run by a grader with root's capabilities could do to the folders it reads: remount one as
+# writable and write there, unmount the empty folder over the course (the gradebook and solutions beneath)
+MOUNTS = """import ctypes, os, sys
+readable, course = sys.argv[1], sys.argv[2]
+libc = ctypes.CDLL(None, use_errno=True)
+status = open("/proc/self/status").read().splitlines()
+print("capabilities", int(next(ln.split()[1] for ln in status if ln.startswith("CapEff:")), 16))
+remounted = libc.mount(None, readable.encode(), None, 32 | 4096, None) == 0  # MS_REMOUNT | MS_BIND: writable
+try:
+    with open(os.path.join(readable, "written.txt"), "w") as f:
+        f.write("a student's file")
+    print("remounted" if remounted else "", "wrote")
+except OSError:
+    print("remounted" if remounted else "", "read-only")
+unmounted = libc.umount2(course.encode(), 2) == 0  # MNT_DETACH
+print("unmounted" if unmounted else "", "course holds", sorted(os.listdir(course)))
+"""
+
+
+def test_the_kernel_holds_no_capability_even_where_the_grader_is_root(tmp_path, monkeypatch, needs_sandbox):
+    """Run as root, bubblewrap keeps root's capabilities in the sandbox unless told otherwise; a kernel with
+    CAP_SYS_ADMIN there remounted a folder it reads as writable and wrote into it, and unmounted the empty
+    folder over the course, seeing the gradebook (checked as root before ``--cap-drop ALL``). It holds none."""
+    readable = tmp_path / "readable"
+    (readable / "course").mkdir(parents=True)
+    (readable / "course" / "gradebook.db").write_text("the grades")
+    plain = sandbox.readable_paths
+    monkeypatch.setattr(sandbox, "readable_paths", lambda hidden=(): [*plain(hidden), readable])
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    cmd = sandbox.bwrap_command([sys.executable, "-c", MOUNTS, str(readable), str(readable / "course")],
+                                tmp_path / "scratch", [readable / "course"])
+    inside = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert inside.stdout.split() == ["capabilities", "0", "read-only", "course", "holds", "[]"], (
+        inside.stdout, inside.stderr[-2000:])
+    assert sorted(p.name for p in readable.iterdir()) == ["course"]
+
+
 # a stand-in kernel: it starts `n` processes that each hold `mib` MiB (written, so in memory), or that share
 # them (forked after the parent wrote them), prints their exit statuses and ends
 HOLDERS = """import os, sys, time

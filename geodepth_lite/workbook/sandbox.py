@@ -21,7 +21,9 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   the notebook writes there is never imported in place of an installed one); and the folder of its
   connection sockets;
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
-  namespace), the environment cleared but for a few variables;
+  namespace), the environment cleared but for a few variables, and no capability, even where the
+  grader runs as root (:data:`NO_CAPABILITIES`): the kernel can neither remount what it reads as
+  writable nor unmount the empty folder laid over the course;
 - bounded memory: each of its processes may hold at most ``memory_bytes`` of data (``RLIMIT_DATA``,
   :data:`KERNEL_MEMORY_GIB` GiB unless the lecturer says otherwise), its ``/tmp`` (held in memory) at most
   :data:`TMP_BYTES`, and no file it writes may grow past :data:`FILE_BYTES`. The limits are hard limits,
@@ -96,6 +98,11 @@ def readable_paths(hidden: list[Path] = ()) -> list[Path]:
     return out
 
 
+# bubblewrap keeps every capability of a grader run as root (a container, a CI runner): with CAP_SYS_ADMIN
+# the kernel could remount what it reads read-only as writable, or unmount the empty folder over the course
+NO_CAPABILITIES = ("--cap-drop", "ALL")
+
+
 def _system_binds(tmp_bytes: int | None = None) -> list[str]:
     size = ["--size", str(tmp_bytes)] if tmp_bytes else []
     cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", "--dev", "/dev", *size, "--tmpfs", "/tmp"]
@@ -129,7 +136,7 @@ def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
                   memory: int = KERNEL_MEMORY_BYTES) -> list[str]:
     """``argv`` (a kernel's command) run inside bubblewrap, ``memory`` bytes of data per process: see the
     module docstring."""
-    cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv",
+    cmd = ["bwrap", "--die-with-parent", "--new-session", "--unshare-all", "--clearenv", *NO_CAPABILITIES,
            *_system_binds(tmp_bytes=TMP_BYTES)]
     for etc in ("/etc/ld.so.cache", "/etc/localtime", "/etc/nsswitch.conf", "/etc/passwd", "/etc/group", "/etc/fonts"):
         if Path(etc).exists():
@@ -159,7 +166,7 @@ def unavailable() -> str | None:
     """Why no sandbox can be made here (one line), or None when bubblewrap runs a program in one."""
     if shutil.which("bwrap") is None:
         return "bubblewrap (bwrap) is not installed"
-    probe = ["bwrap", "--die-with-parent", "--unshare-all", *_system_binds(tmp_bytes=TMP_BYTES)]
+    probe = ["bwrap", "--die-with-parent", "--unshare-all", *NO_CAPABILITIES, *_system_binds(tmp_bytes=TMP_BYTES)]
     try:
         done = subprocess.run([*probe, "true"], capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired) as exc:
