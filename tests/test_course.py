@@ -8,6 +8,7 @@ notebooks 01-07 would take many minutes): an answer cell with a solution region 
 cell with hidden tests per exercise, the last one open-ended."""
 
 import csv
+import errno
 import hashlib
 import html
 import io
@@ -807,6 +808,29 @@ def test_the_kernel_holds_no_capability_even_where_the_grader_is_root(tmp_path, 
     assert inside.stdout.split() == ["capabilities", "0", "read-only", "course", "holds", "[]"], (
         inside.stdout, inside.stderr[-2000:])
     assert sorted(p.name for p in readable.iterdir()) == ["course"]
+
+
+SETTINGS = """import os
+try:
+    with open("/proc/sys/kernel/hostname", "w") as f:  # the sandbox's own name (its own UTS namespace)
+        f.write("renamed")
+    print("wrote")
+except OSError as exc:
+    print("refused", exc.errno)
+print("writable", sum(os.access(os.path.join(d, f), os.W_OK) for d, _, fs in os.walk("/proc/sys") for f in fs))
+"""
+
+
+def test_the_kernel_cannot_write_the_machines_settings(tmp_path, needs_sandbox):
+    """A process whose user is root may write /proc/sys with no capability (kernel.core_pattern names a
+    program the machine runs as root when a process crashes); in the sandbox it is read-only, whoever grades.
+    Run as root before the read-only bind, the kernel renamed itself and hundreds of settings were writable."""
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    inside = subprocess.run(sandbox.bwrap_command([sys.executable, "-c", SETTINGS], tmp_path / "scratch", []),
+                            capture_output=True, text=True, timeout=120)
+    assert inside.stdout.split() == ["refused", str(errno.EROFS), "writable", "0"], (
+        inside.stdout, inside.stderr[-2000:])
 
 
 # a stand-in kernel: it starts `n` processes that each hold `mib` MiB (written, so in memory), or that share

@@ -23,7 +23,8 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
 - no network (a new network namespace: not even the host's loopback), no other process (a new PID
   namespace), the environment cleared but for a few variables, and no capability, even where the
   grader runs as root (:data:`NO_CAPABILITIES`): the kernel can neither remount what it reads as
-  writable nor unmount the empty folder laid over the course;
+  writable nor unmount the empty folder laid over the course; and the machine's settings
+  (``/proc/sys``) are read-only (:data:`PROC_SETTINGS`), which root may otherwise write without any;
 - bounded memory: each of its processes may hold at most ``memory_bytes`` of data (``RLIMIT_DATA``,
   :data:`KERNEL_MEMORY_GIB` GiB unless the lecturer says otherwise), its ``/tmp`` (held in memory) at most
   :data:`TMP_BYTES`, and no file it writes may grow past :data:`FILE_BYTES`. The limits are hard limits,
@@ -101,11 +102,14 @@ def readable_paths(hidden: list[Path] = ()) -> list[Path]:
 # bubblewrap keeps every capability of a grader run as root (a container, a CI runner): with CAP_SYS_ADMIN
 # the kernel could remount what it reads read-only as writable, or unmount the empty folder over the course
 NO_CAPABILITIES = ("--cap-drop", "ALL")
+# the machine's settings (/proc/sys), read-only: a process whose user is root may write them with no capability
+# (the kernel's core_pattern, which names a program the machine runs as root when a process crashes, among them)
+PROC_SETTINGS = ("--ro-bind", "/proc/sys", "/proc/sys")
 
 
 def _system_binds(tmp_bytes: int | None = None) -> list[str]:
     size = ["--size", str(tmp_bytes)] if tmp_bytes else []
-    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", "--dev", "/dev", *size, "--tmpfs", "/tmp"]
+    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", *PROC_SETTINGS, "--dev", "/dev", *size, "--tmpfs", "/tmp"]
     for name in ("bin", "lib", "lib64", "sbin"):
         link = Path("/") / name
         if link.is_symlink():
