@@ -131,7 +131,7 @@ def memory_bytes(gib: float) -> int:
 def limited(argv: list[str], memory: int) -> list[str]:
     """``argv`` run with the sandbox's hard limits (see the module docstring): ``memory`` bytes of data per
     process, files up to :data:`FILE_BYTES`, no core dump. The limits are set before the kernel starts, and a
-    process without ``CAP_SYS_RESOURCE`` (bubblewrap drops every capability) cannot raise a hard limit."""
+    process without ``CAP_SYS_RESOURCE`` (the sandbox holds none: :data:`NO_CAPABILITIES`) cannot raise a hard limit."""
     exe = shutil.which(argv[0]) or argv[0]
     return [sys.executable, "-c", LIMITS, str(int(memory)), str(FILE_BYTES), "0", exe, *argv[1:]]
 
