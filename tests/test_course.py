@@ -887,12 +887,63 @@ def test_the_watch_stops_a_fork_bomb_in_the_sandbox(tmp_path, needs_sandbox):
     assert (proc.returncode, watch.reason) == (128 + signal.SIGKILL, "it started more than 64 processes at once")
 
 
+# a kernel that writes into the one folder on the grader's disk it may write (its sockets', named by its argument),
+# and into the submission's file it was given, then says what it could do
+DISK = """import os, sys, time
+folder, many = sys.argv[1], sys.argv[2] == "many"
+try:
+    with open("my data.csv", "a") as f:
+        f.write("overwritten")
+    print("wrote the submission's file", flush=True)
+except OSError:
+    print("the submission's file is read-only:", open("my data.csv").read().split(), flush=True)
+for k in range(2000 if many else 12):
+    with open(os.path.join(folder, f"fill{k}"), "wb") as f:
+        f.write(b"" if many else bytes(4 << 20))
+    time.sleep(0.005 if many else 0.05)
+print("done")
+"""
+
+
+@pytest.mark.parametrize("many", [False, True], ids=["bytes", "files"])
+def test_the_watch_stops_a_kernel_that_fills_its_sockets_folder(tmp_path, many, needs_sandbox):
+    """The folder of the kernel's sockets lies on the grader's disk and the kernel writes there (it makes its
+    sockets): 48 MiB written there, or 2,000 empty files, are stopped at 1 MiB or 64 files, the reason says
+    so. Without the watch of that folder the kernel wrote on to the end. The submission's own files, copied
+    to the grader's disk, are read-only to it."""
+    scratch = tmp_path / "scratch"
+    for name in ("work", "kernel"):
+        (scratch / name).mkdir(parents=True)
+    (scratch / "work" / "my data.csv").write_text("depth\n1.5\n")
+    cmd = sandbox.bwrap_command([sys.executable, "-c", DISK, str(scratch / "kernel"), "many" if many else "big"],
+                                scratch, [])
+    results = {}
+    for sockets in (None, scratch / "kernel"):
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        watch = autograde.KernelWatch(proc.pid, sandbox.KERNEL_MEMORY_BYTES, sockets=sockets)
+        watch.start()
+        out, err = proc.communicate(timeout=120)
+        watch.stop()
+        use = sandbox.folder_use(scratch / "kernel")
+        results[sockets is None] = (out.splitlines(), proc.returncode, watch.reason, use)
+        for f in (scratch / "kernel").iterdir():
+            f.unlink()
+    lines, code, reason, (entries, size) = results[False]
+    assert lines == ["the submission's file is read-only: ['depth', '1.5']"], (lines, err[-2000:])
+    assert code == 128 + signal.SIGKILL and entries <= sandbox.SOCKETS_ENTRIES + 20 and size < (24 << 20)
+    assert reason.startswith("it wrote more than 64 files" if many else "it wrote ") and "sockets" in reason, reason
+    assert (scratch / "work" / "my data.csv").read_text() == "depth\n1.5\n"
+    unwatched, code, reason, _ = results[True]
+    assert (unwatched[-1], code, reason) == ("done", 0, None)
+
+
 def test_the_lecturers_page_states_the_kernels_limits_as_the_sandbox_sets_them():
     text = " ".join((Path(__file__).parent.parent / "docs" / "teaching.md").read_text().split())
     stated = [f"each of its processes at most {sandbox.KERNEL_MEMORY_GIB:g} GiB of data",
               f"holds the same {sandbox.KERNEL_MEMORY_GIB:g} GiB with all its processes together, and has at most "
               f"{sandbox.PROCESSES_MAX} processes at once", f"hold every {sandbox.WATCH_S:g} s (`sandbox.WATCH_S`;",
-              f"outgrow the limit by what it writes in {sandbox.WATCH_S:g} s"]
+              f"outgrow the limit by what it writes in {sandbox.WATCH_S:g} s",
+              f"more than {sandbox.SOCKETS_ENTRIES} files or {sandbox.SOCKETS_BYTES >> 20} MiB there"]
     assert [s for s in stated if s not in text] == []
     # the check can fail: a page that still says 32 processes is caught
     assert stated[1] not in text.replace(f"at most {sandbox.PROCESSES_MAX} processes", "at most 32 processes")

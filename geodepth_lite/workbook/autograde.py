@@ -190,7 +190,7 @@ def grade_one(course: Path, student: str, assignment: str, sandboxed: bool, limi
         tail = bytearray()
         reader = threading.Thread(target=keep_tail, args=(proc.stdout, tail, OUTPUT_TAIL_BYTES), daemon=True)
         reader.start()
-        watch = KernelWatch(proc.pid, memory)
+        watch = KernelWatch(proc.pid, memory, sockets=scratch / "kernel")
         watch.start()
         try:
             proc.wait(timeout=limit_s)
@@ -218,11 +218,12 @@ class KernelWatch(threading.Thread):
     (``root``: the sandboxed kernel and whatever it started) hold together; past ``memory`` bytes or
     :data:`~geodepth_lite.workbook.sandbox.PROCESSES_MAX` processes, each is killed (bubblewrap first, which
     ends its PID namespace) and :attr:`reason` says why. RLIMIT_DATA bounds each process; this bounds their
-    sum, from outside the sandbox, where the student's code cannot reach it."""
+    sum, from outside the sandbox, where the student's code cannot reach it. It stops them too where the
+    folder of the kernel's sockets (``sockets``, on the grader's disk) holds more than its sockets need."""
 
-    def __init__(self, root: int, memory: int, processes: int = sandbox.PROCESSES_MAX):
+    def __init__(self, root: int, memory: int, processes: int = sandbox.PROCESSES_MAX, sockets: Path | None = None):
         super().__init__(daemon=True)
-        self.root, self.memory, self.processes = root, memory, processes
+        self.root, self.memory, self.processes, self.sockets = root, memory, processes, sockets
         self.reason: str | None = None
         self._done = threading.Event()
 
@@ -230,6 +231,8 @@ class KernelWatch(threading.Thread):
         while not self._done.wait(sandbox.WATCH_S):
             pids = sandbox.descendants(self.root)
             why = sandbox.over_limits(pids, self.memory, self.processes)
+            if why is None and self.sockets is not None:
+                why = sandbox.sockets_over(self.sockets)
             if why is None:
                 continue
             self.reason = self.reason or why

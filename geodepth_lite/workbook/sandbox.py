@@ -15,8 +15,8 @@ kernel protocol, never as a file the kernel could read ahead. Inside the sandbox
   course folder, a returned-notebooks folder or a grade table kept there), and the course folder
   hidden under an empty one where it lies inside a folder the kernel reads;
 - read-write: an empty ``/tmp`` and, inside it, its working folder (:data:`WORK_INSIDE`), which holds
-  a copy of each of the submission's files but the notebooks (on the grader's disk, thrown away
-  afterwards) and whatever the kernel writes there (in ``/tmp``, so bounded with it: a notebook cannot
+  a read-only copy of each of the submission's files but the notebooks (on the grader's disk, thrown
+  away afterwards) and whatever the kernel writes there (in ``/tmp``, so bounded with it: a notebook cannot
   fill the grader's disk with files); that folder stays off ``sys.path`` (``PYTHONSAFEPATH``: a module
   the notebook writes there is never imported in place of an installed one); and the folder of its
   connection sockets;
@@ -154,8 +154,8 @@ def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
             cmd += ["--tmpfs", str(path)]
     work, sockets = scratch / "work", scratch / "kernel"
     cmd += ["--dir", str(WORK_INSIDE)]  # in its bounded /tmp: a file it writes there counts in TMP_BYTES, not on disk
-    for item in sorted(work.iterdir()) if work.is_dir() else []:  # the submission's own files, at their names
-        cmd += ["--bind", str(item), str(WORK_INSIDE / item.name)]
+    for item in sorted(work.iterdir()) if work.is_dir() else []:  # the submission's own files, at their names,
+        cmd += ["--ro-bind", str(item), str(WORK_INSIDE / item.name)]  # read-only: they lie on the grader's disk
     cmd += ["--bind", str(sockets), str(sockets), "--chdir", str(WORK_INSIDE),
             "--setenv", "HOME", "/tmp", "--setenv", "PATH", f"{Path(sys.executable).parent}:/usr/bin:/bin",
             "--setenv", "PYTHONPATH", str(_package_root()), "--setenv", "MPLBACKEND", "Agg",
@@ -239,6 +239,42 @@ def held_bytes(pid: int) -> int:
     except OSError:
         pass
     return resident_bytes(pid)
+
+
+# the folder of the kernel's connection sockets lies on the grader's disk, where the kernel may write (it makes
+# its sockets there): what it holds is watched too. Its sockets and connection file take a few hundred bytes
+SOCKETS_BYTES = 1 << 20
+SOCKETS_ENTRIES = 64
+
+
+def folder_use(folder: Path, entries_max: int = SOCKETS_ENTRIES) -> tuple[int, int]:
+    """(entries, bytes of files) under ``folder``, counting no further than ``entries_max`` + 1 entries (so a
+    folder of a million files costs no more to read than one of 65); (0, 0) where it cannot be read."""
+    entries, size, todo = 0, 0, [folder]
+    while todo and entries <= entries_max:
+        try:
+            with os.scandir(todo.pop()) as it:
+                for entry in it:
+                    entries += 1
+                    if entries > entries_max:
+                        break
+                    if entry.is_dir(follow_symlinks=False):
+                        todo.append(entry.path)
+                    elif entry.is_file(follow_symlinks=False):
+                        size += entry.stat(follow_symlinks=False).st_size
+        except OSError:
+            continue  # removed while it was read
+    return entries, size
+
+
+def sockets_over(folder: Path) -> str | None:
+    """Why the kernel's sockets folder ``folder`` holds too much, in words, or None."""
+    entries, size = folder_use(folder)
+    if entries > SOCKETS_ENTRIES or size > SOCKETS_BYTES:
+        what = f"more than {SOCKETS_ENTRIES} files" if entries > SOCKETS_ENTRIES else f"{size / (1 << 20):.1f} MiB"
+        return (f"it wrote {what} into the folder of its connection sockets, on the grader's disk (at most "
+                f"{SOCKETS_ENTRIES} files, {SOCKETS_BYTES >> 20} MiB)")
+    return None
 
 
 def over_limits(pids: list[int], memory: int, processes: int = PROCESSES_MAX) -> str | None:
