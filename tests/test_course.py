@@ -833,6 +833,40 @@ def test_the_kernel_cannot_write_the_machines_settings(tmp_path, needs_sandbox):
         inside.stdout, inside.stderr[-2000:])
 
 
+DEVICES = """import multiprocessing, os
+try:
+    for k in range(3):
+        with open(f"/dev/shm/fill{k}", "wb") as f:
+            f.write(bytes(100 << 20))
+    print("wrote 300 MiB into /dev/shm")
+except OSError as exc:
+    print("stopped", exc.errno, "at", sum(os.path.getsize(f"/dev/shm/{n}") >> 20 for n in os.listdir("/dev/shm")))
+for name in os.listdir("/dev/shm"):
+    os.unlink(f"/dev/shm/{name}")
+try:
+    open("/dev/fill", "w").write("x")
+    print("wrote into /dev")
+except OSError as exc:
+    print("refused", exc.errno)
+with multiprocessing.Lock():  # a semaphore of its own in /dev/shm
+    open("/dev/null", "w").write("still writable")
+print("lock and /dev/null")
+"""
+
+
+def test_the_kernel_holds_no_more_than_a_little_in_dev_shm(tmp_path, needs_sandbox):
+    """bubblewrap's /dev is a tmpfs of half the machine's memory, held by no process the watch counts: a kernel
+    wrote 300 MiB into /dev/shm there (checked before the change). Now /dev/shm holds SHM_BYTES and the rest
+    of /dev is read-only; a semaphore and /dev/null still work."""
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    inside = subprocess.run(sandbox.bwrap_command([sys.executable, "-c", DEVICES], tmp_path / "scratch", []),
+                            capture_output=True, text=True, timeout=120)
+    assert inside.stdout.splitlines() == [f"stopped {errno.ENOSPC} at {sandbox.SHM_BYTES >> 20}",
+                                          f"refused {errno.EROFS}", "lock and /dev/null"], (
+        inside.stdout, inside.stderr[-2000:])
+
+
 # a stand-in kernel: it starts `n` processes that each hold `mib` MiB (written, so in memory), or that share
 # them (forked after the parent wrote them), prints their exit statuses and ends
 HOLDERS = """import os, sys, time
@@ -943,7 +977,8 @@ def test_the_lecturers_page_states_the_kernels_limits_as_the_sandbox_sets_them()
               f"holds the same {sandbox.KERNEL_MEMORY_GIB:g} GiB with all its processes together, and has at most "
               f"{sandbox.PROCESSES_MAX} processes at once", f"hold every {sandbox.WATCH_S:g} s (`sandbox.WATCH_S`;",
               f"outgrow the limit by what it writes in {sandbox.WATCH_S:g} s",
-              f"more than {sandbox.SOCKETS_ENTRIES} files or {sandbox.SOCKETS_BYTES >> 20} MiB there"]
+              f"more than {sandbox.SOCKETS_ENTRIES} files or {sandbox.SOCKETS_BYTES >> 20} MiB there",
+              f"its `/dev/shm` at most {sandbox.SHM_BYTES >> 20} MiB"]
     assert [s for s in stated if s not in text] == []
     # the check can fail: a page that still says 32 processes is caught
     assert stated[1] not in text.replace(f"at most {sandbox.PROCESSES_MAX} processes", "at most 32 processes")

@@ -105,11 +105,17 @@ NO_CAPABILITIES = ("--cap-drop", "ALL")
 # the machine's settings (/proc/sys), read-only: a process whose user is root may write them with no capability
 # (the kernel's core_pattern, which names a program the machine runs as root when a process crashes, among them)
 PROC_SETTINGS = ("--ro-bind", "/proc/sys", "/proc/sys")
+# bubblewrap's /dev is a tmpfs of half the machine's memory, /dev/shm in it: written files there are held in
+# memory and counted in no process. /dev/shm gets a small tmpfs of its own (semaphores, shared tensors), the
+# rest of /dev is read-only (its devices still open for writing, /dev/null among them)
+SHM_BYTES = 64 << 20
+DEVICES = ("--size", str(SHM_BYTES), "--tmpfs", "/dev/shm", "--remount-ro", "/dev")
 
 
 def _system_binds(tmp_bytes: int | None = None) -> list[str]:
     size = ["--size", str(tmp_bytes)] if tmp_bytes else []
-    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", *PROC_SETTINGS, "--dev", "/dev", *size, "--tmpfs", "/tmp"]
+    cmd = ["--ro-bind", "/usr", "/usr", "--proc", "/proc", *PROC_SETTINGS, "--dev", "/dev", *DEVICES,
+           *size, "--tmpfs", "/tmp"]
     for name in ("bin", "lib", "lib64", "sbin"):
         link = Path("/") / name
         if link.is_symlink():
