@@ -923,34 +923,38 @@ def test_the_watch_stops_a_fork_bomb_in_the_sandbox(tmp_path, needs_sandbox):
 
 # a kernel that writes into the one folder on the grader's disk it may write (its sockets', named by its argument),
 # and into the submission's file it was given, then says what it could do
-DISK = """import os, sys, time
-folder, many = sys.argv[1], sys.argv[2] == "many"
+DISK = """import ctypes, os, sys, time
+folder, how = sys.argv[1], sys.argv[2]
+many = how == "many"
 try:
     with open("my data.csv", "a") as f:
         f.write("overwritten")
     print("wrote the submission's file", flush=True)
 except OSError:
     print("the submission's file is read-only:", open("my data.csv").read().split(), flush=True)
+libc = ctypes.CDLL(None, use_errno=True)
 for k in range(2000 if many else 12):
     with open(os.path.join(folder, f"fill{k}"), "wb") as f:
-        f.write(b"" if many else bytes(4 << 20))
+        if how == "kept":  # 4 MiB of disk kept past the file's end (FALLOC_FL_KEEP_SIZE): its length stays 0
+            assert libc.fallocate(f.fileno(), 1, ctypes.c_long(0), ctypes.c_long(4 << 20)) == 0
+        f.write(b"" if many or how == "kept" else bytes(4 << 20))
     time.sleep(0.005 if many else 0.05)
 print("done")
 """
 
 
-@pytest.mark.parametrize("many", [False, True], ids=["bytes", "files"])
-def test_the_watch_stops_a_kernel_that_fills_its_sockets_folder(tmp_path, many, needs_sandbox):
+@pytest.mark.parametrize("how", ["big", "kept", "many"])
+def test_the_watch_stops_a_kernel_that_fills_its_sockets_folder(tmp_path, how, needs_sandbox):
     """The folder of the kernel's sockets lies on the grader's disk and the kernel writes there (it makes its
-    sockets): 48 MiB written there, or 2,000 empty files, are stopped at 1 MiB or 64 files, the reason says
-    so. Without the watch of that folder the kernel wrote on to the end. The submission's own files, copied
-    to the grader's disk, are read-only to it."""
+    sockets): 48 MiB written there, 48 MiB of disk kept past the ends of empty files, or 2,000 empty files,
+    are stopped at 1 MiB or 64 files, the reason says so. Without the watch of that folder the kernel wrote
+    on to the end. The submission's own files, copied to the grader's disk, are read-only to it."""
+    many = how == "many"
     scratch = tmp_path / "scratch"
     for name in ("work", "kernel"):
         (scratch / name).mkdir(parents=True)
     (scratch / "work" / "my data.csv").write_text("depth\n1.5\n")
-    cmd = sandbox.bwrap_command([sys.executable, "-c", DISK, str(scratch / "kernel"), "many" if many else "big"],
-                                scratch, [])
+    cmd = sandbox.bwrap_command([sys.executable, "-c", DISK, str(scratch / "kernel"), how], scratch, [])
     results = {}
     for sockets in (None, scratch / "kernel"):
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -254,7 +254,7 @@ SOCKETS_ENTRIES = 64
 
 
 def folder_use(folder: Path, entries_max: int = SOCKETS_ENTRIES) -> tuple[int, int]:
-    """(entries, bytes of files) under ``folder``, counting no further than ``entries_max`` + 1 entries (so a
+    """(entries, bytes of files on disk) under ``folder``, counting no further than ``entries_max`` + 1 entries (so a
     folder of a million files costs no more to read than one of 65); (0, 0) where it cannot be read."""
     entries, size, todo = 0, 0, [folder]
     while todo and entries <= entries_max:
@@ -266,8 +266,9 @@ def folder_use(folder: Path, entries_max: int = SOCKETS_ENTRIES) -> tuple[int, i
                         break
                     if entry.is_dir(follow_symlinks=False):
                         todo.append(entry.path)
-                    elif entry.is_file(follow_symlinks=False):
-                        size += entry.stat(follow_symlinks=False).st_size
+                    elif entry.is_file(follow_symlinks=False):  # its length, or its blocks where more
+                        st = entry.stat(follow_symlinks=False)  # (space kept past its end: fallocate's KEEP_SIZE)
+                        size += max(st.st_size, st.st_blocks * 512)
         except OSError:
             continue  # removed while it was read
     return entries, size
