@@ -682,7 +682,7 @@ def test_the_sandbox_shows_neither_solutions_nor_the_course_folder(tmp_path):
     assert "--unshare-all" in cmd and "--clearenv" in cmd
     # the kernel's command, after the program that sets the hard limits (4 GiB of data by default) and becomes it
     assert cmd[cmd.index("--") + 1:] == [sys.executable, "-c", sandbox.LIMITS, str(4 << 30), str(sandbox.FILE_BYTES),
-                                         "0", shutil.which("python") or "python"]
+                                         "0", str(sandbox.FILES_OPEN), shutil.which("python") or "python"]
     where = cmd.index("/tmp")  # its /tmp: a tmpfs of bounded size
     assert cmd[where - 3:where] == ["--size", str(sandbox.TMP_BYTES), "--tmpfs"]
     assert sandbox.readable_paths([root / "data_manifests"]).count(root / "data_manifests") == 0
@@ -975,6 +975,44 @@ def test_the_watch_stops_a_kernel_that_fills_its_sockets_folder(tmp_path, how, n
     assert (unwatched[-1], code, reason) == ("done", 0, None)
 
 
+# a kernel that holds memory in in-memory files (memfd_create) it writes but never maps: no resident size shows it
+MEMFD = """import os, resource, time
+print("open files at most", resource.getrlimit(resource.RLIMIT_NOFILE), flush=True)
+held = []
+for k in range(3):
+    held.append(os.memfd_create(f"hold{k}"))
+    os.write(held[-1], bytes(120 << 20))
+print("held", flush=True)
+time.sleep(8)
+print("done", flush=True)
+"""
+
+
+def test_the_watch_counts_the_memory_of_in_memory_files(tmp_path, monkeypatch, needs_sandbox):
+    """360 MiB written into three in-memory files (os.memfd_create) and never mapped show in no process's
+    resident size: watched under 256 MiB, the kernel is stopped and the reason gives what it held; without
+    the files counted, it runs to its end. A process may hold at most FILES_OPEN files open (the watch reads
+    them all)."""
+    for name in ("work", "kernel"):
+        (tmp_path / "scratch" / name).mkdir(parents=True)
+    cmd = sandbox.bwrap_command([sys.executable, "-c", MEMFD], tmp_path / "scratch", [])
+    results = []
+    for counted in (True, False):
+        if not counted:
+            monkeypatch.setattr(sandbox, "memory_files_bytes", lambda pids: 0)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        watch = autograde.KernelWatch(proc.pid, 256 << 20)
+        watch.start()
+        out, err = proc.communicate(timeout=120)
+        watch.stop()
+        results.append((out.splitlines(), proc.returncode, watch.reason))
+    limit = f"open files at most ({sandbox.FILES_OPEN}, {sandbox.FILES_OPEN})"
+    (lines, code, reason), unwatched = results
+    assert lines[0] == limit and "done" not in lines and code == 128 + signal.SIGKILL, (lines, code, err[-2000:])
+    assert reason.startswith("its processes held 0.3") and "over the limit of 0.25 GiB" in reason, reason
+    assert unwatched == ([limit, "held", "done"], 0, None)
+
+
 def test_the_lecturers_page_states_the_kernels_limits_as_the_sandbox_sets_them():
     text = " ".join((Path(__file__).parent.parent / "docs" / "teaching.md").read_text().split())
     stated = [f"each of its processes at most {sandbox.KERNEL_MEMORY_GIB:g} GiB of data",
@@ -982,7 +1020,8 @@ def test_the_lecturers_page_states_the_kernels_limits_as_the_sandbox_sets_them()
               f"{sandbox.PROCESSES_MAX} processes at once", f"hold every {sandbox.WATCH_S:g} s (`sandbox.WATCH_S`;",
               f"outgrow the limit by what it writes in {sandbox.WATCH_S:g} s",
               f"more than {sandbox.SOCKETS_ENTRIES} files or {sandbox.SOCKETS_BYTES >> 20} MiB there",
-              f"its `/dev/shm` at most {sandbox.SHM_BYTES >> 20} MiB"]
+              f"its `/dev/shm` at most {sandbox.SHM_BYTES >> 20} MiB",
+              f"each process may hold at most {sandbox.FILES_OPEN} files open"]
     assert [s for s in stated if s not in text] == []
     # the check can fail: a page that still says 32 processes is caught
     assert stated[1] not in text.replace(f"at most {sandbox.PROCESSES_MAX} processes", "at most 32 processes")

@@ -63,11 +63,15 @@ KERNEL_MEMORY_BYTES = int(KERNEL_MEMORY_GIB * (1 << 30))  # the same, in bytes
 TMP_BYTES = 1 << 30  # the sandbox's /tmp, a tmpfs: what is written there is held in memory
 FILE_BYTES = 1 << 30  # the largest file the kernel may write (its copies of the submission's files are on disk)
 WORK_INSIDE = Path("/tmp/work")  # the kernel's working folder, inside its /tmp
-# run as `python -c LIMITS DATA FSIZE CORE ARGV...`: sets each as a hard limit, then becomes ARGV
+FILES_OPEN = 1024  # files one process may hold open (the grader reads them all: see memory_files_bytes)
+# run as `python -c LIMITS DATA FSIZE CORE NOFILE ARGV...`: sets each as a hard limit (or keeps the machine's,
+# where that is lower: no process without capabilities may raise one), then becomes ARGV
 LIMITS = ("import os, resource, sys\n"
-          "for name, value in zip(('RLIMIT_DATA', 'RLIMIT_FSIZE', 'RLIMIT_CORE'), sys.argv[1:4]):\n"
-          "    resource.setrlimit(getattr(resource, name), (int(value), int(value)))\n"
-          "os.execv(sys.argv[4], sys.argv[4:])\n")
+          "for name, value in zip(('RLIMIT_DATA', 'RLIMIT_FSIZE', 'RLIMIT_CORE', 'RLIMIT_NOFILE'), sys.argv[1:5]):\n"
+          "    hard = resource.getrlimit(getattr(resource, name))[1]\n"
+          "    value = int(value) if hard == resource.RLIM_INFINITY else min(int(value), hard)\n"
+          "    resource.setrlimit(getattr(resource, name), (value, value))\n"
+          "os.execv(sys.argv[5], sys.argv[5:])\n")
 
 
 def _package_root() -> Path:
@@ -136,10 +140,11 @@ def memory_bytes(gib: float) -> int:
 
 def limited(argv: list[str], memory: int) -> list[str]:
     """``argv`` run with the sandbox's hard limits (see the module docstring): ``memory`` bytes of data per
-    process, files up to :data:`FILE_BYTES`, no core dump. The limits are set before the kernel starts, and a
-    process without ``CAP_SYS_RESOURCE`` (the sandbox holds none: :data:`NO_CAPABILITIES`) cannot raise a hard limit."""
+    process, files up to :data:`FILE_BYTES`, no core dump, at most :data:`FILES_OPEN` files open. The limits
+    are set before the kernel starts, and a process without ``CAP_SYS_RESOURCE`` (the sandbox holds none:
+    :data:`NO_CAPABILITIES`) cannot raise a hard limit."""
     exe = shutil.which(argv[0]) or argv[0]
-    return [sys.executable, "-c", LIMITS, str(int(memory)), str(FILE_BYTES), "0", exe, *argv[1:]]
+    return [sys.executable, "-c", LIMITS, str(int(memory)), str(FILE_BYTES), "0", str(FILES_OPEN), exe, *argv[1:]]
 
 
 def bwrap_command(argv: list[str], scratch: Path, hidden: list[Path],
@@ -284,15 +289,40 @@ def sockets_over(folder: Path) -> str | None:
     return None
 
 
+def memory_files_bytes(pids: list[int]) -> int:
+    """The memory that the in-memory files (``os.memfd_create``'s) the processes ``pids`` hold open take, each
+    file counted once: what is written there shows in no process's resident size until it is mapped."""
+    seen, total = set(), 0
+    for pid in pids:
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")  # at most FILES_OPEN: a hard limit in the sandbox
+        except OSError:
+            continue  # ended
+        for fd in fds:
+            link = f"/proc/{pid}/fd/{fd}"
+            try:
+                if not os.readlink(link).startswith("/memfd:"):
+                    continue
+                st = os.stat(link)
+            except OSError:
+                continue  # closed while it was read
+            if (st.st_dev, st.st_ino) not in seen:
+                seen.add((st.st_dev, st.st_ino))
+                total += st.st_blocks * 512  # its pages, not its length (a length alone holds no memory)
+    return total
+
+
 def over_limits(pids: list[int], memory: int, processes: int = PROCESSES_MAX) -> str | None:
     """Why the processes ``pids`` (a kernel's) are past their limits together, in words, or None: more than
     ``processes`` of them, or more than ``memory`` bytes held (their resident sizes are added first, which is
-    cheap; their shares only where that sum is over, shared pages then counted once)."""
+    cheap; their shares only where that sum is over, shared pages then counted once; and to each, the
+    in-memory files they hold open)."""
     if len(pids) > processes:
         return f"it started more than {processes} processes at once"
-    if sum(resident_bytes(p) for p in pids) <= memory:
+    files = memory_files_bytes(pids)
+    if files + sum(resident_bytes(p) for p in pids) <= memory:
         return None
-    held = sum(held_bytes(p) for p in pids)
+    held = files + sum(held_bytes(p) for p in pids)
     if held <= memory:
         return None
     return (f"its processes held {held / (1 << 30):.2f} GiB together, over the limit of "
