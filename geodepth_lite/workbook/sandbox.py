@@ -292,7 +292,7 @@ def sockets_over(folder: Path) -> str | None:
 def memory_files_bytes(pids: list[int]) -> int:
     """The memory that the in-memory files (``os.memfd_create``'s) the processes ``pids`` hold open take, each
     file counted once: what is written there shows in no process's resident size until it is mapped."""
-    seen, total = set(), 0
+    seen, pages = set(), 0
     for pid in pids:
         try:
             fds = os.listdir(f"/proc/{pid}/fd")  # at most FILES_OPEN: a hard limit in the sandbox
@@ -308,8 +308,8 @@ def memory_files_bytes(pids: list[int]) -> int:
                 continue  # closed while it was read
             if (st.st_dev, st.st_ino) not in seen:
                 seen.add((st.st_dev, st.st_ino))
-                total += st.st_blocks * 512  # its pages, not its length (a length alone holds no memory)
-    return total
+                pages += st.st_blocks * 512  # its pages, not its length (a length alone holds no memory)
+    return pages
 
 
 def over_limits(pids: list[int], memory: int, processes: int = PROCESSES_MAX) -> str | None:
