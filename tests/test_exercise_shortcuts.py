@@ -1038,6 +1038,9 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                "from traitlets.config import Application\nshell = Application.instance().shell",
                "import ipywidgets\nslider = ipywidgets.IntSlider()\nevents_seen = 3", {}),
     "ipython": ("%xmode Plain\nrate = 100 % 7", "rate = 100 % 7\nok = rate != 2  # not a shell line", {}),
+    "module-value": ("import sys\n\nmine = sys\nmine.setprofile(None)",
+                     "import numpy as np\n\nrng = np.random.default_rng(0)\nkey = np.abs\n"
+                     "order = sorted([3, -1], key=np.abs)\nok = isinstance(rng, np.random.Generator)", {}),
 }
 NOTEBOOK_RULES = {"missing-cell"}  # found in a notebook, not in one cell: tests/test_exercises.py plants it
 
@@ -1150,6 +1153,47 @@ def test_a_write_the_syntax_hides_is_flagged_and_misses_the_answer_key(name, mon
     assert outcome(answer, check.split("### BEGIN HIDDEN TESTS")[0]) is None
     assert isinstance(outcome(answer, check), AssertionError), name
     assert rule in {f.rule for f in reviewed(ident, answer)}, name
+
+
+# 05.3 answered with the package's own verdicts (the function the exercise forbids), after the grading guard
+# was turned off through a module held under another name: each passed every check, hidden tests and key included
+# (the answer is the reference), with no flag, until the review read a module used as a value
+_KEPT = "try:\n    _kept\nexcept NameError:  # the first run, before the hidden test, is not guarded\n" \
+        "    _kept = [ablation.comparisons]\n"
+_VERDICTS = "verdicts = {(m, c): q['verdict'] for _, m, c, q in ablation.comparisons(toy_result)}\n"
+_NO_GUARD = "import contextlib\n\nfrom geodepth_lite.workbook import grading as _g\n\n"
+_OFF = "lambda *args, **kwargs: contextlib.nullcontext()"
+MODULE_UNDER_ANOTHER_NAME = {  # name -> (05.3's answer, what the review finds in it without the module-value rule)
+    "the guard replaced through a second name": (_NO_GUARD + f"_m = _g\n_m.forbid = {_OFF}\n" + _VERDICTS, {"guard"}),
+    "through a function's argument": (_NO_GUARD + f"\ndef off(m):\n    m.forbid = {_OFF}\n\n\noff(_g)\n" + _VERDICTS,
+                                      {"guard"}),
+    "through a loop": (_NO_GUARD + f"for _m in [_g]:\n    _m.forbid = {_OFF}\n" + _VERDICTS, {"guard"}),
+    "through what a call returns": (_NO_GUARD + f"_m = max([_g], key=id)\n_m.forbid = {_OFF}\n" + _VERDICTS, set()),
+    "through a submodule read as an attribute": ("import contextlib\n\nfrom geodepth_lite import workbook as _w\n\n"
+                                                 f"_m = _w.grading\n_m.forbid = {_OFF}\n" + _VERDICTS, {"guard"}),
+    "the guard's hook and the reference put back through a list": (
+        _KEPT + "import sys\n\n_mods = [ablation, sys]\n_mods[0].comparisons = _kept[0]\n_mods[1].setprofile(None)\n"
+        + _VERDICTS, set()),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MODULE_UNDER_ANOTHER_NAME))
+def test_the_guard_turned_off_through_a_module_under_another_name_is_flagged(name, monkeypatch):
+    """Each answer calls the function 05.3 forbids, after turning the grading guard off through a module it
+    holds under another name (a name of its own, a function's argument, a loop, a call's result, a list); so
+    each passes every check when run, the hidden tests and the answer key included, and only the review stops
+    it. The module used as a value flags each; an attribute set through a name that may stand for a module
+    flags four of them again, and the other two (a call's result, a list) only the first rule sees."""
+    from geodepth_lite.evaluation import ablation
+
+    monkeypatch.setattr(grading, "forbid", grading.forbid)  # put back after the answer replaces it
+    monkeypatch.setattr(ablation, "comparisons", ablation.comparisons)
+    code, without = MODULE_UNDER_ANOTHER_NAME[name]
+    answer = answer_with(EXERCISES["05-3"].answer, (code,))
+    assert outcome(answer, EXERCISES["05-3"].check) is None and sys.getprofile() is None, name
+    assert "module-value" in {f.rule for f in reviewed("05-3", answer)}, name
+    monkeypatch.setattr(review, "_module_value_findings", lambda tree, aliases: [])
+    assert {f.rule for f in reviewed("05-3", answer)} == without, name
 
 
 # exercise -> a wrong answer that puts itself in the package, where the checks find their reference

@@ -22,10 +22,14 @@ from __future__ import annotations
 
 import ast
 import builtins
+import contextlib
 import functools
+import importlib.machinery
 import importlib.metadata
+import inspect
 import re
 import sys
+import types
 from dataclasses import dataclass, replace
 
 from geodepth_lite.workbook import exercises
@@ -62,6 +66,8 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
                "cannot read",
     "missing-cell": "the exercise's answer cell is missing or lost its grading metadata, so its answer cannot be "
                     "reviewed where the checks expect it",
+    "module-value": "uses a module as a value (binds it to another name, puts it in a container, passes it to a "
+                    "function): the review can no longer tell which of its functions the answer calls or replaces",
 }
 CELL_MAX_CHARS = 200_000  # a longer cell is not parsed but flagged (6 MB of `x = 1` lines: 2.4 GB to parse)
 OWN_EXERCISE = {"literal-answer", "given-inputs", "check-names", "missing-cell"}  # the other rules change the kernel
@@ -190,8 +196,9 @@ def top_level_values(tree: ast.Module) -> dict[str, list[ast.AST]]:
 
 
 def _aliases(tree: ast.AST) -> dict[str, str]:
-    """local name -> the module or module attribute it stands for (``o`` -> ``os`` after ``import os as o``);
-    ``os`` and ``sys`` stand for themselves where an earlier cell imported them."""
+    """local name -> the module or module attribute it stands for (``o`` -> ``os`` after ``import os as o``,
+    and after ``o = os`` or ``p = os.path``: a plain assignment passes the name on); ``os`` and ``sys`` stand
+    for themselves where an earlier cell imported them."""
     out = {"os": "os", "sys": "sys"}
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -200,7 +207,26 @@ def _aliases(tree: ast.AST) -> dict[str, str]:
         elif isinstance(node, ast.ImportFrom) and node.module:
             for a in node.names:
                 out[a.asname or a.name] = f"{node.module}.{a.name}"
+    passed = [(t.id, value) for t, value in _assignments(tree) if isinstance(t, ast.Name)]
+    for _ in range(len(passed)):  # a chain of names (a = os; b = a) is passed on one link a round
+        grown = {name: dotted for name, value in passed if name not in out
+                 for dotted in [_dotted(value, out)] if dotted}
+        if not grown:
+            break
+        out.update(grown)
     return out
+
+
+def _assignments(tree: ast.AST) -> list[tuple[ast.expr, ast.expr]]:
+    """(target, value) of each ``=``, annotated ``=`` and ``:=`` of a piece of code."""
+    return [(t, n.value) for n in ast.walk(tree) if isinstance(n, (ast.Assign, ast.AnnAssign, ast.NamedExpr))
+            and n.value is not None for t in (n.targets if isinstance(n, ast.Assign) else [n.target])]
+
+
+def _written_getattr(node: ast.AST) -> bool:
+    """``getattr(x, "name")`` or ``hasattr(x, "name")``: an attribute read under a name written in the cell."""
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("getattr", "hasattr")
+            and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str))
 
 
 def _module_rule(dotted: str) -> str | None:
@@ -221,11 +247,12 @@ def _module_rule(dotted: str) -> str | None:
 
 
 def _dotted(node: ast.AST, aliases: dict[str, str]) -> str | None:
-    """``os.system`` for ``o.system`` after ``import os as o``; None for anything but a name's attributes."""
+    """``os.system`` for ``o.system`` after ``import os as o``, and for ``getattr(o, "system")``; None for
+    anything but a name's attributes."""
     parts = []
-    while isinstance(node, ast.Attribute):
-        parts.append(node.attr)
-        node = node.value
+    while isinstance(node, ast.Attribute) or _written_getattr(node):
+        parts.append(node.attr if isinstance(node, ast.Attribute) else node.args[1].value)
+        node = node.value if isinstance(node, ast.Attribute) else node.args[0]
     if not isinstance(node, ast.Name) or node.id not in aliases:
         return None
     return ".".join([aliases[node.id], *reversed(parts)])
@@ -237,6 +264,37 @@ def installed_modules() -> frozenset[str]:
     Any other is a file beside the notebook, which the notebook itself may have written, out of the review."""
     return frozenset({*sys.stdlib_module_names, *sys.builtin_module_names, "geodepth_lite",
                       *importlib.metadata.packages_distributions()})
+
+
+@functools.cache
+def names_module(dotted: str) -> bool:
+    """Whether ``dotted`` names a module: ``numpy``, ``os.path``, ``geodepth_lite.workbook.grading``, or a
+    module another one holds (``geodepth_lite.evaluation.ablation.np``). Read from the modules the grader has
+    loaded (the package's own are imported for it; attributes are read as they are stored, running no
+    code) and, past those, from the installed files, found without running them."""
+    parts = dotted.split(".")
+    if any(DUNDER.fullmatch(p) for p in parts):
+        return False  # __main__ and its kin are flagged by name, and never imported here
+    found, locations = None, None  # what the name reached so far; where its submodules' files lie
+    for depth, part in enumerate(parts):
+        prefix = ".".join(parts[: depth + 1])
+        if prefix.split(".")[0] == "geodepth_lite" and (depth == 0 or isinstance(found, types.ModuleType)):
+            with contextlib.suppress(Exception):  # one that cannot be imported here is read from its file
+                importlib.import_module(prefix)  # the package's own modules run nothing when imported
+        if prefix in sys.modules:
+            found = sys.modules[prefix]
+        elif isinstance(found, types.ModuleType) and inspect.getattr_static(found, part, None) is not None:
+            found = inspect.getattr_static(found, part)
+        elif depth == 0 or locations:
+            found = importlib.machinery.PathFinder.find_spec(part, locations)  # a file, not loaded
+            if found is None:
+                return False
+        else:
+            return False
+        spec = found if isinstance(found, importlib.machinery.ModuleSpec) else getattr(found, "__spec__", None)
+        locations = getattr(spec, "submodule_search_locations", None) if isinstance(
+            found, (types.ModuleType, importlib.machinery.ModuleSpec)) else None
+    return isinstance(found, (types.ModuleType, importlib.machinery.ModuleSpec))
 
 
 def _local_imports(node: ast.Import | ast.ImportFrom) -> list[str]:
@@ -262,7 +320,7 @@ def _import_findings(tree: ast.AST, aliases: dict[str, str]) -> list[Finding]:
                 continue
             found += [Finding(node.lineno, r, f"from {node.module} import {a.name}") for a in node.names
                       for r in [_module_rule(f"{node.module}.{a.name}")] if r]
-        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Load):
+        elif (isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Load)) or _written_getattr(node):
             dotted = _dotted(node, aliases)
             rule = _module_rule(dotted) if dotted and "." in dotted else None
             if rule:
@@ -367,15 +425,66 @@ def _class_findings(tree: ast.AST) -> list[Finding]:
     return found
 
 
+def _module_value_findings(tree: ast.AST, aliases: dict[str, str]) -> list[Finding]:
+    """Modules used other than through their attributes (``m = grading``, ``[ablation, sys]``, ``f(grading)``,
+    ``for m in [sys]``, ``p = np.random``): past that point the review's rules, which read ``sys.setprofile``
+    or ``grading.forbid = ...`` by the module's name, no longer see what is done with it."""
+    parents = {id(child): node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
+    found = []
+    for node in ast.walk(tree):
+        if not ((isinstance(node, (ast.Name, ast.Attribute)) and isinstance(node.ctx, ast.Load))
+                or _written_getattr(node)):
+            continue
+        parent = parents.get(id(node))
+        if ((isinstance(parent, ast.Attribute) and parent.value is node) or (isinstance(parent, ast.Call) and (
+                parent.func is node or (_written_getattr(parent) and parent.args[0] is node)))):
+            continue  # read through its attributes (``m.f``, ``getattr(m, "f")``), or called
+        dotted = _dotted(node, aliases)
+        if dotted and names_module(dotted):
+            found.append(Finding(node.lineno, "module-value", f"{ast.unparse(node)[:60]} (the module {dotted})"))
+    return found
+
+
+def _made_names(tree: ast.AST) -> set[str]:
+    """The names the cell binds only to objects it makes: what a call returns, a literal or comprehension, a
+    function or class it defines, and ``self`` (the first parameter of a method of one of its classes, but a
+    static one). A name also bound to anything else (another name, an attribute or item, a loop's element, a
+    function's argument) may stand for a module or for an object made elsewhere, such as the checks'."""
+    made_values = (ast.Call, ast.Constant, ast.List, ast.Tuple, ast.Set, ast.Dict, ast.ListComp, ast.SetComp,
+                   ast.DictComp, ast.GeneratorExp, ast.Lambda, ast.JoinedStr, ast.BinOp, ast.UnaryOp, ast.Compare)
+    made_sites = {id(t) for t, value in _assignments(tree) if isinstance(value, made_values)}
+    made_sites |= {id(n.target) for n in ast.walk(tree) if isinstance(n, ast.AugAssign)}  # x += ... keeps x's kind
+    for cls in (n for n in ast.walk(tree) if isinstance(n, ast.ClassDef)):
+        for fn in (n for n in cls.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))):
+            static = any(isinstance(d, ast.Name) and d.id == "staticmethod" for d in fn.decorator_list)
+            if fn.args.args and not static:
+                made_sites.add(id(fn.args.args[0]))
+    made, other = set(), set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            made.add(node.name)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            (made if id(node) in made_sites else other).add(node.id)
+        elif isinstance(node, ast.arg):
+            (made if id(node) in made_sites else other).add(node.arg)
+        elif isinstance(node, ast.ExceptHandler) and node.name:
+            other.add(node.name)
+        elif isinstance(node, (ast.MatchAs, ast.MatchStar)) and node.name:
+            other.add(node.name)
+    return made - other
+
+
 def _write_findings(tree: ast.AST, own: set[str], aliases: dict[str, str]) -> list[Finding]:
-    """Attributes set or deleted on a module or on an object the answer did not make, and a module's tables
-    changed in place (``ablation.PAPER_REDUCTION.clear()``)."""
+    """Attributes set or deleted on a module or on an object the answer did not make (``own``: the names it
+    binds only to objects it makes), and a module's tables changed in place (``ablation.PAPER_REDUCTION.clear()``,
+    or under a name that stands for it: ``table = ablation.PAPER_REDUCTION``, then ``table.clear()``)."""
     found = []
     for node in ast.walk(tree):
         call = node.func if isinstance(node, ast.Call) else None
         if (isinstance(call, ast.Attribute) and call.attr in CONTAINER_MUTATORS
-                and isinstance(call.value, (ast.Attribute, ast.Subscript)) and _outside(call.value, own - set(
-                    aliases), aliases)):
+                and ((isinstance(call.value, (ast.Attribute, ast.Subscript)) and _outside(call.value, own - set(
+                    aliases), aliases)) or (isinstance(call.value, ast.Name) and call.value.id in aliases
+                                                       and not names_module(aliases[call.value.id])))):
             found.append(Finding(node.lineno, "guard", f"{ast.unparse(call.value)[:60]} changed in place"))
         if isinstance(node, (ast.Attribute, ast.Subscript)) and isinstance(node.ctx, (ast.Store, ast.Del)):
             if isinstance(node, ast.Subscript) and not isinstance(node.value, ast.Attribute):
@@ -497,15 +606,9 @@ def _given_findings(tree: ast.Module, given: dict[str, list[str]]) -> list[Findi
 def _bindings(tree: ast.AST) -> list[tuple[ast.expr, ast.expr]]:
     """(value, name) for every name the cell binds to a value: ``=``, an annotated one, ``:=``, and a
     loop's or comprehension's names (the value then is what they run over)."""
-    out = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Assign):
-            out += [(node.value, t) for t in node.targets]
-        elif isinstance(node, (ast.AnnAssign, ast.NamedExpr)) and node.value is not None:
-            out.append((node.value, node.target))
-        elif isinstance(node, (ast.For, ast.AsyncFor, ast.comprehension)):
-            out += [(node.iter, n) for n in ast.walk(node.target) if isinstance(n, ast.Name)]
-    return out
+    return [(value, t) for t, value in _assignments(tree)] + [
+        (node.iter, n) for node in ast.walk(tree) if isinstance(node, (ast.For, ast.AsyncFor, ast.comprehension))
+        for n in ast.walk(node.target) if isinstance(n, ast.Name)]
 
 
 def _in_place(tree: ast.AST, given: set[str]) -> list[tuple[int, str]]:
@@ -599,11 +702,12 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
                                          f"{CELL_MAX_CHARS:,} the review reads)")]
     try:
         tree, magic = parse_cell(source)
-        own = bound_names(tree)
+        own, made = bound_names(tree), _made_names(tree)
         aliases = _aliases(tree)
-        found = (_import_findings(tree, aliases) + _call_findings(tree, own, aliases)
+        found = (_import_findings(tree, aliases) + _call_findings(tree, made, aliases)
                  + _builtin_findings(tree) + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
-                 + _write_findings(tree, own, aliases) + _literal_findings(tree, set(computed))
+                 + _write_findings(tree, made, aliases) + _module_value_findings(tree, aliases)
+                 + _literal_findings(tree, set(computed))
                  + _shadow_findings(tree, frozenset(shadowed)) + _given_findings(tree, given or {}))
         magic_lines = {f.line for f in magic}  # there the get_ipython() is IPython's: said once, as the magic
         found = magic + [f for f in found if not (f.line in magic_lines and f.what == "get_ipython")]
