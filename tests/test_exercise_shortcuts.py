@@ -1177,6 +1177,19 @@ MODULE_UNDER_ANOTHER_NAME = {  # name -> (05.3's answer, what the review finds i
 }
 
 
+def test_names_module_tells_a_module_from_what_a_module_holds():
+    """Loaded modules, a submodule read through its package, a module one of the package's own holds, and a
+    submodule file not loaded yet are modules; functions, constants and names that lead nowhere are not, and
+    neither is a name with a path in it (never looked up)."""
+    modules = ["numpy", "numpy.random", "os.path", "geodepth_lite.workbook.grading",
+               "geodepth_lite.evaluation.ablation.np", "json.tool"]
+    others = ["numpy.mean", "os.system", "math.pi", "geodepth_lite.evaluation.ablation.comparisons", "nosuch",
+              "nosuch.deeper", "geodepth_lite.__main__", "numpy.../..", "os.path/../..", "numpy.mean.x"]
+    assert "json.tool" not in sys.modules
+    assert [d for d in modules if not review.names_module(d)] == []
+    assert [d for d in others if review.names_module(d)] == []
+
+
 @pytest.mark.parametrize("name", sorted(MODULE_UNDER_ANOTHER_NAME))
 def test_the_guard_turned_off_through_a_module_under_another_name_is_flagged(name, monkeypatch):
     """Each answer calls the function 05.3 forbids, after turning the grading guard off through a module it

@@ -273,8 +273,8 @@ def names_module(dotted: str) -> bool:
     loaded (the package's own are imported for it; attributes are read as they are stored, running no
     code) and, past those, from the installed files, found without running them."""
     parts = dotted.split(".")
-    if any(DUNDER.fullmatch(p) for p in parts):
-        return False  # __main__ and its kin are flagged by name, and never imported here
+    if any(DUNDER.fullmatch(p) or not p.isidentifier() for p in parts):
+        return False  # __main__ and its kin are flagged by name, and never imported here; no path is looked up
     found, locations = None, None  # what the name reached so far; where its submodules' files lie
     for depth, part in enumerate(parts):
         prefix = ".".join(parts[: depth + 1])
