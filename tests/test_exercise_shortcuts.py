@@ -1190,6 +1190,18 @@ def test_names_module_tells_a_module_from_what_a_module_holds():
     assert [d for d in others if review.names_module(d)] == []
 
 
+def test_a_module_an_earlier_cell_imported_is_known_as_one():
+    """05.3's answer cell imports no numpy: the notebook's first cells do, so in the kernel ``np`` is numpy.
+    Held under another name there, it is flagged; read without the notebook's imports, that cell is clean."""
+    answer = answer_with(EXERCISES["05-3"].answer, (_KEPT + "_m = max([np], key=id)\n_m.asarray = None\n" + _VERDICTS,))
+    assert "import numpy" not in answer
+    assert [(f.rule, f.what) for f in reviewed("05-3", answer)] == [("module-value", "np (the module numpy)")]
+    assert review.review_cell(answer) == []
+    assert review.notebook_imports(["import numpy as np\nx = 1", "from geodepth_lite.evaluation import ablation",
+                                    "if True:\n    import os.path"]) == {
+        "np": "numpy", "ablation": "geodepth_lite.evaluation.ablation", "os": "os"}
+
+
 @pytest.mark.parametrize("name", sorted(MODULE_UNDER_ANOTHER_NAME))
 def test_the_guard_turned_off_through_a_module_under_another_name_is_flagged(name, monkeypatch):
     """Each answer calls the function 05.3 forbids, after turning the grading guard off through a module it

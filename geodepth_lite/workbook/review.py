@@ -195,11 +195,12 @@ def top_level_values(tree: ast.Module) -> dict[str, list[ast.AST]]:
     return out
 
 
-def _aliases(tree: ast.AST) -> dict[str, str]:
+def _aliases(tree: ast.AST, earlier: dict[str, str] | None = None) -> dict[str, str]:
     """local name -> the module or module attribute it stands for (``o`` -> ``os`` after ``import os as o``,
     and after ``o = os`` or ``p = os.path``: a plain assignment passes the name on); ``os`` and ``sys`` stand
-    for themselves where an earlier cell imported them."""
-    out = {"os": "os", "sys": "sys"}
+    for themselves where an earlier cell imported them, and so do the names in ``earlier`` (what the
+    notebook's own cells import: :func:`notebook_imports`)."""
+    out = {"os": "os", "sys": "sys", **(earlier or {})}
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
@@ -691,11 +692,26 @@ def parse_cell(source: str) -> tuple[ast.Module, list[Finding]]:
     return tree, found
 
 
-def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES) -> list[Finding]:
+def notebook_imports(sources) -> dict[str, str]:
+    """name -> the module or module attribute that the notebook's own code cells (``sources``) import under
+    it: in the kernel, an answer finds ``np`` or ``ablation`` bound there without importing them itself."""
+    out = {}
+    for src in sources:
+        try:
+            tree = ast.parse(src)
+        except (SyntaxError, ValueError, RecursionError, MemoryError):
+            continue
+        out.update({k: v for k, v in _aliases(tree).items() if k in bound_names(tree)})
+    return out
+
+
+def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES,
+                earlier=None) -> list[Finding]:
     """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
     the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
     computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
-    (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`). IPython's
+    (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`);
+    ``earlier``: the modules the notebook's own cells import (:func:`notebook_imports`). IPython's
     own syntax is read as the kernel reads it (:func:`parse_cell`)."""
     if len(source) > CELL_MAX_CHARS:
         return [Finding(1, "unreadable", f"the whole cell ({len(source):,} characters, more than the "
@@ -703,7 +719,7 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
     try:
         tree, magic = parse_cell(source)
         own, made = bound_names(tree), _made_names(tree)
-        aliases = _aliases(tree)
+        aliases = _aliases(tree, {k: v for k, v in (earlier or {}).items() if k not in own})
         found = (_import_findings(tree, aliases) + _call_findings(tree, made, aliases)
                  + _builtin_findings(tree) + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
                  + _write_findings(tree, made, aliases) + _module_value_findings(tree, aliases)
@@ -768,6 +784,8 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
     given = {*others, *(exercises.visible_check(ex.check) for ex in reference.values()),
              *(released(ex.answer) for ex in reference.values())}  # a check or a stub run again is no finding
     context = {"check_names": check_only_names([ex.check for ex in reference.values()], others),
+               "earlier": notebook_imports(["".join(c.get("source", "")) for c in source["cells"]
+                                            if c.get("cell_type") == "code"]),
                "shadowed": builtins_read(ex.check for ex in reference.values())}
     mine = {ident: ex for ident, ex in exercises.notebook_exercises(submitted).items() if ident in reference}
     answer_of = {id(ex.cells["answer"]): ident for ident, ex in mine.items() if "answer" in ex.cells}
