@@ -15,10 +15,12 @@ in a fresh namespace (``exercises.run_exercise``), in-process.
 
 import ast
 import collections
+import contextlib
 import copy
 import json
 import re
 import sys
+import tempfile
 import textwrap
 from unittest import mock
 
@@ -393,6 +395,17 @@ def outcome(answer: str, check: str) -> BaseException | None:
     """What running the answer then the check raises (None: the check passes)."""
     try:
         E.run_exercise(answer, check)
+    except Exception as exc:  # noqa: BLE001 - reported by the callers
+        return exc
+    return None
+
+
+def outcome_in(namespace: dict, answer: str, check: str) -> BaseException | None:
+    """What running the answer then the check raises in ``namespace`` (None: the check passes)."""
+    try:
+        with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp):
+            E.run_cell(answer, namespace, "<answer>")
+            E.run_cell(check, namespace, "<check>")
     except Exception as exc:  # noqa: BLE001 - reported by the callers
         return exc
     return None
@@ -1038,6 +1051,12 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                "from traitlets.config import Application\nshell = Application.instance().shell",
                "import ipywidgets\nslider = ipywidgets.IntSlider()\nevents_seen = 3", {}),
     "ipython": ("%xmode Plain\nrate = 100 % 7", "rate = 100 % 7\nok = rate != 2  # not a shell line", {}),
+    "other-cells": ("verdicts = dict(_pre)", "verdicts = dict(toy_result)\nrows = sorted(verdicts, key=len)",
+                    {"notebook_names": {"toy_result"}}),
+    "earlier-run": ("try:\n    _saved\nexcept NameError:\n    _saved = 1\nverdicts = _saved",
+                    "total = 0\nfor v in [1, 2]:\n    total = total + v\n\n\ndef scale(x):\n    return x * FACTOR\n\n\n"
+                    "FACTOR = 2\nrows = [(m, c) for m in 'ab' for c in (1, 2)]\nCASE1 = CASE1 + 0",
+                    {"notebook_names": {"CASE1"}}),
     "module-value": ("import sys\n\nmine = sys\nmine.setprofile(None)",
                      "import numpy as np\n\nrng = np.random.default_rng(0)\nkey = np.abs\n"
                      "order = sorted([3, -1], key=np.abs)\nok = isinstance(rng, np.random.Generator)", {}),
@@ -1173,8 +1192,48 @@ MODULE_UNDER_ANOTHER_NAME = {  # name -> (05.3's answer, what the review finds i
                                                  f"_m = _w.grading\n_m.forbid = {_OFF}\n" + _VERDICTS, {"guard"}),
     "the guard's hook and the reference put back through a list": (
         _KEPT + "import sys\n\n_mods = [ablation, sys]\n_mods[0].comparisons = _kept[0]\n_mods[1].setprofile(None)\n"
-        + _VERDICTS, set()),
+        + _VERDICTS, {"earlier-run"}),  # its try: _kept
 }
+
+
+def _with_added_cell(answer: str, added: str) -> dict:
+    """05.3's notebook as a student returns it: ``answer`` in its answer cell, ``added`` in a cell of their own
+    just before it."""
+    name = next(n for n, nb in NOTEBOOKS.items() if "05-3" in E.notebook_exercises(nb))
+    returned = copy.deepcopy(NOTEBOOKS[name])
+    cell = E.notebook_exercises(returned)["05-3"].cells["answer"]
+    cell["source"] = answer
+    returned["cells"].insert(returned["cells"].index(cell), {"cell_type": "code", "metadata": {}, "outputs": [],
+                                                             "execution_count": None, "source": added})
+    return returned
+
+
+# 05.3 answered with the verdicts of the function it forbids, computed where the checks' guard never looks: in a
+# cell the student added before the answer, or in the answer's own first run, kept for the checks' second
+PRECOMPUTED = {  # name -> (the cell added before the answer, 05.3's answer)
+    "in a cell the student added": (_given("05-3") + "_pre = " + _VERDICTS.split(" = ", 1)[1],
+                                    "verdicts = dict(_pre)\n"),
+    "in the answer's first run": ("", "try:\n    _saved\nexcept NameError:  # the first run: not under the guard\n"
+                                      "    _saved = " + _VERDICTS.split(" = ", 1)[1] + "verdicts = dict(_saved)\n"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PRECOMPUTED))
+def test_an_answer_computed_out_of_the_guards_sight_is_flagged(name):
+    """The checks run the answer cell again under the guard that forbids ablation.comparisons; an answer that
+    only reads verdicts computed earlier (in a cell of the student's, or by its own first run, unguarded) calls
+    nothing forbidden then, so it passes every check, the hidden tests and the answer key included. The review
+    flags each: a variable the notebook's own cells never set, or one read before the cell sets it."""
+    added, code = PRECOMPUTED[name]
+    answer = answer_with(EXERCISES["05-3"].answer, (code,))
+    rule = "other-cells" if added else "earlier-run"
+    name_of = next(n for n, nb in NOTEBOOKS.items() if "05-3" in E.notebook_exercises(nb))
+    found = review.review_notebook(NOTEBOOKS[name_of], _with_added_cell(answer, added or "x = 1\n")).get("05-3", [])
+    assert rule in {f.rule for f in found}, found
+    namespace = E.new_namespace()
+    if added:
+        E.run_cell(added, namespace)
+    assert outcome_in(namespace, answer, EXERCISES["05-3"].check) is None, name
 
 
 def test_names_module_tells_a_module_from_what_a_module_holds():
@@ -1193,7 +1252,7 @@ def test_names_module_tells_a_module_from_what_a_module_holds():
 def test_a_module_an_earlier_cell_imported_is_known_as_one():
     """05.3's answer cell imports no numpy: the notebook's first cells do, so in the kernel ``np`` is numpy.
     Held under another name there, it is flagged; read without the notebook's imports, that cell is clean."""
-    answer = answer_with(EXERCISES["05-3"].answer, (_KEPT + "_m = max([np], key=id)\n_m.asarray = None\n" + _VERDICTS,))
+    answer = answer_with(EXERCISES["05-3"].answer, ("_m = max([np], key=id)\n_m.asarray = None\n" + _VERDICTS,))
     assert "import numpy" not in answer
     assert [(f.rule, f.what) for f in reviewed("05-3", answer)] == [("module-value", "np (the module numpy)")]
     assert review.review_cell(answer) == []
@@ -1208,7 +1267,7 @@ def test_the_guard_turned_off_through_a_module_under_another_name_is_flagged(nam
     holds under another name (a name of its own, a function's argument, a loop, a call's result, a list); so
     each passes every check when run, the hidden tests and the answer key included, and only the review stops
     it. The module used as a value flags each; an attribute set through a name that may stand for a module
-    flags four of them again, and the other two (a call's result, a list) only the first rule sees."""
+    flags four of them again, and of the other two (a call's result, a list) no other rule sees the first."""
     from geodepth_lite.evaluation import ablation
 
     monkeypatch.setattr(grading, "forbid", grading.forbid)  # put back after the answer replaces it

@@ -66,11 +66,17 @@ RULES = {  # rule -> why no honest answer needs it (what the lecturer reads)
                "cannot read",
     "missing-cell": "the exercise's answer cell is missing or lost its grading metadata, so its answer cannot be "
                     "reviewed where the checks expect it",
+    "other-cells": "reads a variable that neither the notebook's own cells nor this answer cell define (a cell the "
+                   "student added, another answer): the checks run this cell again under their guard, and a value "
+                   "made in another cell escapes it",
+    "earlier-run": "reads a variable before the cell sets it (``try: x`` / ``except NameError``): a value left by "
+                   "the cell's first run, made unguarded, escapes the guard when the checks run the cell again",
     "module-value": "uses a module as a value (binds it to another name, puts it in a container, passes it to a "
                     "function): the review can no longer tell which of its functions the answer calls or replaces",
 }
 CELL_MAX_CHARS = 200_000  # a longer cell is not parsed but flagged (6 MB of `x = 1` lines: 2.4 GB to parse)
-OWN_EXERCISE = {"literal-answer", "given-inputs", "check-names", "missing-cell"}  # the other rules change the kernel
+OWN_EXERCISE = {"literal-answer", "given-inputs", "check-names", "missing-cell", "other-cells",
+                "earlier-run"}  # the other rules change the kernel
 IPYTHON_CALLS = {"run_line_magic": "%", "run_cell_magic": "%%", "system": "!", "getoutput": "!"}
 
 MODULES = {  # module (its first name) -> rule
@@ -517,6 +523,54 @@ def module_scope(tree: ast.Module) -> list[ast.stmt]:
     return [n for n in out if isinstance(n, ast.stmt)]
 
 
+def _scope_walk(node: ast.AST):
+    """The nodes of ``node`` that run in its own scope: not inside a function, lambda, class or comprehension
+    it holds (those bind and read their own names)."""
+    yield node
+    if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda, ast.ClassDef, ast.ListComp,
+                             ast.SetComp, ast.DictComp, ast.GeneratorExp)):
+        for child in ast.iter_child_nodes(node):
+            yield from _scope_walk(child)
+
+
+def _earlier_run_findings(tree: ast.Module, earlier: set[str]) -> list[Finding]:
+    """A name read in a scope before that scope first sets it (the cell's top level, or a function for the
+    names it declares ``global``), unless the notebook's own cells set it (``earlier``); and any mention of
+    ``NameError`` or ``UnboundLocalError``. Either tests whether an earlier run of the cell left a value."""
+    found = [Finding(n.lineno, "earlier-run", n.id) for n in ast.walk(tree)
+             if isinstance(n, ast.Name) and n.id in ("NameError", "UnboundLocalError")]
+    scopes = [(tree, None)] + [(fn, {g for st in ast.walk(fn) if isinstance(st, ast.Global) for g in st.names})
+                               for fn in ast.walk(tree) if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    for scope, names in scopes:
+        ends = {}  # a name's node -> where the simple statement that holds it ends (its value is set then)
+        body = []
+        for st in scope.body:
+            for n in _scope_walk(st):
+                body.append(n)
+                if isinstance(n, ast.stmt) and not isinstance(n, COMPOUND):
+                    ends.update((id(m), (n.end_lineno, n.end_col_offset)) for m in _scope_walk(n))
+        first: dict[str, tuple] = {}
+        for n in body:
+            if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Store):
+                at = ends.get(id(n), (n.end_lineno, n.end_col_offset))  # a loop's or with's name: set where it is
+                first[n.id] = min(first.get(n.id, at), at)
+        found += [Finding(n.lineno, "earlier-run", f"{n.id} read before the cell sets it") for n in body
+                  if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load) and n.id in first and n.id not in earlier
+                  and (names is None or n.id in names) and (n.lineno, n.col_offset) < first[n.id]]
+    return found
+
+
+COMPOUND = (ast.If, ast.For, ast.AsyncFor, ast.While, ast.With, ast.AsyncWith, ast.Try, ast.FunctionDef,
+            ast.AsyncFunctionDef, ast.ClassDef, ast.Match)
+
+
+def _other_cell_findings(tree: ast.Module, notebook_names: set[str]) -> list[Finding]:
+    """Names the cell reads that neither it nor the notebook's own cells set (nor Python: builtins)."""
+    bound = bound_names(tree) | notebook_names | BUILTIN_NAMES | KERNEL_NAMES | {"__name__", "__doc__"}
+    return [Finding(n.lineno, "other-cells", n.id) for n in ast.walk(tree)
+            if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load) and n.id not in bound]
+
+
 def _scope_names(node: ast.stmt) -> set[str]:
     """The names one statement binds (or changes in place: ``x[0] = 1``) in the namespace it runs in."""
     if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
@@ -706,12 +760,15 @@ def notebook_imports(sources) -> dict[str, str]:
 
 
 def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES,
-                earlier=None) -> list[Finding]:
+                earlier=None, notebook_names=None) -> list[Finding]:
     """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
     the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
     computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
     (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`);
-    ``earlier``: the modules the notebook's own cells import (:func:`notebook_imports`). IPython's
+    ``earlier``: the modules the notebook's own cells import (:func:`notebook_imports`); ``notebook_names``:
+    the names the notebook's own cells set (given for an answer cell, which the checks run again: a read of
+    any other name, or of one before the cell sets it, is a finding; None: neither is read).
+    IPython's
     own syntax is read as the kernel reads it (:func:`parse_cell`)."""
     if len(source) > CELL_MAX_CHARS:
         return [Finding(1, "unreadable", f"the whole cell ({len(source):,} characters, more than the "
@@ -723,6 +780,8 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
         found = (_import_findings(tree, aliases) + _call_findings(tree, made, aliases)
                  + _builtin_findings(tree) + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
                  + _write_findings(tree, made, aliases) + _module_value_findings(tree, aliases)
+                 + (_earlier_run_findings(tree, set(notebook_names)) + _other_cell_findings(
+                     tree, set(notebook_names)) if notebook_names is not None else [])
                  + _literal_findings(tree, set(computed))
                  + _shadow_findings(tree, frozenset(shadowed)) + _given_findings(tree, given or {}))
         magic_lines = {f.line for f in magic}  # there the get_ipython() is IPython's: said once, as the magic
@@ -735,18 +794,17 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
     return sorted(unique.values(), key=lambda f: (f.line, f.rule, f.what))
 
 
+def _names_bound(source: str) -> set[str]:
+    """The names a cell's code binds (none where Python cannot read it)."""
+    try:
+        return bound_names(ast.parse(source))
+    except (SyntaxError, ValueError, RecursionError, MemoryError):
+        return set()
+
+
 def check_only_names(check_sources, other_sources) -> set[str]:
     """Names the check cells bind that no other cell of the notebook does (lessons, answers)."""
-    def names(sources):
-        out = set()
-        for src in sources:
-            try:
-                out |= bound_names(ast.parse(src))
-            except (SyntaxError, ValueError):
-                continue
-        return out
-
-    return names(check_sources) - names(other_sources)
+    return set().union(*map(_names_bound, check_sources)) - set().union(*map(_names_bound, other_sources))
 
 
 def computed_names(solution: str, check: str) -> set[str]:
@@ -787,6 +845,10 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
                "earlier": notebook_imports(["".join(c.get("source", "")) for c in source["cells"]
                                             if c.get("cell_type") == "code"]),
                "shadowed": builtins_read(ex.check for ex in reference.values())}
+    answer_cells = {id(ex.cells["answer"]) for ex in reference.values() if "answer" in ex.cells}
+    own_names = set().union(*map(_names_bound, [  # by the notebook's own cells: an answer's stub, not its solution
+        *("".join(c.get("source", "")) for c in source["cells"] if c.get("cell_type") == "code"
+          and id(c) not in answer_cells), *(released(ex.answer) for ex in reference.values() if "answer" in ex.cells)]))
     mine = {ident: ex for ident, ex in exercises.notebook_exercises(submitted).items() if ident in reference}
     answer_of = {id(ex.cells["answer"]): ident for ident, ex in mine.items() if "answer" in ex.cells}
     check_of = {id(ex.cells["check"]): ident for ident, ex in mine.items() if "check" in ex.cells}
@@ -801,7 +863,7 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
             out.setdefault(ident, []).extend(f for origin, f in carried if origin != ident)
         elif id(cell) in answer_of:
             ident = answer_of[id(cell)]
-            found = _answer_findings(reference[ident], text, context)
+            found = _answer_findings(reference[ident], text, {**context, "notebook_names": own_names})
             out.setdefault(ident, []).extend(found)
             where = f"in the answer cell of exercise {ident.replace('-', '.')}"
             carried += [(ident, replace(f, where=where)) for f in found if f.rule not in OWN_EXERCISE]
