@@ -1051,7 +1051,7 @@ RULE_CASES = {  # rule -> (planted, near miss, review_cell's keyword arguments)
                "from traitlets.config import Application\nshell = Application.instance().shell",
                "import ipywidgets\nslider = ipywidgets.IntSlider()\nevents_seen = 3", {}),
     "ipython": ("%xmode Plain\nrate = 100 % 7", "rate = 100 % 7\nok = rate != 2  # not a shell line", {}),
-    "other-cells": ("verdicts = dict(_pre)", "verdicts = dict(toy_result)\nrows = sorted(verdicts, key=len)",
+    "other-cells": ("verdicts = dict(_pre)", "verdicts = dict(toy_result)\ndisplay(sorted(verdicts, key=len))",
                     {"notebook_names": {"toy_result"}}),
     "earlier-run": ("try:\n    _saved\nexcept NameError:\n    _saved = 1\nverdicts = _saved",
                     "total = 0\nfor v in [1, 2]:\n    total = total + v\n\n\ndef scale(x):\n    return x * FACTOR\n\n\n"

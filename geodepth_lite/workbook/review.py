@@ -565,8 +565,9 @@ COMPOUND = (ast.If, ast.For, ast.AsyncFor, ast.While, ast.With, ast.AsyncWith, a
 
 
 def _other_cell_findings(tree: ast.Module, notebook_names: set[str]) -> list[Finding]:
-    """Names the cell reads that neither it nor the notebook's own cells set (nor Python: builtins)."""
-    bound = bound_names(tree) | notebook_names | BUILTIN_NAMES | KERNEL_NAMES | {"__name__", "__doc__"}
+    """Names the cell reads that neither it nor the notebook's own cells set (nor Python's builtins, nor the
+    ``display`` IPython adds to them)."""
+    bound = bound_names(tree) | notebook_names | BUILTIN_NAMES | KERNEL_NAMES | {"__name__", "__doc__", "display"}
     return [Finding(n.lineno, "other-cells", n.id) for n in ast.walk(tree)
             if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load) and n.id not in bound]
 
