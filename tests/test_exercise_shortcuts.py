@@ -1210,27 +1210,34 @@ def _with_added_cell(answer: str, added: str) -> dict:
 
 # 05.3 answered with the verdicts of the function it forbids, computed where the checks' guard never looks: in a
 # cell the student added before the answer, or in the answer's own first run, kept for the checks' second
-PRECOMPUTED = {  # name -> (the cell added before the answer, 05.3's answer)
-    "in a cell the student added": (_given("05-3") + "_pre = " + _VERDICTS.split(" = ", 1)[1],
-                                    "verdicts = dict(_pre)\n"),
+_PRE = _VERDICTS.split(" = ", 1)[1]  # the forbidden function's verdicts
+PRECOMPUTED = {  # name -> (the cell added before the answer, 05.3's answer, the rule that flags it)
+    "in a cell the student added": (_given("05-3") + "_pre = " + _PRE, "verdicts = dict(_pre)\n", "other-cells"),
     "in the answer's first run": ("", "try:\n    _saved\nexcept NameError:  # the first run: not under the guard\n"
-                                      "    _saved = " + _VERDICTS.split(" = ", 1)[1] + "verdicts = dict(_saved)\n"),
+                                      "    _saved = " + _PRE + "verdicts = dict(_saved)\n", "earlier-run"),
+    "in an object of the notebook's, by the answer's first run": (
+        "", "if not beside_x:  # a dict a cell of the notebook made: empty at the first run\n"
+            "    beside_x['v'] = " + _PRE + "verdicts = dict(beside_x['v'])\n", "guard"),
+    "in an object of the notebook's, by a cell the student added": (
+        _given("05-3") + "beside_x['v'] = " + _PRE, "verdicts = dict(beside_x['v'])\n", "guard"),
 }
 
 
 @pytest.mark.parametrize("name", sorted(PRECOMPUTED))
 def test_an_answer_computed_out_of_the_guards_sight_is_flagged(name):
     """The checks run the answer cell again under the guard that forbids ablation.comparisons; an answer that
-    only reads verdicts computed earlier (in a cell of the student's, or by its own first run, unguarded) calls
-    nothing forbidden then, so it passes every check, the hidden tests and the answer key included. The review
-    flags each: a variable the notebook's own cells never set, or one read before the cell sets it."""
-    added, code = PRECOMPUTED[name]
+    only reads verdicts computed earlier (in a cell of the student's, or by its own first run, unguarded; kept
+    in a variable or in a dict one of notebook 05's own cells made) calls nothing forbidden then, so it passes
+    every check, the hidden tests and the answer key included. The review flags each: a variable the
+    notebook's own cells never set, one read before the cell sets it, or an object of theirs changed."""
+    added, code, rule = PRECOMPUTED[name]
     answer = answer_with(EXERCISES["05-3"].answer, (code,))
-    rule = "other-cells" if added else "earlier-run"
     name_of = next(n for n, nb in NOTEBOOKS.items() if "05-3" in E.notebook_exercises(nb))
+    assert "beside_x = {}" in "".join("".join(c["source"]) for c in NOTEBOOKS[name_of]["cells"])
     found = review.review_notebook(NOTEBOOKS[name_of], _with_added_cell(answer, added or "x = 1\n")).get("05-3", [])
     assert rule in {f.rule for f in found}, found
     namespace = E.new_namespace()
+    E.run_cell("beside_x = {}", namespace)  # as the notebook's cell makes it
     if added:
         E.run_cell(added, namespace)
     assert outcome_in(namespace, answer, EXERCISES["05-3"].check) is None, name

@@ -761,14 +761,16 @@ def notebook_imports(sources) -> dict[str, str]:
 
 
 def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowed=BUILTIN_NAMES,
-                earlier=None, notebook_names=None) -> list[Finding]:
+                earlier=None, notebook_names=None, notebook_objects=()) -> list[Finding]:
     """The findings of one answer cell, by line (empty: nothing to look at). ``check_names``: variables only
     the checks define (:func:`check_only_names`); ``computed``: answer variables the exercise's solution
     computes rather than writes out (:func:`computed_names`); ``given``: the inputs the answer cell gives
     (:func:`given_inputs`); ``shadowed``: the builtins it must not rebind (:func:`builtins_read`);
     ``earlier``: the modules the notebook's own cells import (:func:`notebook_imports`); ``notebook_names``:
     the names the notebook's own cells set (given for an answer cell, which the checks run again: a read of
-    any other name, or of one before the cell sets it, is a finding; None: neither is read).
+    any other name, or of one before the cell sets it, is a finding; None: neither is read);
+    ``notebook_objects``: the same names, whose objects no cell of the student's may change in place (a
+    value kept there escapes the checks' guard as in another variable).
     IPython's
     own syntax is read as the kernel reads it (:func:`parse_cell`)."""
     if len(source) > CELL_MAX_CHARS:
@@ -781,6 +783,8 @@ def review_cell(source: str, *, check_names=(), computed=(), given=None, shadowe
         found = (_import_findings(tree, aliases) + _call_findings(tree, made, aliases)
                  + _builtin_findings(tree) + _name_findings(tree, own, set(check_names)) + _class_findings(tree)
                  + _write_findings(tree, made, aliases) + _module_value_findings(tree, aliases)
+                 + [Finding(line, "guard", f"{name} changed in place (an object of the notebook's own cells)")
+                    for line, name in _in_place(tree, set(notebook_objects) - own - set(given or {}))]
                  + (_earlier_run_findings(tree, set(notebook_names)) + _other_cell_findings(
                      tree, set(notebook_names)) if notebook_names is not None else [])
                  + _literal_findings(tree, set(computed))
@@ -864,13 +868,15 @@ def review_notebook(source: dict, submitted: dict) -> dict[str, list[Finding]]:
             out.setdefault(ident, []).extend(f for origin, f in carried if origin != ident)
         elif id(cell) in answer_of:
             ident = answer_of[id(cell)]
-            found = _answer_findings(reference[ident], text, {**context, "notebook_names": own_names})
+            found = _answer_findings(reference[ident], text, {**context, "notebook_names": own_names,
+                                                              "notebook_objects": own_names})
             out.setdefault(ident, []).extend(found)
             where = f"in the answer cell of exercise {ident.replace('-', '.')}"
             carried += [(ident, replace(f, where=where)) for f in found if f.rule not in OWN_EXERCISE]
         elif text not in given:
             where = f"in code cell {position}, added or changed by the student"
-            carried += [(None, replace(f, where=where)) for f in review_cell(text, **context)]
+            carried += [(None, replace(f, where=where)) for f in review_cell(text, notebook_objects=own_names,
+                                                                             **context)]
     for ident, ex in reference.items():
         if "answer" in ex.cells and "answer" not in getattr(mine.get(ident), "cells", {}):
             out.setdefault(ident, []).append(Finding(1, "missing-cell", f"exercise {ident.replace('-', '.')}"))
