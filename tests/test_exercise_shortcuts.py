@@ -1215,6 +1215,9 @@ PRECOMPUTED = {  # name -> (the cell added before the answer, 05.3's answer, the
     "in a cell the student added": (_given("05-3") + "_pre = " + _PRE, "verdicts = dict(_pre)\n", "other-cells"),
     "in the answer's first run": ("", "try:\n    _saved\nexcept NameError:  # the first run: not under the guard\n"
                                       "    _saved = " + _PRE + "verdicts = dict(_saved)\n", "earlier-run"),
+    "in the answer's first run, asked of dir()": ("", "if '_saved' not in dir():  # the first run\n"
+                                                        "    _saved = " + _PRE + "verdicts = dict(_saved)\n",
+                                                  "namespace"),
     "in an object of the notebook's, by the answer's first run": (
         "", "if not beside_x:  # a dict a cell of the notebook made: empty at the first run\n"
             "    beside_x['v'] = " + _PRE + "verdicts = dict(beside_x['v'])\n", "guard"),

@@ -385,6 +385,8 @@ def _builtin_findings(tree: ast.AST) -> list[Finding]:
                                  f"{node.id} taken as a value"))
         elif node.id in ATTRIBUTE_BUILTINS and not called:
             found.append(Finding(node.lineno, ATTRIBUTE_BUILTINS[node.id], f"{node.id} taken as a value"))
+    found += [Finding(n.lineno, "namespace", "dir() of the notebook's variables") for n in ast.walk(tree)
+              if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == "dir" and not n.args]
     return found
 
 
